@@ -1,0 +1,248 @@
+"""The `matfit` command line: parse, call one function, print. Nothing else lives here."""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Annotated
+
+import numpy as np
+import typer
+
+from matfit import dataset, files, images, params, presets
+from matfit.dataset import DatasetError
+from matfit.params import ParameterError
+from matfit.render import RenderError
+
+app = typer.Typer(
+    help="Turn an edited picture of a material into photorealistic principled-BSDF parameters.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode=None,
+)
+
+EXPECTED_ERRORS = (ParameterError, RenderError, files.OutputError, DatasetError)
+MAX_RENDER_SIZE = 4096
+
+
+def fail(message: str, code: int = 2) -> None:
+    """Prints a one-line error to standard error and exits with `code`."""
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(code)
+
+
+def command(function=None, *, name: str | None = None):
+    """Registers a command whose expected errors become a one-line message and exit code 2."""
+    if function is None:
+        return functools.partial(command, name=name)
+
+    @functools.wraps(function)
+    def wrapper(*args, **kwargs):
+        signal.signal(signal.SIGTERM, signal.default_int_handler)  # `kill` stops as cleanly as Ctrl-C
+        try:
+            return function(*args, **kwargs)
+        except EXPECTED_ERRORS as error:
+            fail(str(error))
+
+    return app.command(name=name)(wrapper)
+
+
+def echo_notice(notice: str | None) -> None:
+    """Prints a renderer notice (such as the scalar fallback) to standard error."""
+    if notice:
+        typer.echo(notice, err=True)
+
+
+def check_range(name: str, value: int, low: int, high: int) -> None:
+    """Raises ParameterError unless low <= value <= high."""
+    if not low <= value <= high:
+        raise ParameterError(f"{name} {value} is out of range: use {low} to {high}")
+
+
+def read_params_file(path: Path) -> np.ndarray:
+    """Returns the physical parameter vector of a params.json file."""
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as error:
+        raise ParameterError(f"cannot read {path}: {getattr(error, 'strerror', None) or error}") from None
+    return params.parse_params_json(text, str(path))
+
+
+@command
+def render(
+    params_file: Annotated[Path | None, typer.Argument(help="params.json with named values; names left out take defaults.")] = None,
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="Image to write: .png/.jpg/.tif (sRGB 8-bit) or .exr (linear float).")
+    ] = Path("render.png"),
+    size: Annotated[int, typer.Option(help="Width and height in pixels.")] = 512,
+    spp: Annotated[int, typer.Option(help="Samples per pixel.")] = 256,
+    preset: Annotated[str | None, typer.Option(help=f"A named material instead of a file: {', '.join(presets.PRESETS)}.")] = None,
+    random: Annotated[bool, typer.Option("--random", help="A random material from the training distribution (see --seed).")] = False,
+    seed: Annotated[int, typer.Option(help="Seed of the random material and of the render's noise.")] = 0,
+    variant: Annotated[str | None, typer.Option(help="Force a Mitsuba variant: llvm_ad_rgb or scalar_rgb.")] = None,
+) -> None:
+    """Render one material in the test scene with Mitsuba: the artist's starting image."""
+    sources = [params_file is not None, preset is not None, random]
+    if sum(sources) != 1:
+        raise ParameterError("give exactly one material: a params.json file, --preset NAME or --random")
+    check_range("--size", size, dataset.MIN_RESOLUTION, MAX_RENDER_SIZE)
+    check_range("--spp", spp, 1, dataset.MAX_SPP)
+    images.check_extension(str(output))
+    files.check_writable(str(output))
+    if params_file is not None:
+        values = read_params_file(params_file)
+    elif preset is not None:
+        values = presets.preset(preset)
+    else:
+        check_range("--seed", seed, 0, 2**32 - 1)
+        values = params.from_unit(params.sample_unit(np.random.default_rng(seed)))
+        typer.echo(json.dumps(params.params_document(values, source=f"--random --seed {seed}"), indent=2))
+
+    from matfit.render import Renderer
+
+    started = time.perf_counter()
+    renderer = Renderer(size, spp, variant)
+    echo_notice(renderer.notice)
+    image = renderer.render(values, seed=seed)
+    images.write(str(output), image)
+    typer.echo(f"wrote {output} ({size}x{size}, {spp} spp, {renderer.variant}, {time.perf_counter() - started:.1f} s)", err=True)
+
+
+@command(name="presets")
+def presets_sheet(
+    output: Annotated[Path, typer.Option("--output", "-o", help="Contact sheet to write (.png, .jpg or .exr).")] = Path("presets.png"),
+    size: Annotated[int, typer.Option(help="Side of each tile in pixels.")] = 128,
+    spp: Annotated[int, typer.Option(help="Samples per pixel.")] = 256,
+    variant: Annotated[str | None, typer.Option(help="Force a Mitsuba variant: llvm_ad_rgb or scalar_rgb.")] = None,
+) -> None:
+    """Render every preset side by side, labelled, into one picture."""
+    check_range("--size", size, 32, 1024)
+    check_range("--spp", spp, 1, dataset.MAX_SPP)
+    images.check_extension(str(output))
+    files.check_writable(str(output))
+    from matfit.render import Renderer
+
+    renderer = Renderer(size, spp, variant)
+    echo_notice(renderer.notice)
+    tiles = [images.label(images.srgb_encode(renderer.render(presets.preset(name))), name) for name in presets.PRESETS]
+    images.write(str(output), images.srgb_decode(np.concatenate(tiles, axis=1)))
+    typer.echo(f"wrote {output} ({len(tiles)} presets)", err=True)
+
+
+@command(name="params")
+def parameters() -> None:
+    """List the 19 shader parameters: name, range, default, unit and meaning."""
+    for p in params.PARAMETERS:
+        typer.echo(f"{p.name:16} [{p.low:g}, {p.high:g}]  default {p.default:g}  {p.unit:14} {p.meaning}")
+
+
+class Progress:
+    """A progress display: a rich bar on a terminal, a line every 10% otherwise."""
+
+    def __init__(self, label: str):
+        self.label = label
+        self.bar = None
+        self.next_report = 0.0
+        if sys.stderr.isatty():
+            from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
+            from rich.progress import Progress as RichProgress
+
+            self.bar = RichProgress(
+                TextColumn(label),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TextColumn("{task.fields[rate]}"),
+                TimeRemainingColumn(),
+                transient=False,
+            )
+            self.task = None
+
+    def __call__(self, done: int, total: int, rate: float) -> None:
+        rate_text = f"{rate:.1f} img/s" if rate > 0 else ""
+        if self.bar is not None:
+            if self.task is None:
+                self.bar.start()
+                self.task = self.bar.add_task(self.label, total=total, completed=done, rate=rate_text)
+            self.bar.update(self.task, completed=done, rate=rate_text)
+        elif done / total >= self.next_report or done == total:
+            eta = f", {(total - done) / rate:.0f} s left" if rate > 0 else ""
+            typer.echo(f"{self.label}: {done}/{total} ({100 * done / total:.0f}%) {rate_text}{eta}", err=True)
+            self.next_report = min(1.0, done / total + 0.1)
+
+    def close(self) -> None:
+        """Stops the bar, leaving its last state on screen."""
+        if self.bar is not None and self.task is not None:
+            self.bar.stop()
+
+
+@command
+def render_dataset(
+    out: Annotated[Path, typer.Argument(help="Dataset directory (created, resumed or grown).")],
+    count: Annotated[int, typer.Option(help="Total number of samples the dataset should hold.")] = 20000,
+    resolution: Annotated[int, typer.Option(help="Image side in pixels.")] = 64,
+    spp: Annotated[int, typer.Option(help="Samples per pixel.")] = 16,
+    seed: Annotated[int, typer.Option(help="Seed of the parameter sampling and of the renders' noise.")] = 0,
+    workers: Annotated[int, typer.Option(help="Rendering processes; llvm_ad_rgb already uses every core in one.")] = 1,
+    variant: Annotated[str | None, typer.Option(help="Force a Mitsuba variant: llvm_ad_rgb or scalar_rgb.")] = None,
+) -> None:
+    """Render a training set of sampled materials; run it again to resume or to grow it."""
+    check_range("--workers", workers, 1, 64)
+    from matfit import render as render_module
+
+    chosen, notice = render_module.choose_variant(variant)
+    settings = dataset.Settings(resolution, spp, seed, chosen)
+    settings.check()
+    if not 1 <= count <= dataset.MAX_COUNT:
+        raise DatasetError(f"--count {count} is out of range: use 1 to {dataset.MAX_COUNT}")
+    echo_notice(notice)
+    render_module.mitsuba(chosen)
+    data = dataset.prepare(str(out), settings, count, render_module.versions())
+    progress = Progress(f"rendering {out}")
+    try:
+        rendered = dataset.render_missing(data, workers, progress)
+    except KeyboardInterrupt:
+        progress.close()
+        finished = int(np.count_nonzero(np.load(os.path.join(out, "done.npy"), mmap_mode="r")))
+        typer.echo(f"interrupted: {finished}/{count} samples are saved; run the same command to resume", err=True)
+        raise typer.Exit(130) from None
+    progress.close()
+    typer.echo(f"{out}: {count}/{count} samples ({rendered} rendered now, {resolution} px, {spp} spp, {chosen})", err=True)
+
+
+@command
+def bench_render(
+    count: Annotated[int, typer.Option(help="Images timed per configuration.")] = 100,
+    variant: Annotated[str | None, typer.Option(help="Force a Mitsuba variant: llvm_ad_rgb or scalar_rgb.")] = None,
+) -> None:
+    """Measure images per second of `Renderer` against a bare `mi.render` loop on the same scene."""
+    check_range("--count", count, 5, 100000)
+    from matfit.render import Renderer
+
+    typer.echo("| resolution | spp | matfit img/s | bare mi.render img/s | matfit / bare |")
+    typer.echo("|---|---|---|---|---|")
+    for resolution, spp in ((64, 16), (128, 32)):
+        renderer = Renderer(resolution, spp, variant)
+        echo_notice(renderer.notice)
+        materials = [params.from_unit(params.sample_index(1, i)) for i in range(count)]
+        for values in materials[:3]:  # compile every kernel before timing
+            renderer.render(values)
+        started = time.perf_counter()
+        for i, values in enumerate(materials):
+            renderer.render(values, seed=i)
+        ours = count / (time.perf_counter() - started)
+        started = time.perf_counter()
+        for i in range(count):
+            np.array(renderer.mi.render(renderer.scene, seed=i))
+        bare = count / (time.perf_counter() - started)
+        typer.echo(f"| {resolution} | {spp} | {ours:.1f} | {bare:.1f} | {ours / bare:.2f} |")
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()

@@ -1,0 +1,320 @@
+"""The on-disk training set: rendered resumably, read memory-mapped.
+
+A dataset is a directory:
+
+    meta.json    what the arrays hold: format version, count, resolution, spp, Mitsuba variant and
+                 versions, seed, and the parameter table it was sampled from
+    params.npy   float32 (count, 19): the physical parameter values of every sample
+                 (`matfit.params.to_unit` maps them onto the unit cube the networks see)
+    images.npy   float16 (count, resolution, resolution, 3): linear (HDR) RGB renders
+    done.npy     uint8 (count,): 1 where the image has been rendered and written
+
+All three arrays are plain NumPy files, so `numpy.load(path, mmap_mode="r")` reads them without
+matfit. Sample i's parameters come from `params.sample_index(seed, i)` and its image is rendered
+with a seed derived from (seed, i): a sample never depends on the order, chunking or number of
+workers that produced it, so an interrupted run (Ctrl-C or kill -9) is resumed by running the same
+command again, and the result is byte for byte that of an uninterrupted run. An image row is
+written and flushed before its done flag, so a flag never claims an image that is not on disk.
+Asking for a larger count grows the arrays; asking for different settings is refused.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import shutil
+import signal
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from matfit import files, params
+
+FORMAT = "matfit-dataset"
+FORMAT_VERSION = 1
+IMAGE_DTYPE = np.float16
+MIN_RESOLUTION, MAX_RESOLUTION = 8, 1024
+MAX_SPP = 65536
+MAX_COUNT = 10_000_000
+CHUNK = 16
+ARRAYS = ("params.npy", "images.npy", "done.npy")
+
+
+class DatasetError(ValueError):
+    """A dataset cannot be created, extended or read; the message says what to change."""
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What a dataset is rendered with; two runs may only add to one dataset if these agree."""
+
+    resolution: int
+    spp: int
+    seed: int
+    variant: str
+
+    def check(self) -> None:
+        """Raises DatasetError for values no dataset should be made with."""
+        if not MIN_RESOLUTION <= self.resolution <= MAX_RESOLUTION:
+            raise DatasetError(f"resolution {self.resolution} is out of range: use {MIN_RESOLUTION} to {MAX_RESOLUTION} pixels")
+        if not 1 <= self.spp <= MAX_SPP:
+            raise DatasetError(f"spp {self.spp} is out of range: use 1 to {MAX_SPP} samples per pixel")
+        if not 0 <= self.seed < 2**32:
+            raise DatasetError(f"seed {self.seed} is out of range: use 0 to {2**32 - 1}")
+
+
+def image_seed(seed: int, index: int) -> int:
+    """Returns the Mitsuba render seed of sample `index` in the dataset drawn with `seed`."""
+    return int(np.random.SeedSequence([seed, index, 1]).generate_state(1)[0])
+
+
+@dataclass
+class Dataset:
+    """An opened dataset: metadata and memory-mapped arrays."""
+
+    path: str
+    meta: dict
+    params: np.ndarray
+    images: np.ndarray
+    done: np.ndarray
+
+    @property
+    def count(self) -> int:
+        """Returns the number of samples the dataset holds room for."""
+        return int(self.meta["count"])
+
+    @property
+    def resolution(self) -> int:
+        """Returns the image side length in pixels."""
+        return int(self.meta["resolution"])
+
+    @property
+    def finished(self) -> int:
+        """Returns how many samples have been rendered."""
+        return int(np.count_nonzero(self.done))
+
+    def unit_params(self) -> np.ndarray:
+        """Returns every sample's parameters on the unit cube, float32 (count, 19)."""
+        return params.to_unit(self.params).astype(np.float32)
+
+
+def _meta(settings: Settings, count: int, versions: dict) -> dict:
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "count": count,
+        "resolution": settings.resolution,
+        "spp": settings.spp,
+        "seed": settings.seed,
+        "variant": settings.variant,
+        "versions": versions,
+        "image_dtype": np.dtype(IMAGE_DTYPE).name,
+        "images": "linear RGB, (count, resolution, resolution, 3)",
+        "parameter_table": params.table_fingerprint(),
+    }
+
+
+def _write_json(path: str, data: dict) -> None:
+    files.write_text(path, json.dumps(data, indent=2) + "\n")
+
+
+def read_meta(path: str) -> dict:
+    """Returns a dataset's metadata, checking that it is a matfit dataset of a known format."""
+    meta_path = os.path.join(path, "meta.json")
+    if not os.path.isfile(meta_path):
+        raise DatasetError(f"{path} is not a matfit dataset (no meta.json): make one with `matfit render-dataset {path} --count N`")
+    try:
+        with open(meta_path) as file:
+            meta = json.load(file)
+    except (OSError, json.JSONDecodeError) as error:
+        raise DatasetError(f"{meta_path} is corrupt ({error}): delete {path} and render the dataset again") from None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise DatasetError(f"{meta_path} does not describe a matfit dataset: delete {path} and render it again")
+    if meta.get("format_version") != FORMAT_VERSION:
+        raise DatasetError(f"{path} has dataset format {meta.get('format_version')}, this matfit reads {FORMAT_VERSION}: render it again")
+    return meta
+
+
+def open_dataset(path: str, writable: bool = False) -> Dataset:
+    """Returns the dataset at `path` with its arrays memory-mapped (read-only unless `writable`)."""
+    meta = read_meta(path)
+    difference = params.describe_table_difference(meta.get("parameter_table", {}))
+    if difference is not None:
+        raise DatasetError(f"{path} was made with another parameter table ({difference}): render a new dataset")
+    mode = "r+" if writable else "r"
+    count, resolution = int(meta["count"]), int(meta["resolution"])
+    expected = {
+        "params.npy": (count, params.COUNT),
+        "images.npy": (count, resolution, resolution, 3),
+        "done.npy": (count,),
+    }
+    arrays = {}
+    for name, shape in expected.items():
+        file = os.path.join(path, name)
+        try:
+            arrays[name] = np.load(file, mmap_mode=mode)
+        except (OSError, ValueError) as error:
+            raise DatasetError(f"{file} is missing or corrupt ({error}): delete {path} and render the dataset again") from None
+        if arrays[name].shape != shape:
+            raise DatasetError(f"{file} has shape {arrays[name].shape}, meta.json says {shape}: delete {path} and render it again")
+    return Dataset(path, meta, arrays["params.npy"], arrays["images.npy"], arrays["done.npy"])
+
+
+def _check_output_directory(path: str) -> None:
+    parent = os.path.dirname(os.path.abspath(path))
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise DatasetError(f"{path} is a file, not a dataset directory: choose another output path")
+    if not os.path.isdir(parent):
+        raise DatasetError(f"cannot create {path}: directory {parent} does not exist (create it first)")
+    target = path if os.path.isdir(path) else parent
+    if not os.access(target, os.W_OK):
+        raise DatasetError(f"cannot write to {target}: it is read-only (choose another output path)")
+
+
+def _check_disk(path: str, settings: Settings, count: int) -> None:
+    needed = count * (settings.resolution**2 * 3 * np.dtype(IMAGE_DTYPE).itemsize + params.COUNT * 4 + 1)
+    free = shutil.disk_usage(path if os.path.isdir(path) else os.path.dirname(os.path.abspath(path))).free
+    if needed > free:
+        raise DatasetError(
+            f"{count} images at {settings.resolution} px need {needed / 2**30:.1f} GiB, only {free / 2**30:.1f} GiB are free: "
+            "lower --count or --resolution"
+        )
+
+
+def _sampled_params(seed: int, start: int, stop: int) -> np.ndarray:
+    return np.stack([params.from_unit(params.sample_index(seed, i)) for i in range(start, stop)]).astype(np.float32)
+
+
+def _write_arrays(directory: str, settings: Settings, count: int, old: Dataset | None) -> None:
+    """Creates the three arrays for `count` samples, copying over what `old` already holds."""
+    start = old.count if old is not None else 0
+    shapes = {
+        "params.npy": ((count, params.COUNT), np.float32),
+        "images.npy": ((count, settings.resolution, settings.resolution, 3), IMAGE_DTYPE),
+        "done.npy": ((count,), np.uint8),
+    }
+    for name, (shape, dtype) in shapes.items():
+        temporary = os.path.join(directory, f".{name}.partial")
+        array = np.lib.format.open_memmap(temporary, mode="w+", dtype=dtype, shape=shape)
+        if old is not None:
+            array[:start] = getattr(old, name.removesuffix(".npy"))
+        if name == "params.npy":
+            array[start:] = _sampled_params(settings.seed, start, count)
+        array.flush()
+        del array
+    for name in shapes:
+        os.replace(os.path.join(directory, f".{name}.partial"), os.path.join(directory, name))
+
+
+def prepare(path: str, settings: Settings, count: int, versions: dict) -> Dataset:
+    """Returns the dataset at `path` ready to hold `count` samples: created, reused or grown.
+
+    Refuses (DatasetError) an existing dataset made with other settings or parameters, and a
+    count lower than what the dataset already holds.
+    """
+    settings.check()
+    if not 1 <= count <= MAX_COUNT:
+        raise DatasetError(f"count {count} is out of range: use 1 to {MAX_COUNT}")
+    _check_output_directory(path)
+    existing = os.path.isfile(os.path.join(path, "meta.json"))
+    if not existing and os.path.isdir(path) and any(not n.startswith(".") for n in os.listdir(path)):
+        raise DatasetError(f"{path} exists and is not a matfit dataset: choose an empty or new directory")
+    old = None
+    if existing:
+        old = open_dataset(path)
+        for field in ("resolution", "spp", "seed", "variant"):
+            theirs, ours = old.meta[field], getattr(settings, field)
+            if theirs != ours:
+                flag = f"--{field} {theirs}"
+                raise DatasetError(
+                    f"{path} was rendered with {field} {theirs}, not {ours}: pass {flag} to add to it, or choose a new directory"
+                )
+        if count < old.count:
+            raise DatasetError(f"{path} already holds {old.count} samples: pass --count {old.count} or more")
+        if count == old.count:
+            return open_dataset(path, writable=True)
+    os.makedirs(path, exist_ok=True)
+    _check_disk(path, settings, count - (old.count if old else 0))
+    _write_arrays(path, settings, count, old)
+    _write_json(os.path.join(path, "meta.json"), _meta(settings, count, versions))
+    return open_dataset(path, writable=True)
+
+
+def _chunks(indices: np.ndarray, size: int) -> Iterator[np.ndarray]:
+    for start in range(0, len(indices), size):
+        yield indices[start : start + size]
+
+
+# One renderer per worker process, made by `_init_worker`.
+_worker_renderer = None
+
+
+def _init_worker(resolution: int, spp: int, variant: str, in_pool: bool = True) -> None:
+    global _worker_renderer
+    if in_pool:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops the pool
+    from matfit.render import Renderer
+
+    _worker_renderer = Renderer(resolution, spp, variant)
+
+
+def _render_chunk(task: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    indices, values, seeds = task
+    images = np.stack([_worker_renderer.render(v, seed=int(s)) for v, s in zip(values, seeds, strict=True)])
+    return indices, images.astype(IMAGE_DTYPE)
+
+
+def render_missing(
+    dataset: Dataset,
+    workers: int = 1,
+    progress: Callable[[int, int, float], None] | None = None,
+) -> int:
+    """Renders every sample not yet done; returns how many were rendered in this call.
+
+    `progress(done, total, images_per_second)` is called after each chunk. Interrupting (Ctrl-C)
+    keeps everything written so far; the same call later continues from there.
+    """
+    settings = Settings(dataset.resolution, int(dataset.meta["spp"]), int(dataset.meta["seed"]), dataset.meta["variant"])
+    missing = np.flatnonzero(dataset.done == 0)
+    tasks = [
+        (chunk, np.asarray(dataset.params[chunk], dtype=np.float64), np.array([image_seed(settings.seed, int(i)) for i in chunk]))
+        for chunk in _chunks(missing, CHUNK)
+    ]
+    total, finished, rendered, started = dataset.count, dataset.finished, 0, time.perf_counter()
+
+    def store(indices: np.ndarray, images: np.ndarray) -> None:
+        nonlocal finished, rendered
+        dataset.images[indices] = images
+        dataset.images.flush()
+        dataset.done[indices] = 1
+        dataset.done.flush()
+        finished += len(indices)
+        rendered += len(indices)
+        if progress is not None:
+            progress(finished, total, rendered / max(time.perf_counter() - started, 1e-9))
+
+    if progress is not None:
+        progress(finished, total, 0.0)
+    if not tasks:
+        return 0
+    if workers <= 1:
+        _init_worker(settings.resolution, settings.spp, settings.variant, in_pool=False)
+        for task in tasks:
+            store(*_render_chunk(task))
+        return rendered
+    context = multiprocessing.get_context("spawn")  # Dr.Jit's threads do not survive fork
+    pool = context.Pool(workers, _init_worker, (settings.resolution, settings.spp, settings.variant))
+    try:
+        for indices, images in pool.imap_unordered(_render_chunk, tasks):
+            store(indices, images)
+    except BaseException:
+        pool.terminate()
+        raise
+    else:
+        pool.close()
+    finally:
+        pool.join()
+    return rendered

@@ -1,0 +1,111 @@
+"""Image files and colour encoding: the only module that imports OpenImageIO.
+
+Renders are linear RGB. Everything compared or reported (losses, RMSE) is on sRGB-encoded values,
+as in the paper: `rmse` works on 0-255 sRGB. PNG, JPEG and TIFF are written as 8-bit sRGB; EXR and
+HDR as linear float.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import OpenImageIO as oiio
+
+from matfit.files import OutputError, atomic_path
+
+LINEAR_EXTENSIONS = (".exr", ".hdr")
+DISPLAY_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
+
+
+class ImageError(OutputError):
+    """An image cannot be read or written; the message names the file and the fix."""
+
+
+def srgb_encode(linear: np.ndarray) -> np.ndarray:
+    """Returns sRGB-encoded values in [0, 1] for linear values (clipped to [0, 1] first)."""
+    x = np.clip(np.asarray(linear, dtype=np.float32), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055).astype(np.float32)
+
+
+def srgb_decode(encoded: np.ndarray) -> np.ndarray:
+    """Returns linear values for sRGB-encoded values in [0, 1]."""
+    x = np.clip(np.asarray(encoded, dtype=np.float32), 0.0, 1.0)
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
+
+
+def rmse(a_srgb: np.ndarray, b_srgb: np.ndarray) -> float:
+    """Returns the RMSE on the 0-255 scale between two sRGB images in [0, 1].
+
+    sqrt(mean((255 a - 255 b) ** 2)), over every pixel and channel.
+    """
+    a = np.asarray(a_srgb, dtype=np.float64)
+    b = np.asarray(b_srgb, dtype=np.float64)
+    if a.shape != b.shape:
+        raise ValueError(f"Shape mismatch: got {a.shape} and {b.shape}.")
+    return float(255.0 * np.sqrt(np.mean((a - b) ** 2)))
+
+
+def check_extension(path: str) -> str:
+    """Returns the lower-case extension of an image path, if it is one matfit writes."""
+    extension = os.path.splitext(path)[1].lower()
+    if extension not in LINEAR_EXTENSIONS + DISPLAY_EXTENSIONS:
+        supported = ", ".join(LINEAR_EXTENSIONS + DISPLAY_EXTENSIONS)
+        raise ImageError(f"cannot write {path}: unknown image type {extension or '(none)'}; use one of {supported}")
+    return extension
+
+
+def write(path: str, linear: np.ndarray) -> None:
+    """Writes a linear (H, W, 3) image atomically: sRGB 8-bit for PNG/JPEG/TIFF, float for EXR/HDR."""
+    extension = check_extension(path)
+    linear = np.asarray(linear, dtype=np.float32)
+    if extension in LINEAR_EXTENSIONS:
+        pixels, pixel_type = np.ascontiguousarray(linear), "float"
+    else:
+        pixels, pixel_type = np.round(srgb_encode(linear) * 255.0).astype(np.uint8), "uint8"
+    height, width, channels = pixels.shape
+    with atomic_path(path) as temporary:
+        output = oiio.ImageOutput.create(temporary)
+        if output is None:
+            raise ImageError(f"cannot write {path}: {oiio.geterror()}")
+        spec = oiio.ImageSpec(width, height, channels, pixel_type)
+        if extension in DISPLAY_EXTENSIONS:
+            spec.attribute("oiio:ColorSpace", "sRGB")
+        ok = output.open(temporary, spec) and output.write_image(pixels)
+        error = output.geterror()
+        output.close()
+        if not ok:
+            raise ImageError(f"cannot write {path}: {error}")
+
+
+def read(path: str) -> np.ndarray:
+    """Returns an image file as linear float32 (H, W, 3); display formats are sRGB-decoded."""
+    if not os.path.isfile(path):
+        raise ImageError(f"{path} does not exist: check the path")
+    buffer = oiio.ImageBuf(path)
+    pixels = buffer.get_pixels(oiio.FLOAT)
+    if buffer.has_error or pixels is None or pixels.size == 0:
+        raise ImageError(f"{path} is not a readable image: {buffer.geterror() or 'no pixels'}")
+    pixels = np.asarray(pixels, dtype=np.float32)
+    if pixels.ndim == 2:
+        pixels = pixels[:, :, None]
+    channels = pixels.shape[2]
+    if channels == 1:
+        pixels = np.repeat(pixels, 3, axis=2)
+    elif channels >= 3:
+        pixels = pixels[:, :, :3]
+    else:
+        pixels = np.repeat(pixels[:, :, :1], 3, axis=2)
+    if os.path.splitext(path)[1].lower() not in LINEAR_EXTENSIONS:
+        pixels = srgb_decode(pixels)
+    return np.ascontiguousarray(pixels)
+
+
+def label(image_srgb: np.ndarray, text: str, height: int = 14) -> np.ndarray:
+    """Returns an sRGB image with a caption strip of `height` pixels rendered under it."""
+    width = image_srgb.shape[1]
+    strip = oiio.ImageBuf(oiio.ImageSpec(width, height, 3, "float"))
+    oiio.ImageBufAlgo.fill(strip, (0.0, 0.0, 0.0))
+    oiio.ImageBufAlgo.render_text(strip, 3, height - 3, text, fontsize=height - 3, textcolor=(1.0, 1.0, 1.0))
+    caption = np.asarray(strip.get_pixels(oiio.FLOAT), dtype=np.float32).reshape(height, width, 3)
+    return np.concatenate([image_srgb, caption], axis=0)

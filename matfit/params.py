@@ -1,0 +1,255 @@
+"""The 19 shader parameters: the single source of truth for names, ranges and meanings.
+
+Everything that needs to know what a material is (the renderer, the dataset, the networks, the
+optimiser, params.json) reads it from `PARAMETERS`. Networks and optimisers only ever see the unit
+cube [0, 1]^19; `to_unit` and `from_unit` are the one place where physical values meet it.
+
+The shader is Mitsuba's `principled` BSDF (13 values) with a homogeneous medium inside the object
+(6 values). The medium is only reached by light that the BSDF transmits (`spec_trans` > 0):
+- the *absorption colour* c is the colour that white light keeps after one unit of travel (the
+  sphere's radius) through the medium at density 1; the extinction per colour channel is
+  sigma_t = density * (-ln c), so the transmittance over a path of length L is c ** (density * L);
+- the *scattering fraction* is the single-scattering albedo: the share of the extinction that
+  scatters rather than absorbs (0: clear coloured glass, 1: milky, wax-like interiors);
+- the phase anisotropy g is the Henyey-Greenstein mean cosine (g > 0 scatters forward).
+Colour and density trade off against each other (c ** 2 at density 1 looks like c at density 2):
+that redundancy is deliberate, it is how artists think of coloured glass ("what colour, how thick").
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One bounded shader parameter.
+
+    `low_corner` and `high_corner` are the probabilities with which `sample_unit` draws the value
+    from the bottom or top 5% of the range (the "corners" that uniform sampling would rarely
+    visit: perfectly opaque or perfectly transmissive, non-metal or metal); the rest of the mass is
+    spread over the whole range, warped by `power` (u ** power; > 1 favours low values).
+    """
+
+    name: str
+    low: float
+    high: float
+    default: float
+    unit: str
+    meaning: str
+    low_corner: float = 0.0
+    high_corner: float = 0.0
+    power: float = 1.0
+
+
+PARAMETERS: tuple[Parameter, ...] = (
+    Parameter("base_color_r", 0.0, 1.0, 0.8, "reflectance", "base colour, red channel (linear)"),
+    Parameter("base_color_g", 0.0, 1.0, 0.8, "reflectance", "base colour, green channel (linear)"),
+    Parameter("base_color_b", 0.0, 1.0, 0.8, "reflectance", "base colour, blue channel (linear)"),
+    Parameter("metallic", 0.0, 1.0, 0.0, "fraction", "0 dielectric, 1 metal (base colour tints the reflection)", 0.45, 0.2),
+    Parameter("roughness", 0.0, 1.0, 0.5, "fraction", "microfacet roughness: 0 mirror-like, 1 matte", 0.15, 0.0, 2.0),
+    Parameter("anisotropic", 0.0, 1.0, 0.0, "fraction", "stretches highlights along the tangent direction", 0.5, 0.0),
+    Parameter("specular", 0.0, 1.0, 0.5, "fraction", "Fresnel reflectance; sets the index of refraction eta (0.5 -> 1.5)"),
+    Parameter("spec_tint", 0.0, 1.0, 0.0, "fraction", "tints dielectric specular reflection towards the base colour", 0.4, 0.0),
+    Parameter("sheen", 0.0, 1.0, 0.0, "fraction", "soft grazing-angle reflection, as on cloth", 0.5, 0.0),
+    Parameter("sheen_tint", 0.0, 1.0, 0.5, "fraction", "tints the sheen towards the base colour"),
+    Parameter("clearcoat", 0.0, 1.0, 0.0, "fraction", "strength of a second, clear varnish-like specular layer", 0.5, 0.0),
+    Parameter("clearcoat_gloss", 0.0, 1.0, 1.0, "fraction", "glossiness of the clearcoat: 0 satin, 1 gloss"),
+    Parameter("spec_trans", 0.0, 1.0, 0.0, "fraction", "specular transmission: 0 opaque, 1 glass-like", 0.4, 0.3),
+    Parameter(
+        "medium_color_r", 0.01, 1.0, 1.0, "transmittance", "absorption colour, red: light kept after one radius at density 1", 0.0, 0.2
+    ),
+    Parameter(
+        "medium_color_g", 0.01, 1.0, 1.0, "transmittance", "absorption colour, green: light kept after one radius at density 1", 0.0, 0.2
+    ),
+    Parameter(
+        "medium_color_b", 0.01, 1.0, 1.0, "transmittance", "absorption colour, blue: light kept after one radius at density 1", 0.0, 0.2
+    ),
+    Parameter(
+        "density", 0.0, 4.0, 0.0, "multiplier", "thickness of the interior medium: extinction = density * -ln(colour)", 0.3, 0.0, 1.5
+    ),
+    Parameter(
+        "scattering", 0.0, 1.0, 0.0, "albedo", "share of the medium's extinction that scatters (milky) rather than absorbs", 0.3, 0.2
+    ),
+    Parameter("phase_g", -0.9, 0.9, 0.0, "mean cosine", "Henyey-Greenstein anisotropy of the medium: < 0 back-, > 0 forward-scattering"),
+)
+
+NAMES: tuple[str, ...] = tuple(p.name for p in PARAMETERS)
+COUNT = len(PARAMETERS)
+LOW = np.array([p.low for p in PARAMETERS], dtype=np.float64)
+HIGH = np.array([p.high for p in PARAMETERS], dtype=np.float64)
+DEFAULTS = np.array([p.default for p in PARAMETERS], dtype=np.float64)
+INDEX = {name: i for i, name in enumerate(NAMES)}
+
+# Width of the corner bands that `sample_unit` favours, as a fraction of each range.
+CORNER_WIDTH = 0.05
+MINIMUM_EXTINCTION = 1e-4
+# Bumped whenever `PARAMETERS` or the sampling changes, so that datasets and models made with
+# another table are recognised as such.
+TABLE_VERSION = 1
+
+assert COUNT == 19, "the paper's shader has m = 19 parameters"
+
+
+class ParameterError(ValueError):
+    """A parameter name or value that the shader cannot take; the message says how to fix it."""
+
+
+def to_unit(values: np.ndarray) -> np.ndarray:
+    """Returns physical values (..., 19) mapped affinely onto the unit cube [0, 1]^19."""
+    values = np.asarray(values, dtype=np.float64)
+    return (values - LOW) / (HIGH - LOW)
+
+
+def from_unit(unit: np.ndarray) -> np.ndarray:
+    """Returns unit-cube coordinates (..., 19) mapped back onto the physical ranges."""
+    unit = np.asarray(unit, dtype=np.float64)
+    return LOW + unit * (HIGH - LOW)
+
+
+def table() -> list[dict]:
+    """Returns the parameter table as plain data, for dataset and model metadata."""
+    return [{"name": p.name, "low": p.low, "high": p.high, "default": p.default, "unit": p.unit} for p in PARAMETERS]
+
+
+def table_fingerprint() -> dict:
+    """Returns what identifies this parameter table: compared when a dataset or model is reused."""
+    return {"version": TABLE_VERSION, "parameters": table()}
+
+
+def describe_table_difference(stored: Mapping) -> str | None:
+    """Returns a one-line description of how a stored table differs from ours, or None if equal."""
+    ours = table_fingerprint()
+    if stored == ours:
+        return None
+    stored_names = [p.get("name") for p in stored.get("parameters", [])]
+    if stored_names != list(NAMES):
+        missing = sorted(set(NAMES) - set(stored_names))
+        extra = sorted(set(stored_names) - set(NAMES))
+        if not missing and not extra:
+            return "the parameters are in another order"
+        return f"parameters missing: {missing or 'none'}, unexpected: {extra or 'none'}"
+    for theirs, mine in zip(stored["parameters"], ours["parameters"], strict=True):
+        if theirs != mine:
+            return f"parameter {mine['name']!r} is {theirs}, expected {mine}"
+    return f"parameter table version {stored.get('version')} (this matfit uses {TABLE_VERSION})"
+
+
+def sample_unit(rng: np.random.Generator) -> np.ndarray:
+    """Returns one unit-cube vector from the training distribution.
+
+    Per parameter: with probability `low_corner` the value lies uniformly in [0, 0.05], with
+    probability `high_corner` in [0.95, 1], otherwise it is u ** power for u uniform in [0, 1].
+    So a quarter to a half of the samples are exact-looking non-metals, metals, opaque or fully
+    transmissive materials, and roughness leans towards glossy, while every interior point
+    stays reachable.
+    """
+    choice = rng.random(COUNT)
+    band = rng.random(COUNT) * CORNER_WIDTH
+    interior = rng.random(COUNT)
+    out = np.empty(COUNT)
+    for i, p in enumerate(PARAMETERS):
+        if choice[i] < p.low_corner:
+            out[i] = band[i]
+        elif choice[i] < p.low_corner + p.high_corner:
+            out[i] = 1.0 - band[i]
+        else:
+            out[i] = interior[i] ** p.power
+    return out
+
+
+def sample_index(seed: int, index: int) -> np.ndarray:
+    """Returns the unit-cube vector number `index` of the dataset drawn with `seed`.
+
+    Each index has its own random stream, so sample i is the same whatever order, chunking or
+    number of workers produced it.
+    """
+    return sample_unit(np.random.default_rng([seed, index]))
+
+
+def closest_name(name: str) -> str | None:
+    """Returns the parameter name closest to a misspelt one, if any is close."""
+    matches = difflib.get_close_matches(name, NAMES, n=1, cutoff=0.5)
+    return matches[0] if matches else None
+
+
+def check_value(name: str, value: object) -> float:
+    """Returns `value` as a float after checking that `name` exists and the value is in range."""
+    if name not in INDEX:
+        suggestion = closest_name(name)
+        hint = f"did you mean {suggestion!r}?" if suggestion else "see `matfit params` for the list"
+        raise ParameterError(f"unknown parameter {name!r}: {hint}")
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ParameterError(f"parameter {name!r} must be a number, got {value!r}")
+    value = float(value)
+    p = PARAMETERS[INDEX[name]]
+    if math.isnan(value) or math.isinf(value):
+        raise ParameterError(f"parameter {name!r} is {value}: give a number in [{p.low}, {p.high}]")
+    if not p.low <= value <= p.high:
+        raise ParameterError(f"parameter {name!r} = {value} is out of range: use a value in [{p.low}, {p.high}]")
+    return value
+
+
+def from_mapping(values: Mapping[str, object]) -> np.ndarray:
+    """Returns the physical vector (19,) for named values; missing names take their defaults."""
+    out = DEFAULTS.copy()
+    for name, value in values.items():
+        checked = check_value(name, value)
+        out[INDEX[name]] = checked
+    return out
+
+
+def to_mapping(values: np.ndarray) -> dict[str, float]:
+    """Returns the named values of a physical vector (19,), rounded to 6 decimals for humans."""
+    values = np.asarray(values, dtype=np.float64)
+    if values.shape != (COUNT,):
+        raise ParameterError(f"expected {COUNT} parameter values, got shape {values.shape}")
+    return {name: round(float(v), 6) for name, v in zip(NAMES, values, strict=True)}
+
+
+def parse_params_json(text: str, source: str = "params.json") -> np.ndarray:
+    """Returns the physical vector described by a params.json text.
+
+    The file is a JSON object, either {"params": {name: value, ...}, ...other fields} (what matfit
+    writes) or a flat {name: value, ...}. Names left out take their defaults.
+    """
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise ParameterError(f"{source} is not valid JSON ({error.msg} at line {error.lineno}, column {error.colno})") from None
+    if isinstance(data, dict) and isinstance(data.get("params"), dict):
+        data = data["params"]
+    if not isinstance(data, dict):
+        raise ParameterError(f'{source} must hold a JSON object of parameter names and values, like {{"roughness": 0.2}}')
+    try:
+        return from_mapping(data)
+    except ParameterError as error:
+        raise ParameterError(f"{source}: {error}") from None
+
+
+def params_document(values: np.ndarray, **extra: object) -> dict:
+    """Returns the params.json document for a physical vector, with units and extra fields."""
+    return {
+        "params": to_mapping(values),
+        "units": {p.name: p.unit for p in PARAMETERS},
+        **extra,
+    }
+
+
+def medium_coefficients(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (sigma_t rgb, albedo rgb) of the interior medium for a physical vector (19,).
+
+    sigma_t = density * -ln(absorption colour), albedo = scattering fraction (grey).
+    """
+    colour = np.asarray(values[INDEX["medium_color_r"] : INDEX["medium_color_b"] + 1], dtype=np.float64)
+    # A medium with zero extinction makes Mitsuba's distance sampling divide by zero; 1e-4 per
+    # radius is invisible (the sphere then keeps 99.98% of the light).
+    sigma_t = np.maximum(values[INDEX["density"]] * -np.log(colour), MINIMUM_EXTINCTION)
+    albedo = np.full(3, values[INDEX["scattering"]])
+    return sigma_t, albedo

@@ -1,0 +1,158 @@
+"""The material test scene as plain data: camera, lights, floor, backdrop and the shaded sphere.
+
+No Mitsuba import here: transforms are `Transform` records and the environment map is a NumPy
+array; `render.py` turns them into Mitsuba objects. Keeping the scene as data lets the exporters
+write the same shader that the renderer uses, and lets tests inspect the scene without rendering.
+
+Layout (units: the sphere's radius): a unit sphere at the origin resting on a checker floor at
+y = -1, a light-grey backdrop 4 units behind it, a camera 5.5 units in front looking slightly
+down, a soft rectangular key light above-left, and a procedural sky-to-ground gradient as the
+environment. The checker shows through transmissive spheres (refracted and upside down) and in
+reflections, so that roughness, index of refraction and interior absorption are all visible.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from matfit import params
+
+FIELD_OF_VIEW = 30.0
+MAX_DEPTH = 64
+# The largest extinction the parameter ranges allow: density 4 through colour 0.01.
+MEDIUM_SCALE = float(params.HIGH[params.INDEX["density"]] * -np.log(params.LOW[params.INDEX["medium_color_r"]]))
+
+
+@dataclass(frozen=True)
+class Transform:
+    """A to_world transform as a list of operations applied in order (first one innermost)."""
+
+    operations: tuple[tuple, ...] = field(default_factory=tuple)
+
+    def then(self, *operation: object) -> Transform:
+        """Returns this transform followed by one more operation."""
+        return Transform((*self.operations, tuple(operation)))
+
+
+def identity() -> Transform:
+    """Returns the identity transform."""
+    return Transform()
+
+
+def environment_map(height: int = 32, width: int = 64) -> np.ndarray:
+    """Returns a (height, width, 3) linear-RGB latitude-longitude sky: bright above, dark below."""
+    elevation = 0.5 - (np.arange(height) + 0.5) / height  # +0.5 at the zenith, -0.5 at the nadir
+    sky = np.array([0.75, 0.85, 1.0])
+    horizon = np.array([0.9, 0.9, 0.85])
+    ground = np.array([0.15, 0.13, 0.12])
+    up = np.clip(elevation * 2.0, 0.0, 1.0)[:, None]
+    down = np.clip(-elevation * 6.0, 0.0, 1.0)[:, None]
+    rows = horizon * (1 - up) + sky * up
+    rows = rows * (1 - down) + ground * down
+    return np.repeat(rows[:, None, :], width, axis=1).astype(np.float32)
+
+
+def bsdf(values: np.ndarray) -> dict:
+    """Returns the Mitsuba `principled` BSDF dictionary for a physical parameter vector (19,)."""
+    v = dict(zip(params.NAMES, (float(x) for x in values), strict=True))
+    return {
+        "type": "principled",
+        "base_color": {"type": "rgb", "value": [v["base_color_r"], v["base_color_g"], v["base_color_b"]]},
+        "metallic": v["metallic"],
+        "roughness": v["roughness"],
+        "anisotropic": v["anisotropic"],
+        "specular": v["specular"],
+        "spec_tint": v["spec_tint"],
+        "sheen": v["sheen"],
+        "sheen_tint": v["sheen_tint"],
+        "clearcoat": v["clearcoat"],
+        "clearcoat_gloss": v["clearcoat_gloss"],
+        "spec_trans": v["spec_trans"],
+    }
+
+
+def medium_textures(values: np.ndarray) -> tuple[list[float], list[float]]:
+    """Returns (sigma_t / MEDIUM_SCALE, albedo) as the medium's two RGB texture values.
+
+    Mitsuba's RGB textures hold values in [0, 1] and the medium's `scale` is a plain float (each
+    new value would recompile the renderer), so the extinction is stored divided by the fixed
+    largest extinction the parameter ranges allow.
+    """
+    sigma_t, albedo = params.medium_coefficients(values)
+    return [float(s) / MEDIUM_SCALE for s in sigma_t], [float(a) for a in albedo]
+
+
+def medium(values: np.ndarray) -> dict:
+    """Returns the Mitsuba homogeneous medium dictionary for a physical parameter vector (19,)."""
+    sigma_t, albedo = medium_textures(values)
+    return {
+        "type": "homogeneous",
+        "scale": MEDIUM_SCALE,
+        "sigma_t": {"type": "rgb", "value": sigma_t},
+        "albedo": {"type": "rgb", "value": albedo},
+        "phase": {"type": "hg", "g": float(values[params.INDEX["phase_g"]])},
+    }
+
+
+def all_lobes_values() -> np.ndarray:
+    """Returns a vector with every principled lobe and the medium switched on.
+
+    Mitsuba switches a principled lobe on when it is present at load time and never off again, so
+    the scene is loaded with all of them present: every image is then rendered with the same lobe
+    set, whatever material was rendered before it.
+    """
+    return params.from_unit(np.full(params.COUNT, 0.5))
+
+
+def scene(resolution: int, spp: int, values: np.ndarray | None = None) -> dict:
+    """Returns the whole test scene as a plain dictionary for `render.load`."""
+    values = all_lobes_values() if values is None else values
+    return {
+        "type": "scene",
+        "integrator": {"type": "volpath", "max_depth": MAX_DEPTH},
+        "sensor": {
+            "type": "perspective",
+            "fov": FIELD_OF_VIEW,
+            "to_world": identity().then("look_at", (0.0, 0.9, 5.5), (0.0, -0.1, 0.0), (0.0, 1.0, 0.0)),
+            "film": {"type": "hdrfilm", "width": resolution, "height": resolution, "pixel_format": "rgb"},
+            "sampler": {"type": "independent", "sample_count": spp},
+        },
+        "sky": {
+            "type": "envmap",
+            "bitmap": environment_map(),
+            "scale": 0.6,
+        },
+        "key_light": {
+            "type": "rectangle",
+            "to_world": identity().then("scale", (1.2, 1.2, 1.0)).then("look_at", (-3.0, 4.0, 3.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+            "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [6.0, 6.0, 6.0]}},
+        },
+        "floor": {
+            "type": "rectangle",
+            "to_world": identity()
+            .then("scale", (12.0, 12.0, 1.0))
+            .then("rotate", (1.0, 0.0, 0.0), -90.0)
+            .then("translate", (0.0, -1.0, 0.0)),
+            "bsdf": {
+                "type": "diffuse",
+                "reflectance": {
+                    "type": "checkerboard",
+                    "color0": {"type": "rgb", "value": [0.08, 0.08, 0.08]},
+                    "color1": {"type": "rgb", "value": [0.7, 0.7, 0.7]},
+                    "to_uv": identity().then("scale", (12.0, 12.0, 1.0)),
+                },
+            },
+        },
+        "backdrop": {
+            "type": "rectangle",
+            "to_world": identity().then("scale", (12.0, 6.0, 1.0)).then("translate", (0.0, 5.0, -4.0)),
+            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.45, 0.45, 0.45]}},
+        },
+        "object": {
+            "type": "sphere",
+            "bsdf": bsdf(values),
+            "interior": medium(values),
+        },
+    }
