@@ -170,8 +170,10 @@ def _check_output_directory(path: str) -> None:
     if not os.path.isdir(parent):
         raise DatasetError(f"cannot create {path}: directory {parent} does not exist (create it first)")
     target = path if os.path.isdir(path) else parent
-    if not os.access(target, os.W_OK):
-        raise DatasetError(f"cannot write to {target}: it is read-only (choose another output path)")
+    try:
+        files.check_writable(os.path.join(target, "meta.json"))
+    except files.OutputError:
+        raise DatasetError(f"cannot write to {target}: it is read-only (choose another output path)") from None
 
 
 def _check_disk(path: str, settings: Settings, count: int) -> None:

@@ -17,10 +17,13 @@ def check_writable(path: str) -> None:
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
         raise OutputError(f"cannot write {path}: directory {directory} does not exist (create it first)")
-    if not os.access(directory, os.W_OK):
-        raise OutputError(f"cannot write {path}: directory {directory} is read-only (choose another output path)")
     if os.path.isdir(path):
         raise OutputError(f"cannot write {path}: it is a directory (give a file name)")
+    try:  # a real probe: os.access says yes to root even on read-only directories
+        with tempfile.TemporaryFile(dir=directory):
+            pass
+    except OSError:
+        raise OutputError(f"cannot write {path}: directory {directory} is read-only (choose another output path)") from None
 
 
 @contextlib.contextmanager

@@ -5,9 +5,9 @@ array; `render.py` turns them into Mitsuba objects. Keeping the scene as data le
 write the same shader that the renderer uses, and lets tests inspect the scene without rendering.
 
 Layout (units: the sphere's radius): a unit sphere at the origin resting on a checker floor at
-y = -1, a light-grey backdrop 4 units behind it, a camera 5.5 units in front looking slightly
+y = -1, a lower-contrast checkered backdrop 4 units behind it, a camera 5.5 units in front looking slightly
 down, a soft rectangular key light above-left, and a procedural sky-to-ground gradient as the
-environment. The checker shows through transmissive spheres (refracted and upside down) and in
+environment. The checkers show through transmissive spheres (refracted and upside down) and in
 reflections, so that roughness, index of refraction and interior absorption are all visible.
 """
 
@@ -52,6 +52,20 @@ def environment_map(height: int = 32, width: int = 64) -> np.ndarray:
     rows = horizon * (1 - up) + sky * up
     rows = rows * (1 - down) + ground * down
     return np.repeat(rows[:, None, :], width, axis=1).astype(np.float32)
+
+
+def checker(dark: float, light: float, cells: float | tuple[float, float]) -> dict:
+    """Returns a diffuse BSDF with a grey checkerboard of `cells` squares across its rectangle."""
+    across, down = (cells, cells) if isinstance(cells, float) else cells
+    return {
+        "type": "diffuse",
+        "reflectance": {
+            "type": "checkerboard",
+            "color0": {"type": "rgb", "value": [dark, dark, dark]},
+            "color1": {"type": "rgb", "value": [light, light, light]},
+            "to_uv": identity().then("scale", (across / 2.0, down / 2.0, 1.0)),
+        },
+    }
 
 
 def bsdf(values: np.ndarray) -> dict:
@@ -135,20 +149,12 @@ def scene(resolution: int, spp: int, values: np.ndarray | None = None) -> dict:
             .then("scale", (12.0, 12.0, 1.0))
             .then("rotate", (1.0, 0.0, 0.0), -90.0)
             .then("translate", (0.0, -1.0, 0.0)),
-            "bsdf": {
-                "type": "diffuse",
-                "reflectance": {
-                    "type": "checkerboard",
-                    "color0": {"type": "rgb", "value": [0.08, 0.08, 0.08]},
-                    "color1": {"type": "rgb", "value": [0.7, 0.7, 0.7]},
-                    "to_uv": identity().then("scale", (12.0, 12.0, 1.0)),
-                },
-            },
+            "bsdf": checker(0.08, 0.7, 24.0),
         },
         "backdrop": {
             "type": "rectangle",
             "to_world": identity().then("scale", (12.0, 6.0, 1.0)).then("translate", (0.0, 5.0, -4.0)),
-            "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.45, 0.45, 0.45]}},
+            "bsdf": checker(0.25, 0.6, (24.0, 12.0)),
         },
         "object": {
             "type": "sphere",

@@ -1,0 +1,48 @@
+# matfit: `make install` then `make test`. Everything runs inside the virtual environment $(VENV).
+VENV ?= .venv
+PYTHON ?= python3
+BIN := $(VENV)/bin
+
+.PHONY: install llvm test lint format bench presets clean
+
+install: $(BIN)/matfit llvm
+	@$(BIN)/matfit --help >/dev/null && echo "matfit installed in $(VENV): run '$(BIN)/matfit --help' or activate with '. $(BIN)/activate'"
+
+$(BIN)/matfit: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e ".[dev]"
+	@touch $@
+
+# Mitsuba's fast CPU variant needs libLLVM >= 19 (Debian 12 ships 15, which crashes it).
+llvm: $(BIN)/matfit
+	@if $(BIN)/python -c "import sys, matfit.render as r; sys.exit(r.find_libllvm() is None)"; then \
+		echo "libLLVM: $$($(BIN)/python -c 'import matfit.render as r; print(r.find_libllvm())')"; \
+	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+		echo "installing Debian's libllvm19 for Mitsuba's llvm_ad_rgb variant"; \
+		(apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19 >/dev/null) \
+		|| echo "notice: could not install libllvm19: matfit will render with the slower scalar_rgb variant"; \
+	else \
+		echo "notice: no libLLVM >= 19 and not root: matfit will render with the slower scalar_rgb variant (install libllvm19 for llvm_ad_rgb)"; \
+	fi
+
+test: $(BIN)/matfit
+	$(BIN)/ruff check matfit tests
+	$(BIN)/ruff format --check matfit tests
+	$(BIN)/python -m pytest -q
+
+lint: $(BIN)/matfit
+	$(BIN)/ruff check matfit tests
+
+format: $(BIN)/matfit
+	$(BIN)/ruff format matfit tests
+	$(BIN)/ruff check --fix matfit tests
+
+bench: $(BIN)/matfit
+	$(BIN)/matfit bench-render --count 200
+
+presets: $(BIN)/matfit
+	$(BIN)/matfit presets -o data/presets.png --size 128 --spp 512
+
+clean:
+	rm -rf $(VENV) *.egg-info .pytest_cache .ruff_cache

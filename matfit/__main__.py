@@ -1,0 +1,5 @@
+"""`python -m matfit` runs the command line."""
+
+from matfit.cli import main
+
+main()

@@ -1,0 +1,109 @@
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from matfit import images
+from matfit.cli import app
+
+runner = CliRunner()
+
+
+def run(*arguments):
+    return runner.invoke(app, [str(a) for a in arguments])
+
+
+def assert_one_line_error(result, *fragments):
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
+    for fragment in fragments:
+        assert fragment in lines[0]
+    assert "Traceback" not in result.output
+
+
+def test_render_a_preset_to_png_and_exr(tmp_path):
+    result = run("render", "--preset", "gold", "-o", tmp_path / "gold.png", "--size", 16, "--spp", 4)
+    assert result.exit_code == 0, result.output
+    png = images.read(str(tmp_path / "gold.png"))
+    assert png.shape == (16, 16, 3)
+    result = run("render", "--preset", "gold", "-o", tmp_path / "gold.exr", "--size", 16, "--spp", 4)
+    assert result.exit_code == 0, result.output
+    exr = images.read(str(tmp_path / "gold.exr"))
+    assert images.rmse(images.srgb_encode(exr), images.srgb_encode(png)) < 0.5
+    assert exr.mean(axis=(0, 1))[0] > exr.mean(axis=(0, 1))[2]  # gold is warm
+
+
+def test_render_a_params_file_and_a_random_material(tmp_path):
+    (tmp_path / "p.json").write_text(json.dumps({"base_color_r": 0.9, "base_color_g": 0.1, "base_color_b": 0.1}))
+    result = run("render", tmp_path / "p.json", "-o", tmp_path / "red.png", "--size", 16, "--spp", 4)
+    assert result.exit_code == 0, result.output
+    red = images.read(str(tmp_path / "red.png"))
+    assert red[8, 8, 0] > red[8, 8, 2]
+    result = run("render", "--random", "--seed", 5, "-o", tmp_path / "random.png", "--size", 16, "--spp", 4)
+    assert result.exit_code == 0, result.output
+    printed = json.loads(result.stdout)
+    assert set(printed["params"]) >= {"roughness", "phase_g"}
+
+
+def test_render_dataset_through_the_cli(tmp_path):
+    result = run("render-dataset", tmp_path / "d", "--count", 6, "--resolution", 16, "--spp", 2)
+    assert result.exit_code == 0, result.output
+    assert "6/6" in result.output
+    assert np.load(tmp_path / "d" / "done.npy").sum() == 6
+
+
+def test_params_lists_nineteen_parameters():
+    result = run("params")
+    assert result.exit_code == 0
+    assert len(result.stdout.strip().splitlines()) == 19
+
+
+@pytest.mark.parametrize(
+    ("content", "fragments"),
+    [
+        ("{oops", ("bad.json is not valid JSON",)),
+        ('{"rougness": 0.2}', ("did you mean 'roughness'",)),
+        ('{"roughness": 2}', ("out of range", "[0.0, 1.0]")),
+        ('{"metallic": NaN}', ("'metallic' is nan",)),
+    ],
+)
+def test_bad_params_files(tmp_path, content, fragments):
+    (tmp_path / "bad.json").write_text(content)
+    result = run("render", tmp_path / "bad.json", "-o", tmp_path / "out.png", "--size", 16, "--spp", 4)
+    assert_one_line_error(result, *fragments)
+    assert not (tmp_path / "out.png").exists()
+
+
+@pytest.mark.parametrize(
+    ("arguments", "fragments"),
+    [
+        (("render", "-o", "{tmp}/x.png"), ("give exactly one material",)),
+        (("render", "--preset", "gold", "--random", "-o", "{tmp}/x.png"), ("give exactly one material",)),
+        (("render", "--preset", "unobtanium", "-o", "{tmp}/x.png", "--size", "16"), ("unknown preset", "gold")),
+        (("render", "--preset", "gold", "-o", "{tmp}/missing/x.png"), ("does not exist",)),
+        (("render", "--preset", "gold", "-o", "/proc/x.png"), ("read-only",)),
+        (("render", "--preset", "gold", "-o", "{tmp}/x.bmp"), ("unknown image type .bmp",)),
+        (("render", "--preset", "gold", "-o", "{tmp}/x.png", "--size", "100000"), ("--size 100000 is out of range",)),
+        (("render", "--preset", "gold", "-o", "{tmp}/x.png", "--spp", "0"), ("--spp 0 is out of range",)),
+        (("render", "{tmp}/none.json", "-o", "{tmp}/x.png"), ("cannot read", "none.json")),
+        (("render", "--preset", "gold", "-o", "{tmp}/x.png", "--variant", "cuda"), ("unknown variant 'cuda'",)),
+        (("render-dataset", "{tmp}/d", "--count", "0"), ("--count 0 is out of range",)),
+        (("render-dataset", "{tmp}/d", "--count", "-5"), ("--count -5 is out of range",)),
+        (("render-dataset", "{tmp}/d", "--count", "5", "--resolution", "5000"), ("resolution 5000 is out of range",)),
+        (("render-dataset", "{tmp}/d", "--count", "5", "--spp", "0"), ("spp 0 is out of range",)),
+        (("render-dataset", "{tmp}/missing/d", "--count", "5"), ("does not exist",)),
+        (("render-dataset", "/proc/d", "--count", "5"), ("read-only",)),
+    ],
+)
+def test_bad_arguments_give_one_line_errors(tmp_path, arguments, fragments):
+    result = run(*(a.replace("{tmp}", str(tmp_path)) for a in arguments))
+    assert_one_line_error(result, *fragments)
+    assert not (tmp_path / "x.png").exists() and not (tmp_path / "d").exists()
+
+
+def test_dataset_with_other_settings_is_refused(tmp_path):
+    assert run("render-dataset", tmp_path / "d", "--count", 4, "--resolution", 16, "--spp", 2).exit_code == 0
+    result = run("render-dataset", tmp_path / "d", "--count", 4, "--resolution", 32, "--spp", 2)
+    assert_one_line_error(result, "rendered with resolution 16, not 32")

@@ -1,0 +1,186 @@
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from matfit import dataset, params, render
+from matfit.dataset import DatasetError, Settings
+
+VERSIONS = {"mitsuba": "test", "drjit": "test"}
+
+
+@pytest.fixture(scope="module")
+def settings(renderer):
+    return Settings(resolution=16, spp=2, seed=3, variant=renderer.variant)
+
+
+def make(path, settings, count, workers=1, progress=None):
+    data = dataset.prepare(str(path), settings, count, VERSIONS)
+    dataset.render_missing(data, workers, progress)
+    return dataset.open_dataset(str(path))
+
+
+def array_bytes(path):
+    return {name: (path / name).read_bytes() for name in dataset.ARRAYS}
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory, settings):
+    """An uninterrupted 40-sample dataset, rendered once for every comparison below."""
+    path = tmp_path_factory.mktemp("reference")
+    make(path, settings, 40)
+    return path
+
+
+def test_layout_and_contents(reference, settings, renderer):
+    data = dataset.open_dataset(str(reference))
+    assert data.finished == data.count == 40
+    assert data.params.shape == (40, 19) and data.params.dtype == np.float32
+    assert data.images.shape == (40, 16, 16, 3) and data.images.dtype == np.float16
+    np.testing.assert_allclose(data.params[7], params.from_unit(params.sample_index(3, 7)), rtol=1e-6)
+    unit = data.unit_params()
+    assert unit.min() >= 0 and unit.max() <= 1
+    meta = json.loads((reference / "meta.json").read_text())
+    assert meta["resolution"] == 16 and meta["spp"] == 2 and meta["seed"] == 3 and meta["variant"] == settings.variant
+    assert params.describe_table_difference(meta["parameter_table"]) is None
+    # the stored image is the renderer's image for that sample's parameters and seed
+    again = render.Renderer(16, 2, settings.variant).render(data.params[5].astype(np.float64), seed=dataset.image_seed(3, 5))
+    np.testing.assert_array_equal(data.images[5], again.astype(np.float16))
+    # plain NumPy reads it without matfit
+    np.testing.assert_array_equal(np.load(reference / "images.npy", mmap_mode="r")[3], data.images[3])
+
+
+def test_interrupted_run_resumes_to_identical_bytes(tmp_path, reference, settings):
+    def stop_after_18(done, total, rate):
+        if done >= 18:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        make(tmp_path, settings, 40, progress=stop_after_18)
+    partial = dataset.open_dataset(str(tmp_path))
+    assert 18 <= partial.finished < 40
+    make(tmp_path, settings, 40)
+    assert array_bytes(tmp_path) == array_bytes(reference)
+
+
+def test_growing_a_dataset_matches_rendering_it_whole(tmp_path, reference, settings):
+    make(tmp_path, settings, 25)
+    make(tmp_path, settings, 40)
+    assert array_bytes(tmp_path) == array_bytes(reference)
+
+
+def test_two_workers_give_the_same_bytes(tmp_path, reference, settings):
+    make(tmp_path, settings, 40, workers=2)
+    assert array_bytes(tmp_path) == array_bytes(reference)
+
+
+def test_kill_dash_nine_then_resume(tmp_path, reference, settings):
+    """A process killed outright loses nothing it had finished; the same command completes it."""
+    target = tmp_path / "data"
+    command = [
+        sys.executable,
+        "-m",
+        "matfit",
+        "render-dataset",
+        str(target),
+        "--count",
+        "40",
+        "--resolution",
+        "16",
+        "--spp",
+        "2",
+        "--seed",
+        "3",
+    ]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        done = target / "done.npy"
+        if done.exists() and (target / "meta.json").exists() and np.load(done, mmap_mode="r").sum() >= 16:
+            break
+        time.sleep(0.01)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    finished = int(np.load(target / "done.npy").sum())
+    assert finished < 40, "the run finished before it could be killed; the test needs a slower render"
+    result = subprocess.run(command, capture_output=True, text=True, check=False)
+    assert result.returncode == 0, result.stderr
+    assert array_bytes(target) == array_bytes(reference)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"resolution": 32}, "rendered with resolution 16, not 32: pass --resolution 16"),
+        ({"spp": 4}, "rendered with spp 2, not 4: pass --spp 2"),
+        ({"seed": 4}, "rendered with seed 3, not 4: pass --seed 3"),
+    ],
+)
+def test_other_settings_are_refused(reference, settings, change, message):
+    other = Settings(**{**settings.__dict__, **change})
+    with pytest.raises(DatasetError, match=message):
+        dataset.prepare(str(reference), other, 40, VERSIONS)
+
+
+def test_other_parameter_table_is_refused(tmp_path, reference):
+    for name in ("meta.json", *dataset.ARRAYS):
+        (tmp_path / name).write_bytes((reference / name).read_bytes())
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    meta["parameter_table"]["parameters"][0]["high"] = 2.0
+    (tmp_path / "meta.json").write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"another parameter table .*base_color_r"):
+        dataset.open_dataset(str(tmp_path))
+
+
+def test_shrinking_and_bad_counts_are_refused(reference, settings, tmp_path):
+    with pytest.raises(DatasetError, match="already holds 40 samples: pass --count 40 or more"):
+        dataset.prepare(str(reference), settings, 10, VERSIONS)
+    with pytest.raises(DatasetError, match="count 0 is out of range"):
+        dataset.prepare(str(tmp_path / "new"), settings, 0, VERSIONS)
+    assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"resolution": 4}, "resolution 4 is out of range"),
+        ({"resolution": 100000}, "resolution 100000"),
+        ({"spp": 0}, "spp 0 is out of range"),
+    ],
+)
+def test_absurd_settings_are_refused(tmp_path, settings, change, message):
+    with pytest.raises(DatasetError, match=message):
+        dataset.prepare(str(tmp_path / "new"), Settings(**{**settings.__dict__, **change}), 10, VERSIONS)
+    assert not (tmp_path / "new").exists()
+
+
+def test_bad_directories_are_refused(tmp_path, settings):
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(DatasetError, match="is a file"):
+        dataset.prepare(str(tmp_path / "file"), settings, 10, VERSIONS)
+    with pytest.raises(DatasetError, match="does not exist"):
+        dataset.prepare(str(tmp_path / "missing" / "data"), settings, 10, VERSIONS)
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "notes.txt").write_text("x")
+    with pytest.raises(DatasetError, match="not a matfit dataset"):
+        dataset.prepare(str(tmp_path / "other"), settings, 10, VERSIONS)
+    with pytest.raises(DatasetError, match="read-only"):
+        dataset.prepare("/proc/matfit-data", settings, 10, VERSIONS)
+
+
+def test_corrupt_datasets_name_the_fix(tmp_path, reference):
+    with pytest.raises(DatasetError, match=r"no meta\.json"):
+        dataset.open_dataset(str(tmp_path))
+    (tmp_path / "meta.json").write_text("{broken")
+    with pytest.raises(DatasetError, match="is corrupt"):
+        dataset.open_dataset(str(tmp_path))
+    for name in ("meta.json", *dataset.ARRAYS):
+        (tmp_path / name).write_bytes((reference / name).read_bytes())
+    os.truncate(tmp_path / "images.npy", 1000)
+    with pytest.raises(DatasetError, match=r"images\.npy is missing or corrupt"):
+        dataset.open_dataset(str(tmp_path))

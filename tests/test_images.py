@@ -1,0 +1,53 @@
+import os
+
+import numpy as np
+import pytest
+
+from matfit import images
+from matfit.files import OutputError
+
+
+def test_srgb_round_trip_and_known_values():
+    x = np.linspace(0, 1, 101, dtype=np.float32)
+    np.testing.assert_allclose(images.srgb_decode(images.srgb_encode(x)), x, atol=1e-6)
+    assert images.srgb_encode(np.float32(0.5)) == pytest.approx(0.735357, abs=1e-5)
+    assert images.srgb_encode(np.float32(0.001)) == pytest.approx(0.01292, abs=1e-6)
+    assert images.srgb_encode(np.float32(4.0)) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_rmse_is_on_the_0_255_scale():
+    a = np.zeros((4, 4, 3))
+    b = np.full((4, 4, 3), 10 / 255)
+    assert images.rmse(a, b) == pytest.approx(10.0)
+    b[0, 0, 0] = 1.0
+    expected = np.sqrt((47 * 100 + 255**2) / 48)
+    assert images.rmse(a, b) == pytest.approx(expected)
+    with pytest.raises(ValueError, match=r"Shape mismatch: got \(4, 4, 3\) and \(2, 2, 3\)"):
+        images.rmse(a, np.zeros((2, 2, 3)))
+
+
+def test_png_and_exr_round_trips(tmp_path):
+    rng = np.random.default_rng(0)
+    linear = rng.random((8, 12, 3)).astype(np.float32) * 1.5
+    images.write(str(tmp_path / "a.exr"), linear)
+    np.testing.assert_array_equal(images.read(str(tmp_path / "a.exr")), linear)
+    images.write(str(tmp_path / "a.png"), linear)
+    back = images.read(str(tmp_path / "a.png"))
+    assert back.shape == (8, 12, 3)
+    assert images.rmse(images.srgb_encode(back), images.srgb_encode(linear)) < 0.3  # 8-bit rounding only
+
+
+def test_write_refuses_bad_paths_and_leaves_nothing(tmp_path):
+    with pytest.raises(OutputError, match=r"unknown image type \.bmp"):
+        images.write(str(tmp_path / "a.bmp"), np.zeros((2, 2, 3)))
+    with pytest.raises(OutputError, match="does not exist"):
+        images.write(str(tmp_path / "missing" / "a.png"), np.zeros((2, 2, 3)))
+    with pytest.raises(OutputError, match="read-only"):
+        images.write("/proc/matfit-test.png", np.zeros((2, 2, 3)))
+    assert os.listdir(tmp_path) == []
+
+
+def test_label_adds_a_caption_strip():
+    out = images.label(np.zeros((20, 40, 3), np.float32), "gold", height=12)
+    assert out.shape == (32, 40, 3)
+    assert out[20:].max() > 0.5 and out[:20].max() == 0.0

@@ -1,0 +1,119 @@
+import json
+import math
+
+import numpy as np
+import pytest
+
+from matfit import params, presets
+from matfit.params import ParameterError
+
+
+def test_table_has_nineteen_named_bounded_parameters():
+    assert params.COUNT == 19
+    assert len(set(params.NAMES)) == 19
+    for p in params.PARAMETERS:
+        assert p.low < p.high
+        assert p.low <= p.default <= p.high
+        assert p.meaning and p.unit
+        assert 0.0 <= p.low_corner + p.high_corner < 1.0
+
+
+def test_unit_cube_round_trip_is_exact_and_maps_bounds():
+    rng = np.random.default_rng(1)
+    values = params.from_unit(rng.random((50, 19)))
+    np.testing.assert_allclose(params.from_unit(params.to_unit(values)), values, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(params.to_unit(params.LOW), np.zeros(19))
+    np.testing.assert_array_equal(params.to_unit(params.HIGH), np.ones(19))
+    assert params.from_unit(np.full(19, 0.5))[params.INDEX["phase_g"]] == pytest.approx(0.0)
+
+
+def test_sampling_is_deterministic_per_index_and_stays_in_the_cube():
+    a = params.sample_index(7, 3)
+    b = params.sample_index(7, 3)
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(params.sample_index(7, 4), a)
+    assert not np.array_equal(params.sample_index(8, 3), a)
+    samples = np.stack([params.sample_index(0, i) for i in range(4000)])
+    assert samples.min() >= 0.0 and samples.max() <= 1.0
+
+
+def test_sampling_covers_the_corners():
+    samples = np.stack([params.sample_index(0, i) for i in range(4000)])
+    for name in ("metallic", "spec_trans"):
+        column = samples[:, params.INDEX[name]]
+        p = params.PARAMETERS[params.INDEX[name]]
+        # corner mass plus the uniform interior's own 5% share of each band
+        expected_low = p.low_corner + (1 - p.low_corner - p.high_corner) * params.CORNER_WIDTH
+        expected_high = p.high_corner + (1 - p.low_corner - p.high_corner) * params.CORNER_WIDTH
+        assert np.mean(column <= 0.05) == pytest.approx(expected_low, abs=0.03)
+        assert np.mean(column >= 0.95) == pytest.approx(expected_high, abs=0.03)
+    roughness = samples[:, params.INDEX["roughness"]]
+    assert np.mean(roughness < 0.1) > 0.3  # uniform would give 0.1
+    assert np.mean(samples[:, params.INDEX["phase_g"]] < 0.5) == pytest.approx(0.5, abs=0.04)
+
+
+def test_params_json_partial_files_take_defaults_in_both_layouts():
+    flat = params.parse_params_json('{"roughness": 0.2, "metallic": 1}')
+    nested = params.parse_params_json(json.dumps({"params": {"roughness": 0.2, "metallic": 1}, "method": "hybrid"}))
+    np.testing.assert_array_equal(flat, nested)
+    expected = params.DEFAULTS.copy()
+    expected[params.INDEX["roughness"]] = 0.2
+    expected[params.INDEX["metallic"]] = 1.0
+    np.testing.assert_array_equal(flat, expected)
+
+
+def test_params_document_round_trips_through_json():
+    values = params.from_unit(params.sample_index(3, 0))
+    text = json.dumps(params.params_document(values, method="test"))
+    np.testing.assert_allclose(params.parse_params_json(text), values, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("{not json", "is not valid JSON"),
+        ("[1, 2]", "must hold a JSON object"),
+        ('{"rougness": 0.3}', "did you mean 'roughness'"),
+        ('{"zzzz": 0.3}', "unknown parameter 'zzzz'"),
+        ('{"roughness": 1.5}', "use a value in [0.0, 1.0]"),
+        ('{"density": -1}', "use a value in [0.0, 4.0]"),
+        ('{"roughness": NaN}', "is nan"),
+        ('{"roughness": "high"}', "must be a number"),
+        ('{"metallic": true}', "must be a number"),
+    ],
+)
+def test_bad_params_json_gives_one_line_errors(text, message):
+    with pytest.raises(ParameterError) as error:
+        params.parse_params_json(text, "edit.json")
+    assert message in str(error.value)
+    assert str(error.value).startswith("edit.json")
+    assert "\n" not in str(error.value)
+
+
+def test_medium_coefficients_follow_the_documented_formula():
+    values = params.from_mapping({"medium_color_r": 0.5, "medium_color_g": 0.25, "medium_color_b": 1.0, "density": 2.0, "scattering": 0.3})
+    sigma_t, albedo = params.medium_coefficients(values)
+    np.testing.assert_allclose(sigma_t, [2 * math.log(2), 2 * math.log(4), params.MINIMUM_EXTINCTION])
+    np.testing.assert_allclose(albedo, [0.3, 0.3, 0.3])
+    # light kept after one radius at density 1 is the absorption colour itself
+    one = params.from_mapping({"medium_color_r": 0.5, "density": 1.0})
+    assert math.exp(-params.medium_coefficients(one)[0][0]) == pytest.approx(0.5)
+
+
+def test_table_difference_is_described():
+    assert params.describe_table_difference(params.table_fingerprint()) is None
+    changed = params.table_fingerprint()
+    changed["parameters"][4] = {**changed["parameters"][4], "high": 2.0}
+    assert "roughness" in params.describe_table_difference(changed)
+    fewer = {"version": 1, "parameters": changed["parameters"][:18]}
+    assert "phase_g" in params.describe_table_difference(fewer)
+
+
+def test_presets_are_valid_and_distinct():
+    vectors = {name: presets.preset(name) for name in presets.PRESETS}
+    assert len(vectors) >= 8
+    for values in vectors.values():
+        assert np.all(values >= params.LOW) and np.all(values <= params.HIGH)
+    assert len({tuple(v) for v in vectors.values()}) == len(vectors)
+    with pytest.raises(ParameterError, match="choose one of"):
+        presets.preset("unobtainium")

@@ -1,0 +1,125 @@
+import numpy as np
+import pytest
+
+from matfit import images, params, render
+from matfit.render import RenderError
+
+
+def srgb(renderer, seed=0, **values):
+    return images.srgb_encode(renderer.render(params.from_mapping(values), seed=seed))
+
+
+def sphere_mask(renderer):
+    black = srgb(renderer, base_color_r=0, base_color_g=0, base_color_b=0, roughness=1, specular=0)
+    white = srgb(renderer, base_color_r=1, base_color_g=1, base_color_b=1, roughness=1, specular=0)
+    return (white - black).mean(axis=2) > 0.3
+
+
+def test_images_are_linear_float_of_the_requested_size(renderer):
+    image = renderer.render(params.DEFAULTS)
+    assert image.dtype == np.float32 and image.shape == (16, 16, 3)
+    assert np.all(np.isfinite(image)) and image.min() >= 0.0
+
+
+def test_the_sphere_covers_the_centre_of_the_frame(renderer):
+    mask = sphere_mask(renderer)
+    assert 0.25 < mask.mean() < 0.6
+    assert mask[8, 8] and not mask[0, 0] and not mask[15, 15]
+
+
+def test_red_base_colour_is_redder_than_blue(renderer):
+    mask = sphere_mask(renderer)
+    red = srgb(renderer, base_color_r=0.8, base_color_g=0.05, base_color_b=0.05)[mask].mean(axis=0)
+    blue = srgb(renderer, base_color_r=0.05, base_color_g=0.05, base_color_b=0.8)[mask].mean(axis=0)
+    assert red[0] > red[2] + 0.25
+    assert blue[2] > blue[0] + 0.25
+
+
+def test_metal_differs_from_diffuse(renderer):
+    diffuse = srgb(renderer, base_color_r=0.9, base_color_g=0.6, base_color_b=0.2, roughness=0.7)
+    metal = srgb(renderer, base_color_r=0.9, base_color_g=0.6, base_color_b=0.2, roughness=0.1, metallic=1.0)
+    assert images.rmse(diffuse, metal) > 15.0
+
+
+def test_glass_shows_the_checker_through_the_object(renderer):
+    """Darkening the checkers' light squares changes a glass sphere a lot and an opaque one little."""
+    mask = sphere_mask(renderer)
+    keys = ("floor.bsdf.reflectance.color1.value", "backdrop.bsdf.reflectance.color1.value")
+    glass = params.from_mapping({"roughness": 0.0, "spec_trans": 1.0, "base_color_r": 1, "base_color_g": 1, "base_color_b": 1})
+    opaque = params.from_mapping({"roughness": 0.6, "base_color_r": 0.8, "base_color_g": 0.8, "base_color_b": 0.8})
+    before = {key: renderer.parameters[key] for key in keys}
+    lit = [images.srgb_encode(renderer.render(v)) for v in (glass, opaque)]
+    try:
+        for key in keys:
+            renderer.parameters[key] = renderer.mi.Color3f(0.0, 0.0, 0.0)
+        dark = [images.srgb_encode(renderer.render(v)) for v in (glass, opaque)]
+    finally:
+        for key, value in before.items():
+            renderer.parameters[key] = value
+        renderer.parameters.update()
+    glass_change = images.rmse(lit[0][mask], dark[0][mask])
+    opaque_change = images.rmse(lit[1][mask], dark[1][mask])
+    assert glass_change > 40.0
+    assert glass_change > 2.5 * opaque_change
+
+
+def test_interior_medium_colours_transmissive_spheres_only(renderer):
+    mask = sphere_mask(renderer)
+    glass = {"roughness": 0.0, "spec_trans": 1.0, "base_color_r": 1, "base_color_g": 1, "base_color_b": 1}
+    amber = {"medium_color_r": 0.9, "medium_color_g": 0.3, "medium_color_b": 0.05, "density": 1.0}
+    clear = srgb(renderer, **glass)[mask].mean(axis=0)
+    tinted = srgb(renderer, **glass, **amber)[mask].mean(axis=0)
+    assert clear[0] - clear[2] < 0.05
+    assert tinted[0] - tinted[2] > 0.15
+    opaque = {"roughness": 0.5, "base_color_r": 0.5, "base_color_g": 0.5, "base_color_b": 0.5}
+    assert images.rmse(srgb(renderer, **opaque), srgb(renderer, **opaque, **amber)) < 1e-3
+
+
+def test_scattering_medium_turns_glass_milky(renderer):
+    mask = sphere_mask(renderer)
+    glass = {"roughness": 0.0, "spec_trans": 1.0, "base_color_r": 1, "base_color_g": 1, "base_color_b": 1}
+    grey = {"medium_color_r": 0.3, "medium_color_g": 0.3, "medium_color_b": 0.3, "density": 3.0}
+    smoky = srgb(renderer, **glass, **grey, scattering=0.0)[mask].mean()
+    milky = srgb(renderer, **glass, **grey, scattering=1.0)[mask].mean()
+    assert milky > smoky + 0.2
+
+
+def test_renders_are_reproducible_whatever_came_before(renderer):
+    a = params.from_unit(params.sample_index(0, 1))
+    b = params.from_unit(params.sample_index(0, 2))
+    first = renderer.render(a, seed=5)
+    renderer.render(b, seed=9)
+    np.testing.assert_array_equal(renderer.render(a, seed=5), first)
+    assert not np.array_equal(renderer.render(a, seed=6), first)
+
+
+def test_rejects_malformed_materials(renderer):
+    with pytest.raises(RenderError, match="19 finite values"):
+        renderer.render(np.zeros(5))
+    bad = params.DEFAULTS.copy()
+    bad[0] = np.nan
+    with pytest.raises(RenderError, match="19 finite values"):
+        renderer.render(bad)
+
+
+@pytest.mark.parametrize(
+    ("name", "major"),
+    [("libLLVM-19.so", 19), ("libLLVM.so.19.1", 19), ("libLLVM-15.so.1", 15), ("libLLVM.so.20.1", 20), ("libLLVM.so", None)],
+)
+def test_llvm_version_is_read_from_the_file_name(name, major):
+    assert render.llvm_major(f"/usr/lib/x86_64-linux-gnu/{name}") == major
+
+
+def test_variant_choice(monkeypatch):
+    assert render.choose_variant("scalar_rgb") == ("scalar_rgb", None)
+    with pytest.raises(RenderError, match="use one of llvm_ad_rgb, scalar_rgb"):
+        render.choose_variant("cuda_rgb")
+    monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
+    monkeypatch.setattr(render, "find_libllvm", lambda: None)
+    variant, notice = render.choose_variant(None)
+    assert variant == "scalar_rgb" and "scalar_rgb" in notice
+    with pytest.raises(RenderError, match="--variant scalar_rgb"):
+        render.choose_variant("llvm_ad_rgb")
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "/nonexistent/libLLVM.so")
+    with pytest.raises(RenderError, match="does not exist"):
+        render.choose_variant(None)
