@@ -47,7 +47,7 @@ def test_glass_shows_the_checker_through_the_object(renderer):
     keys = ("floor.bsdf.reflectance.color1.value", "backdrop.bsdf.reflectance.color1.value")
     glass = params.from_mapping({"roughness": 0.0, "spec_trans": 1.0, "base_color_r": 1, "base_color_g": 1, "base_color_b": 1})
     opaque = params.from_mapping({"roughness": 0.6, "base_color_r": 0.8, "base_color_g": 0.8, "base_color_b": 0.8})
-    before = {key: renderer.parameters[key] for key in keys}
+    before = {key: renderer.mi.Color3f(renderer.parameters[key]) for key in keys}  # a copy: the scene updates in place
     lit = [images.srgb_encode(renderer.render(v)) for v in (glass, opaque)]
     try:
         for key in keys:
