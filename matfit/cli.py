@@ -188,7 +188,7 @@ def render_dataset(
     resolution: Annotated[int, typer.Option(help="Image side in pixels.")] = 64,
     spp: Annotated[int, typer.Option(help="Samples per pixel.")] = 16,
     seed: Annotated[int, typer.Option(help="Seed of the parameter sampling and of the renders' noise.")] = 0,
-    workers: Annotated[int, typer.Option(help="Rendering processes; llvm_ad_rgb already uses every core in one.")] = 1,
+    workers: Annotated[int, typer.Option(help="Rendering processes, one thread each (default: one per core).")] = os.cpu_count() or 1,
     variant: Annotated[str | None, typer.Option(help="Force a Mitsuba variant: llvm_ad_rgb or scalar_rgb.")] = None,
 ) -> None:
     """Render a training set of sampled materials; run it again to resume or to grow it."""
@@ -208,8 +208,7 @@ def render_dataset(
         rendered = dataset.render_missing(data, workers, progress)
     except KeyboardInterrupt:
         progress.close()
-        finished = int(np.count_nonzero(np.load(os.path.join(out, "done.npy"), mmap_mode="r")))
-        typer.echo(f"interrupted: {finished}/{count} samples are saved; run the same command to resume", err=True)
+        typer.echo(f"interrupted: {data.finished}/{count} samples are saved; run the same command to resume", err=True)
         raise typer.Exit(130) from None
     progress.close()
     typer.echo(f"{out}: {count}/{count} samples ({rendered} rendered now, {resolution} px, {spp} spp, {chosen})", err=True)

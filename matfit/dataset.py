@@ -257,9 +257,20 @@ _worker_renderer = None
 def _init_worker(resolution: int, spp: int, variant: str, in_pool: bool = True) -> None:
     global _worker_renderer
     if in_pool:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops the pool
-    from matfit.render import Renderer
+        # Mitsuba catches SIGINT during a render, cancels it and returns an incomplete image. A
+        # worker in its own session never sees the terminal's Ctrl-C: the parent catches it and
+        # stops the pool, so no cancelled image is ever stored.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        os.setsid()
+    from matfit.render import Renderer, mitsuba
 
+    # One rendering thread per process: Dr.Jit's threads add samples into the film in an order
+    # that varies from run to run, which changes the last bit of a few pixels. One thread keeps
+    # every image bit-identical; several worker processes keep every core busy.
+    mitsuba(variant)
+    import drjit
+
+    drjit.set_thread_count(1)
     _worker_renderer = Renderer(resolution, spp, variant)
 
 
@@ -276,8 +287,11 @@ def render_missing(
 ) -> int:
     """Renders every sample not yet done; returns how many were rendered in this call.
 
-    `progress(done, total, images_per_second)` is called after each chunk. Interrupting (Ctrl-C)
-    keeps everything written so far; the same call later continues from there.
+    `workers` rendering processes do the work while this process stores the results, so that an
+    interruption (Ctrl-C, or KeyboardInterrupt from `progress`) keeps everything written so far;
+    the same call later continues from there. `workers=0` renders in this process instead (no
+    start-up cost, but a Ctrl-C that lands inside a render is swallowed by Mitsuba).
+    `progress(done, total, images_per_second)` is called after each chunk.
     """
     settings = Settings(dataset.resolution, int(dataset.meta["spp"]), int(dataset.meta["seed"]), dataset.meta["variant"])
     missing = np.flatnonzero(dataset.done == 0)
@@ -302,7 +316,7 @@ def render_missing(
         progress(finished, total, 0.0)
     if not tasks:
         return 0
-    if workers <= 1:
+    if workers == 0:
         _init_worker(settings.resolution, settings.spp, settings.variant, in_pool=False)
         for task in tasks:
             store(*_render_chunk(task))

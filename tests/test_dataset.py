@@ -19,7 +19,7 @@ def settings(renderer):
     return Settings(resolution=16, spp=2, seed=3, variant=renderer.variant)
 
 
-def make(path, settings, count, workers=1, progress=None):
+def make(path, settings, count, workers=0, progress=None):
     data = dataset.prepare(str(path), settings, count, VERSIONS)
     dataset.render_missing(data, workers, progress)
     return dataset.open_dataset(str(path))
@@ -79,38 +79,37 @@ def test_two_workers_give_the_same_bytes(tmp_path, reference, settings):
     assert array_bytes(tmp_path) == array_bytes(reference)
 
 
-def test_kill_dash_nine_then_resume(tmp_path, reference, settings):
-    """A process killed outright loses nothing it had finished; the same command completes it."""
+@pytest.fixture(scope="module")
+def long_reference(tmp_path_factory, settings):
+    """A 300-sample dataset: long enough to be stopped part-way by a signal."""
+    path = tmp_path_factory.mktemp("long")
+    make(path, Settings(16, 8, 3, settings.variant), 300)
+    return path
+
+
+@pytest.mark.parametrize(("stop", "code"), [(signal.SIGKILL, -signal.SIGKILL), (signal.SIGINT, 130)])
+def test_stopped_command_resumes_to_identical_bytes(tmp_path, long_reference, stop, code):
+    """kill -9 or Ctrl-C: nothing finished is lost, and the same command completes the dataset."""
     target = tmp_path / "data"
-    command = [
-        sys.executable,
-        "-m",
-        "matfit",
-        "render-dataset",
-        str(target),
-        "--count",
-        "40",
-        "--resolution",
-        "16",
-        "--spp",
-        "2",
-        "--seed",
-        "3",
-    ]
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    settings = ["--count", "300", "--resolution", "16", "--spp", "8", "--seed", "3"]
+    command = [sys.executable, "-m", "matfit", "render-dataset", str(target), *settings]
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         done = target / "done.npy"
         if done.exists() and (target / "meta.json").exists() and np.load(done, mmap_mode="r").sum() >= 16:
             break
         time.sleep(0.01)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
+    process.send_signal(stop)
+    error = process.communicate()[1]
+    assert process.returncode == code, error
+    if stop == signal.SIGINT:
+        assert "run the same command to resume" in error and "Traceback" not in error
     finished = int(np.load(target / "done.npy").sum())
-    assert finished < 40, "the run finished before it could be killed; the test needs a slower render"
+    assert finished < 300, "the run finished before it could be stopped; the test needs a slower render"
     result = subprocess.run(command, capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stderr
-    assert array_bytes(target) == array_bytes(reference)
+    assert array_bytes(target) == array_bytes(long_reference)
 
 
 @pytest.mark.parametrize(
