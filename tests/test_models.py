@@ -1,0 +1,81 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from matfit import models
+
+# The paper's Appendix A as (conv filters in order, FC neurons, dropout), written out independently.
+APPENDIX_A = {
+    1: ([32, 32, 64, 128, 128], 1000, 0.1),
+    2: ([32, 32], 1000, 0.1),
+    3: ([32, 32], 1000, 0.5),
+    4: ([32, 32, 64, 128, 128], 3000, 0.5),
+    5: ([32, 32, 64, 128, 128], 3000, 0.0),
+    6: ([32, 32], 1000, 0.0),
+    7: ([32, 32], 1000, 0.0),
+    8: ([32, 32], 100, 0.0),
+    9: ([32, 32], 1000, 0.0),
+}
+
+
+def expected_encoder_weights(filters, neurons, resolution):
+    count, channels, side = 0, 3, resolution
+    for f in filters:
+        count += 3 * 3 * channels * f + f
+        channels, side = f, side // 2
+    flat = side * side * channels
+    return count + flat * neurons + neurons + neurons * neurons + neurons + neurons * 19 + 19
+
+
+@pytest.mark.parametrize("arch", range(1, 10))
+def test_encoders_match_appendix_a(arch):
+    filters, neurons, dropout = APPENDIX_A[arch]
+    model = models.encoder(arch)
+    assert [b.filters for b in model.blocks for _ in range(b.repeat)] == filters
+    assert (model.dense.repeat, model.dense.neurons, model.dense.dropout) == (2, neurons, dropout)
+    variables = models.initialise(model, jax.random.key(0), (models.ENCODER_RESOLUTION,) * 2 + (3,))
+    assert models.parameter_count(variables) == expected_encoder_weights(filters, neurons, models.ENCODER_RESOLUTION)
+    out = model.apply(variables, jnp.full((2, 32, 32, 3), 0.5))
+    assert out.shape == (2, 19)
+    assert float(out.min()) > 0.0 and float(out.max()) < 1.0
+
+
+def test_dropout_is_active_only_in_training():
+    model = models.encoder(3)
+    variables = models.initialise(model, jax.random.key(0), (32, 32, 3))
+    image = jax.random.uniform(jax.random.key(1), (4, 32, 32, 3))
+    np.testing.assert_array_equal(model.apply(variables, image), model.apply(variables, image))
+    trained = model.apply(variables, image, train=True, rngs={"dropout": jax.random.key(2)})
+    assert not np.allclose(trained, model.apply(variables, image))
+
+
+def test_unknown_architectures_are_refused():
+    for arch in (0, 10):
+        with pytest.raises(ValueError, match="use 1 to 9"):
+            models.encoder(arch)
+
+
+@pytest.mark.parametrize("resolution", [16, 64, 128])
+def test_decoder_outputs_images_in_the_unit_range(resolution):
+    model = models.Decoder(resolution=resolution, hidden=32, base_channels=16, stage_channels=(8,))
+    variables = models.initialise(model, jax.random.key(0), (19,))
+    out = model.apply(variables, jax.random.uniform(jax.random.key(1), (3, 19)))
+    assert out.shape == (3, resolution, resolution, 3)
+    assert float(out.min()) > 0.0 and float(out.max()) < 1.0
+
+
+def test_decoder_weights_do_not_grow_with_the_image_beyond_one_stage():
+    sizes = {}
+    for resolution in (64, 128, 256):
+        model = models.Decoder(resolution=resolution)
+        sizes[resolution] = models.parameter_count(models.initialise(model, jax.random.key(0), (19,)))
+    # one more upsampling stage of 64 channels: two 3x3 convolutions 64 -> 64
+    stage = 2 * (3 * 3 * 64 * 64 + 64)
+    assert sizes[128] - sizes[64] == stage
+    assert sizes[256] - sizes[128] == stage
+
+
+def test_decoder_rejects_resolutions_it_cannot_reach():
+    with pytest.raises(ValueError, match="4 times a power of two"):
+        models.initialise(models.Decoder(resolution=48), jax.random.key(0), (19,))
