@@ -15,7 +15,6 @@ from __future__ import annotations
 import glob
 import os
 import re
-import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -204,9 +203,3 @@ class Renderer:
         """Returns the image of whatever material is loaded, without touching the scene."""
         image = self.mi.render(self.scene, seed=int(seed) & 0xFFFFFFFF, spp=int(spp or self.spp))
         return np.array(image, dtype=np.float32)
-
-
-def print_notice(renderer: Renderer) -> None:
-    """Prints the renderer's variant notice, if any, to standard error."""
-    if renderer.notice:
-        print(renderer.notice, file=sys.stderr)
