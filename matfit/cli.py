@@ -198,8 +198,7 @@ def render_dataset(
     chosen, notice = render_module.choose_variant(variant)
     settings = dataset.Settings(resolution, spp, seed, chosen)
     settings.check()
-    if not 1 <= count <= dataset.MAX_COUNT:
-        raise DatasetError(f"--count {count} is out of range: use 1 to {dataset.MAX_COUNT}")
+    dataset.check_count(count, "--count")
     echo_notice(notice)
     render_module.mitsuba(chosen)
     data = dataset.prepare(str(out), settings, count, render_module.versions())

@@ -66,6 +66,12 @@ class Settings:
             raise DatasetError(f"seed {self.seed} is out of range: use 0 to {2**32 - 1}")
 
 
+def check_count(count: int, name: str = "count") -> None:
+    """Raises DatasetError unless 1 <= count <= MAX_COUNT; `name` is how the message calls it."""
+    if not 1 <= count <= MAX_COUNT:
+        raise DatasetError(f"{name} {count} is out of range: use 1 to {MAX_COUNT}")
+
+
 def image_seed(seed: int, index: int) -> int:
     """Returns the Mitsuba render seed of sample `index` in the dataset drawn with `seed`."""
     return int(np.random.SeedSequence([seed, index, 1]).generate_state(1)[0])
@@ -218,8 +224,7 @@ def prepare(path: str, settings: Settings, count: int, versions: dict) -> Datase
     count lower than what the dataset already holds.
     """
     settings.check()
-    if not 1 <= count <= MAX_COUNT:
-        raise DatasetError(f"count {count} is out of range: use 1 to {MAX_COUNT}")
+    check_count(count)
     _check_output_directory(path)
     existing = os.path.isfile(os.path.join(path, "meta.json"))
     if not existing and os.path.isdir(path) and any(not n.startswith(".") for n in os.listdir(path)):
