@@ -52,3 +52,9 @@ def write_text(path: str, text: str) -> None:
     """Writes a text file atomically."""
     with atomic_path(path) as temporary, open(temporary, "w") as file:
         file.write(text)
+
+
+def write_bytes(path: str, data: bytes) -> None:
+    """Writes a binary file atomically."""
+    with atomic_path(path) as temporary, open(temporary, "wb") as file:
+        file.write(data)

@@ -46,6 +46,21 @@ def rmse(a_srgb: np.ndarray, b_srgb: np.ndarray) -> float:
     return float(255.0 * np.sqrt(np.mean((a - b) ** 2)))
 
 
+def box_downsample(linear: np.ndarray, size: int) -> np.ndarray:
+    """Returns images (..., H, W, C) averaged over square blocks down to (..., size, size, C).
+
+    H and W must be equal and a multiple of `size`; averaging linear values is what a render at
+    the lower resolution would show.
+    """
+    linear = np.asarray(linear, dtype=np.float32)
+    height, width = linear.shape[-3:-1]
+    if height != width or height % size:
+        raise ValueError(f"cannot box-filter a {height}x{width} image down to {size}x{size}: the side must be a multiple of {size}")
+    factor = height // size
+    blocks = linear.reshape(*linear.shape[:-3], size, factor, size, factor, linear.shape[-1])
+    return blocks.mean(axis=(-4, -2))
+
+
 def check_extension(path: str) -> str:
     """Returns the lower-case extension of an image path, if it is one matfit writes."""
     extension = os.path.splitext(path)[1].lower()

@@ -18,6 +18,8 @@ small: the first FC layer's size is (32 / 2^blocks)^2 x filters x neurons.
 
 from __future__ import annotations
 
+import dataclasses
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
@@ -25,25 +27,39 @@ from functools import partial
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
+from flax import serialization
 
-from matfit import params
+from matfit import files, images, params
 
 ENCODER_RESOLUTION = 32
+WEIGHTS_FORMAT = "matfit-weights"
+WEIGHTS_VERSION = 1
+WEIGHTS_SUFFIX = ".msgpack"
+DECODER = "decoder"
 
 
 class Decoder(nn.Module):
-    """Maps unit-cube parameters (..., 19) to sRGB images (..., resolution, resolution, 3)."""
+    """Maps unit-cube parameters (..., 19) to sRGB images (..., resolution, resolution, 3).
+
+    Two dense layers to a 4 x 4 x `base_channels` map, then one stage per doubling: nearest
+    upsampling and `convs_per_stage` 3x3 convolutions with `stage_channels[k]` filters (the last
+    entry repeats for larger images), a 3x3 convolution to RGB, plus a learned per-pixel
+    `background` logit image before the sigmoid: the scene around the object hardly changes
+    with the material, so the convolutions only have to learn what does.
+    """
 
     resolution: int = 64
-    hidden: int = 512
-    base_channels: int = 256
-    stage_channels: Sequence[int] = (192, 128, 96, 64)
+    hidden: int = 256
+    base_channels: int = 128
+    stage_channels: Sequence[int] = (128, 64, 32, 16)
+    convs_per_stage: int = 1
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         stages = self.resolution.bit_length() - 1 - 2  # from 4 x 4 up to resolution
-        if 4 * 2**stages != self.resolution:
-            raise ValueError(f"decoder resolution must be 4 times a power of two, got {self.resolution}")
+        if self.resolution < 8 or 4 * 2**stages != self.resolution:
+            raise ValueError(f"decoder resolution must be 4 times a power of two (8, 16, ..., 256), got {self.resolution}")
         batch_shape = x.shape[:-1]
         x = x.reshape(-1, x.shape[-1])
         x = nn.gelu(nn.Dense(self.hidden)(x))
@@ -53,9 +69,10 @@ class Decoder(nn.Module):
         for stage in range(stages):
             n, h, w, c = x.shape
             x = jax.image.resize(x, (n, 2 * h, 2 * w, c), method="nearest")
-            x = nn.gelu(nn.Conv(channels[stage], (3, 3))(x))
-            x = nn.gelu(nn.Conv(channels[stage], (3, 3))(x))
-        x = nn.sigmoid(nn.Conv(3, (3, 3))(x))
+            for _ in range(self.convs_per_stage):
+                x = nn.gelu(nn.Conv(channels[stage], (3, 3))(x))
+        background = self.param("background", nn.initializers.zeros, (self.resolution, self.resolution, 3))
+        x = nn.sigmoid(nn.Conv(3, (3, 3))(x) + background)
         return x.reshape(*batch_shape, self.resolution, self.resolution, 3)
 
 
@@ -112,6 +129,9 @@ ENCODERS: dict[int, partial] = {
 }
 
 
+ENCODER_NAMES = tuple(f"encoder-{arch}" for arch in ENCODERS)
+
+
 def encoder(arch: int) -> Encoder:
     """Returns encoder number `arch` (1..9) of the paper's Appendix A."""
     if arch not in ENCODERS:
@@ -127,3 +147,160 @@ def parameter_count(variables: dict) -> int:
 def initialise(model: nn.Module, key: jax.Array, input_shape: tuple[int, ...]) -> dict:
     """Returns freshly initialised variables of `model` for one input of `input_shape`."""
     return model.init(key, jnp.zeros((1, *input_shape), jnp.float32))
+
+
+def encoder_input(linear: np.ndarray) -> np.ndarray:
+    """Returns what every encoder sees of linear images (..., R, R, 3): box-filtered to
+    ENCODER_RESOLUTION, then sRGB-encoded, float32. R must be a multiple of ENCODER_RESOLUTION."""
+    return images.srgb_encode(images.box_downsample(linear, ENCODER_RESOLUTION))
+
+
+class WeightsError(ValueError):
+    """A weights or checkpoint file that cannot be used; the message names the file and the fix."""
+
+
+def architecture(name: str, resolution: int, decoder: Decoder | None = None) -> dict:
+    """Returns the plain-data description that rebuilds network `name` ("decoder" or "encoder-N").
+
+    `resolution` is the image side the network was trained on (the decoder's output); encoders
+    always read ENCODER_RESOLUTION pixels.
+    """
+    if name == DECODER:
+        decoder = decoder or Decoder(resolution=resolution)
+        fields = {field.name: getattr(decoder, field.name) for field in dataclasses.fields(Decoder) if field.name not in ("parent", "name")}
+        fields["stage_channels"] = list(fields["stage_channels"])
+        return {"kind": DECODER, **fields}
+    if name not in ENCODER_NAMES:
+        raise WeightsError(f"unknown network {name!r}: use decoder or encoder-1 to encoder-9")
+    return {"kind": "encoder", "arch": int(name.split("-")[1]), "resolution": resolution}
+
+
+def build(description: dict) -> nn.Module:
+    """Returns the module described by `architecture(...)`."""
+    fields = dict(description)
+    kind = fields.pop("kind")
+    if kind == DECODER:
+        fields["stage_channels"] = tuple(fields["stage_channels"])
+        return Decoder(**fields)
+    return encoder(fields["arch"])
+
+
+def input_shape(description: dict) -> tuple[int, ...]:
+    """Returns the shape of one input of the network described by `description`."""
+    if description["kind"] == DECODER:
+        return (params.COUNT,)
+    return (ENCODER_RESOLUTION, ENCODER_RESOLUTION, 3)
+
+
+@dataclass(frozen=True)
+class Network:
+    """A trained network: its name, architecture, module and weights, and what it was trained on."""
+
+    name: str
+    description: dict
+    module: nn.Module
+    variables: dict
+    info: dict
+
+    @property
+    def resolution(self) -> int:
+        """Returns the image side of the training data (the decoder's output size)."""
+        return int(self.description["resolution"])
+
+
+def save(path: str, network: Network, dtype: np.dtype = np.float16) -> None:
+    """Writes a network's weights (as `dtype`) and description to a Flax msgpack file, atomically."""
+    weights = jax.tree_util.tree_map(lambda leaf: np.asarray(leaf, dtype=dtype), serialization.to_state_dict(network.variables))
+    document = {
+        "format": WEIGHTS_FORMAT,
+        "version": WEIGHTS_VERSION,
+        "name": network.name,
+        "architecture": network.description,
+        "parameter_table": params.table_fingerprint(),
+        "info": network.info,
+        "variables": weights,
+    }
+    files.write_bytes(path, serialization.msgpack_serialize(document))
+
+
+def restore_document(path: str, expected_format: str, what: str) -> dict:
+    """Returns a msgpack document of `expected_format`, checking its parameter table."""
+    try:
+        with open(path, "rb") as file:
+            document = serialization.msgpack_restore(file.read())
+    except FileNotFoundError:
+        raise WeightsError(f"{path} does not exist: train it with `matfit train` or check the path") from None
+    except Exception as error:  # msgpack raises many types on damaged bytes
+        raise WeightsError(f"{path} is not a readable {what} ({type(error).__name__}): delete it and train again") from None
+    if not isinstance(document, dict) or document.get("format") != expected_format:
+        raise WeightsError(f"{path} is not a matfit {what}: delete it and train again")
+    if document.get("version") != WEIGHTS_VERSION:
+        raise WeightsError(f"{path} is {what} version {document.get('version')}, this matfit reads {WEIGHTS_VERSION}: train again")
+    difference = params.describe_table_difference(document.get("parameter_table", {}))
+    if difference is not None:
+        raise WeightsError(f"{path} was trained for another parameter table ({difference}): train again on a new dataset")
+    return document
+
+
+def restore_variables(path: str, description: dict, stored: dict) -> tuple[nn.Module, dict]:
+    """Returns the module of `description` and `stored` weights checked against its shapes, float32."""
+    try:
+        module = build(description)
+    except (KeyError, TypeError, ValueError) as error:
+        raise WeightsError(f"{path} describes an architecture this matfit cannot build ({error}): train again") from None
+    template = jax.eval_shape(lambda: initialise(module, jax.random.key(0), input_shape(description)))
+    shapes = jax.tree_util.tree_map(lambda leaf: tuple(leaf.shape), template)
+    try:
+        variables = serialization.from_state_dict(template, stored)
+        stored_shapes = jax.tree_util.tree_map(lambda leaf: tuple(np.shape(leaf)), variables)
+    except (KeyError, ValueError, TypeError) as error:
+        raise WeightsError(f"{path} does not hold the weights of its architecture ({error}): train again") from None
+    if stored_shapes != shapes:
+        raise WeightsError(f"{path} holds weights of other shapes than its architecture: train again")
+    return module, jax.tree_util.tree_map(lambda leaf: jnp.asarray(leaf, jnp.float32), variables)
+
+
+def load(path: str, resolution: int | None = None) -> Network:
+    """Returns the network saved at `path`, checking the parameter table and, if given, the resolution."""
+    document = restore_document(path, WEIGHTS_FORMAT, "weights file")
+    description = document.get("architecture")
+    if not isinstance(description, dict) or "resolution" not in description:
+        raise WeightsError(f"{path} has no architecture description: train again")
+    if resolution is not None and int(description["resolution"]) != resolution:
+        raise WeightsError(f"{path} was trained on {description['resolution']} px images, not {resolution} px: use a model of that resolution")
+    module, variables = restore_variables(path, description, document.get("variables"))
+    return Network(str(document.get("name")), description, module, variables, document.get("info") or {})
+
+
+@dataclass(frozen=True)
+class Model:
+    """The decoder and the encoders of one model directory."""
+
+    path: str
+    decoder: Network
+    encoders: dict[int, Network]
+
+    @property
+    def resolution(self) -> int:
+        """Returns the decoder's image side."""
+        return self.decoder.resolution
+
+
+def weights_path(directory: str, name: str) -> str:
+    """Returns where network `name` lives in a model directory."""
+    return os.path.join(directory, name + WEIGHTS_SUFFIX)
+
+
+def load_model(directory: str) -> Model:
+    """Returns the decoder and every encoder found in a model directory (at least one encoder)."""
+    if not os.path.isdir(directory):
+        raise WeightsError(f"model directory {directory} does not exist: train one with `matfit train` or use data/models/default")
+    decoder = load(weights_path(directory, DECODER))
+    encoders = {}
+    for arch, name in zip(ENCODERS, ENCODER_NAMES, strict=True):
+        path = weights_path(directory, name)
+        if os.path.exists(path):
+            encoders[arch] = load(path, resolution=decoder.resolution)
+    if not encoders:
+        raise WeightsError(f"{directory} has a decoder but no encoders: train them with `matfit train --arch 1..9 --out {directory}`")
+    return Model(directory, decoder, encoders)

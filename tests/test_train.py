@@ -1,0 +1,165 @@
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+
+from matfit import dataset, models, params, train
+from matfit.train import Config, TrainingError
+
+TINY_DECODER = models.Decoder(resolution=32, hidden=32, base_channels=16, stage_channels=(16, 8, 8))
+
+
+@pytest.fixture(scope="module")
+def data(tiny_dataset):
+    return dataset.open_dataset(tiny_dataset)
+
+
+def weights_equal(a, b):
+    return all(np.array_equal(x, y) for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True))
+
+
+def test_split_holds_out_the_last_samples():
+    assert train.validation_count(48, 0.05) == 2
+    assert train.validation_count(10, 0.05) == 1
+    assert train.validation_count(22000, 0.05) == 1100
+
+
+@pytest.mark.parametrize("name", ["decoder", "encoder-8"])
+def test_training_reduces_the_loss(tmp_path, data, name):
+    metrics = train.train_network(name, data, str(tmp_path), Config(epochs=8, batch_size=8, learning_rate=3e-3), decoder=TINY_DECODER)
+    losses = [record["train_loss"] for record in metrics["history"]]
+    assert len(losses) == 8
+    # the decoder learns the scene at once; an encoder on 46 samples first learns the mean (1/12 per parameter)
+    assert losses[-1] < (0.7 if name == "decoder" else 0.95) * losses[0]
+    assert metrics["training_samples"] == 46 and metrics["validation_samples"] == 2
+    stored = json.loads((tmp_path / f"{name}.json").read_text())
+    assert stored["epochs"] == 8 and stored["dataset"]["count"] == 48
+    network = models.load(models.weights_path(str(tmp_path), name), resolution=32)
+    assert network.info["metrics"]["validation_loss"] == pytest.approx(metrics["validation_loss"])
+
+
+@pytest.mark.parametrize("arch", [1, 3])
+def test_encoder_steps_fit_a_batch(data, arch):
+    module = models.encoder(arch)
+    tx = train.optimiser(Config(epochs=1, learning_rate=1e-3), steps_per_epoch=40)
+    variables = models.initialise(module, jax.random.key(0), (32, 32, 3))
+    train_step, _ = train.make_functions(module, tx, is_encoder=True)
+    x, y = (np.asarray(a[:8], np.float32) for a in train.training_arrays(f"encoder-{arch}", data))
+    state = (variables["params"], tx.init(variables["params"]))
+    losses = []
+    for step in range(40):
+        state, loss = train_step(state, x, y, jax.random.key(step))
+        losses.append(float(loss))
+    assert losses[-1] < 0.6 * losses[0]  # below the 1/12 of predicting the mean: it fits
+
+
+def test_interrupted_run_resumes_to_the_same_weights(tmp_path, data):
+    config = Config(epochs=3, batch_size=8)
+    whole = tmp_path / "whole"
+    train.train_network("encoder-3", data, str(whole), config)
+    parts = tmp_path / "parts"
+    with pytest.raises(KeyboardInterrupt):
+        train.train_network("encoder-3", data, str(parts), config, should_stop=lambda: True)
+    assert not os.path.exists(models.weights_path(str(parts), "encoder-3"))
+    resumed = train.train_network("encoder-3", data, str(parts), config)
+    assert [r["epoch"] for r in resumed["history"]] == [1, 2, 3]
+    a = models.load(models.weights_path(str(whole), "encoder-3"))
+    b = models.load(models.weights_path(str(parts), "encoder-3"))
+    assert weights_equal(a.variables, b.variables)
+    # a finished run is found, not trained again
+    again = train.train_network("encoder-3", data, str(parts), config)
+    assert again["wall_time_s"] == resumed["wall_time_s"]
+
+
+def test_save_load_round_trip_is_exact(tmp_path):
+    module = models.encoder(8)
+    variables = models.initialise(module, jax.random.key(3), (32, 32, 3))
+    network = models.Network("encoder-8", models.architecture("encoder-8", 64), module, variables, {"note": "x"})
+    path = str(tmp_path / "e.msgpack")
+    models.save(path, network, dtype=np.float32)
+    loaded = models.load(path, resolution=64)
+    assert weights_equal(loaded.variables, variables)
+    assert loaded.info == {"note": "x"} and loaded.name == "encoder-8"
+    models.save(path, network)  # float16 storage: exactly the rounded weights come back
+    rounded = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float16).astype(np.float32), variables)
+    assert weights_equal(models.load(path).variables, rounded)
+
+
+def test_other_resolution_or_table_is_refused(tmp_path, monkeypatch):
+    module = models.Decoder(resolution=16, hidden=8, base_channels=4, stage_channels=(4,))
+    variables = models.initialise(module, jax.random.key(0), (19,))
+    path = str(tmp_path / "decoder.msgpack")
+    models.save(path, models.Network("decoder", models.architecture("decoder", 16, module), module, variables, {}))
+    with pytest.raises(models.WeightsError, match="trained on 16 px images, not 64 px"):
+        models.load(path, resolution=64)
+    changed = params.table_fingerprint()
+    changed["parameters"][4] = {**changed["parameters"][4], "high": 2.0}
+    monkeypatch.setattr(params, "table_fingerprint", lambda: changed)
+    with pytest.raises(models.WeightsError, match="another parameter table .*'roughness'"):
+        models.load(path)
+
+
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (lambda b: b[: len(b) // 2], "not a readable weights file"),
+        (lambda b: b"\x00" * 100, "not a readable weights file|not a matfit weights file"),
+        (lambda b: b"", "not a readable weights file|not a matfit weights file"),
+    ],
+)
+def test_corrupt_weights_are_refused(tmp_path, damage, message):
+    module = models.encoder(8)
+    variables = models.initialise(module, jax.random.key(0), (32, 32, 3))
+    path = tmp_path / "encoder-8.msgpack"
+    models.save(str(path), models.Network("encoder-8", models.architecture("encoder-8", 64), module, variables, {}))
+    path.write_bytes(damage(path.read_bytes()))
+    with pytest.raises(models.WeightsError, match=message):
+        models.load(str(path))
+
+
+def test_checkpoint_of_other_settings_or_damaged_is_refused(tmp_path, data):
+    out = str(tmp_path)
+    with pytest.raises(KeyboardInterrupt):
+        train.train_network("encoder-8", data, out, Config(epochs=2, batch_size=8), should_stop=lambda: True)
+    with pytest.raises(TrainingError, match=r"other settings \(batch_size 8 \(now 16\)\)"):
+        train.train_network("encoder-8", data, out, Config(epochs=2, batch_size=16))
+    checkpoint = train.checkpoint_path(out, "encoder-8")
+    with open(checkpoint, "r+b") as file:
+        file.truncate(200)
+    with pytest.raises(models.WeightsError, match="not a readable checkpoint"):
+        train.train_network("encoder-8", data, out, Config(epochs=2, batch_size=8))
+
+
+def test_bad_settings_are_refused(tmp_path, data):
+    with pytest.raises(TrainingError, match="--epochs 0"):
+        train.train_network("encoder-8", data, str(tmp_path), Config(epochs=0))
+    with pytest.raises(TrainingError, match="--batch-size 64 does not fit 46"):
+        train.train_network("encoder-8", data, str(tmp_path), Config(epochs=1, batch_size=64))
+
+
+def test_unfinished_dataset_is_refused(tmp_path, renderer):
+    path = str(tmp_path / "partial")
+    dataset.prepare(path, dataset.Settings(32, 1, 0, renderer.variant), 4, {})
+    with pytest.raises(TrainingError, match="0/4 samples rendered"):
+        train.train_network("decoder", dataset.open_dataset(path), str(tmp_path), Config(epochs=1, batch_size=1))
+
+
+def test_arch_parsing():
+    assert train.parse_arch("decoder") == ["decoder"]
+    assert train.parse_arch("4") == ["encoder-4"]
+    assert train.parse_arch("1..9") == [f"encoder-{i}" for i in range(1, 10)]
+    assert train.parse_arch("all")[0] == "decoder" and len(train.parse_arch("all")) == 10
+    for bad, message in (("0", "--arch 0 does not exist"), ("10", "--arch 10 does not exist"), ("x", "not an architecture")):
+        with pytest.raises(TrainingError, match=message):
+            train.parse_arch(bad)
+
+
+def test_encoder_input_box_filters_then_encodes():
+    linear = np.zeros((64, 64, 3), np.float32)
+    linear[:2, :2] = [1.0, 0.5, 0.0]
+    out = models.encoder_input(linear)
+    assert out.shape == (32, 32, 3)
+    np.testing.assert_allclose(out[0, 0], [1.0, 0.7353569, 0.0], rtol=1e-6)
+    assert out[0, 1].max() == 0.0
