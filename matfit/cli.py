@@ -16,8 +16,10 @@ import typer
 
 from matfit import dataset, files, images, params, presets
 from matfit.dataset import DatasetError
+from matfit.models import WeightsError
 from matfit.params import ParameterError
 from matfit.render import RenderError
+from matfit.train import TrainingError
 
 app = typer.Typer(
     help="Turn an edited picture of a material into photorealistic principled-BSDF parameters.",
@@ -27,7 +29,7 @@ app = typer.Typer(
     rich_markup_mode=None,
 )
 
-EXPECTED_ERRORS = (ParameterError, RenderError, files.OutputError, DatasetError)
+EXPECTED_ERRORS = (ParameterError, RenderError, files.OutputError, DatasetError, TrainingError, WeightsError)
 MAX_RENDER_SIZE = 4096
 
 
@@ -243,6 +245,118 @@ def bench_render(
             bare_seconds += time.perf_counter() - started
         bare = count / bare_seconds
         typer.echo(f"| {resolution} | {spp} | {ours:.1f} | {bare:.1f} | {ours / bare:.2f} |")
+
+
+class TrainingProgress:
+    """Shows training: a bar per epoch with loss and throughput on a terminal, a line per epoch otherwise."""
+
+    def __init__(self):
+        self.bar = None
+        self.task = None
+        self.label = ""
+        if sys.stderr.isatty():
+            from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
+            from rich.progress import Progress as RichProgress
+
+            self.bar = RichProgress(
+                TextColumn("{task.description}"),
+                BarColumn(),
+                MofNCompleteColumn(),
+                TextColumn("{task.fields[stats]}"),
+                TimeRemainingColumn(),
+            )
+            self.bar.start()
+
+    def start(self, name: str, epoch: int, epochs: int, steps: int) -> None:
+        self.label = f"{name} epoch {epoch}/{epochs}"
+        if self.bar is not None:
+            self.task = self.bar.add_task(self.label, total=steps, stats="")
+
+    def step(self, step: int, loss: float, samples_per_second: float) -> None:
+        if self.bar is not None:
+            self.bar.update(self.task, completed=step, stats=f"loss {loss:.5f}  {samples_per_second:.0f} samples/s")
+
+    def end_epoch(self, record: dict) -> None:
+        figures = {key: value for key, value in record.items() if key not in ("epoch", "seconds")}
+        text = "  ".join(f"{key} {value:.5g}" for key, value in figures.items())
+        line = f"{self.label}: {text}  ({record['seconds']:.1f} s)"
+        if self.bar is not None:
+            self.bar.update(self.task, description=line, stats="")
+        else:
+            typer.echo(line, err=True)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+
+
+@command
+def train(
+    arch: Annotated[
+        str, typer.Option(help="What to train: decoder, 1 to 9 (one encoder), 1..9 (all nine), all (decoder and nine), or a comma list.")
+    ],
+    dataset_path: Annotated[Path, typer.Option("--dataset", help="A finished `matfit render-dataset` directory.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Model directory: weights, metrics, and checkpoints/ for resuming.")] = Path(
+        "runs/model"
+    ),
+    epochs: Annotated[
+        int | None, typer.Option(help="Epochs per network (default: decoder 30, encoders 12, encoder 7: 6, encoder 9: 24).")
+    ] = None,
+    batch_size: Annotated[int, typer.Option(help="Samples per training step.")] = 64,
+    learning_rate: Annotated[float, typer.Option(help="Peak Adam learning rate (warm-up, then cosine decay).")] = 1e-3,
+    seed: Annotated[int, typer.Option(help="Seed of initialisation, shuffling and dropout.")] = 0,
+) -> None:
+    """Train the decoder and/or the encoders; run the same command again to resume after an interruption."""
+    from matfit import train as train_module
+
+    names = train_module.parse_arch(arch)
+    if not 0.0 < learning_rate <= 1.0:
+        raise TrainingError(f"--learning-rate {learning_rate} is out of range: use a value in (0, 1]")
+    check_range("--seed", seed, 0, 2**31 - 1)
+    data = dataset.open_dataset(str(dataset_path))
+    train_module.check_finished(data)
+    if out.exists() and not out.is_dir():
+        raise files.OutputError(f"--out {out} is a file: give a directory for the model")
+    out.mkdir(parents=True, exist_ok=True)
+    progress = TrainingProgress()
+    try:
+        for name in names:
+            config = train_module.Config(epochs or train_module.DEFAULT_EPOCHS[name], batch_size, learning_rate, seed=seed)
+            metrics = train_module.train_network(name, data, str(out), config, progress)
+            if "validation_rmse" in metrics:
+                figure = f"validation image RMSE {metrics['validation_rmse']:.2f} (0-255 sRGB)"
+            else:
+                figure = f"validation parameter RMSE {metrics['validation_parameter_rmse']:.4f} (unit cube)"
+            typer.echo(f"{name}: {metrics['epochs']} epochs, {figure}, {metrics['wall_time_s']:.0f} s -> {out}", err=True)
+    except KeyboardInterrupt:
+        progress.close()
+        typer.echo(f"interrupted: finished epochs are saved in {out / 'checkpoints'}; run the same command to resume", err=True)
+        raise typer.Exit(130) from None
+    progress.close()
+
+
+@command
+def evaluate(
+    model_path: Annotated[Path, typer.Option("--model", help="Model directory (decoder.msgpack, encoder-N.msgpack).")] = Path(
+        "data/models/default"
+    ),
+    references: Annotated[
+        Path, typer.Option(help="Held-out reference dataset, e.g. `matfit render-dataset ref --spp 256 --seed 1`.")
+    ] = Path("datasets/reference"),
+    card: Annotated[
+        bool, typer.Option("--card/--no-card", help="Also write evaluation.json and MODEL.md into the model directory.")
+    ] = False,
+) -> None:
+    """Measure a model against clean references: decoder RMSE, each encoder's errors, best-of-n."""
+    from matfit import evaluate as evaluate_module
+    from matfit import models
+
+    model = models.load_model(str(model_path))
+    evaluation = evaluate_module.evaluate(model, dataset.open_dataset(str(references)))
+    if card:
+        for path in evaluate_module.write_report(model, evaluation):
+            typer.echo(f"wrote {path}", err=True)
+    typer.echo(evaluate_module.card(model, evaluation))
 
 
 def main() -> None:

@@ -149,6 +149,23 @@ def initialise(model: nn.Module, key: jax.Array, input_shape: tuple[int, ...]) -
     return model.init(key, jnp.zeros((1, *input_shape), jnp.float32))
 
 
+@partial(jax.jit, static_argnums=0)
+def apply(module: nn.Module, variables: dict, x: jax.Array) -> jax.Array:
+    """Returns `module` applied to a batch in inference mode; compiled once per module and shape."""
+    return module.apply(variables, x)
+
+
+def apply_in_batches(module: nn.Module, variables: dict, inputs: np.ndarray, batch: int = 256) -> np.ndarray:
+    """Returns `module` applied to every input, float32, in fixed-size batches (one compilation)."""
+    outputs = []
+    for start in range(0, len(inputs), batch):
+        chunk = np.asarray(inputs[start : start + batch], np.float32)
+        if len(chunk) < batch:
+            chunk = np.concatenate([chunk, np.zeros((batch - len(chunk), *chunk.shape[1:]), np.float32)])
+        outputs.append(np.asarray(apply(module, variables, chunk))[: min(batch, len(inputs) - start)])
+    return np.concatenate(outputs)
+
+
 def encoder_input(linear: np.ndarray) -> np.ndarray:
     """Returns what every encoder sees of linear images (..., R, R, 3): box-filtered to
     ENCODER_RESOLUTION, then sRGB-encoded, float32. R must be a multiple of ENCODER_RESOLUTION."""
@@ -267,7 +284,9 @@ def load(path: str, resolution: int | None = None) -> Network:
     if not isinstance(description, dict) or "resolution" not in description:
         raise WeightsError(f"{path} has no architecture description: train again")
     if resolution is not None and int(description["resolution"]) != resolution:
-        raise WeightsError(f"{path} was trained on {description['resolution']} px images, not {resolution} px: use a model of that resolution")
+        raise WeightsError(
+            f"{path} was trained on {description['resolution']} px images, not {resolution} px: use a model of that resolution"
+        )
     module, variables = restore_variables(path, description, document.get("variables"))
     return Network(str(document.get("name")), description, module, variables, document.get("info") or {})
 

@@ -107,7 +107,9 @@ def encoder_inputs(data: Dataset) -> np.ndarray:
     """Returns every image as the encoders see it, float16 (count, 32, 32, 3)."""
     side = models.ENCODER_RESOLUTION
     if data.resolution % side:
-        raise TrainingError(f"encoders need images whose side is a multiple of {side} px; {data.path} has {data.resolution}: render one at 64 px")
+        raise TrainingError(
+            f"encoders need images whose side is a multiple of {side} px; {data.path} has {data.resolution}: render one at 64 px"
+        )
     out = np.empty((data.count, side, side, 3), np.float16)
     for start in range(0, data.count, CONVERT_CHUNK):
         out[start : start + CONVERT_CHUNK] = models.encoder_input(np.asarray(data.images[start : start + CONVERT_CHUNK], np.float32))
@@ -135,8 +137,8 @@ def optimiser(config: Config, steps_per_epoch: int) -> optax.GradientTransformat
     return optax.adam(schedule)
 
 
-def make_functions(module, tx: optax.GradientTransformation, is_encoder: bool):
-    """Returns jitted (train_step, predict) for a module: train_step(state, x, y, key) -> (state, loss)."""
+def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool):
+    """Returns the jitted train_step(state, x, y, key) -> (state, loss) of a module; state = (weights, optimiser state)."""
 
     def loss_fn(weights, x, y, key):
         if is_encoder:
@@ -152,21 +154,7 @@ def make_functions(module, tx: optax.GradientTransformation, is_encoder: bool):
         updates, opt_state = tx.update(grads, opt_state, weights)
         return (optax.apply_updates(weights, updates), opt_state), loss
 
-    @jax.jit
-    def predict(weights, x):
-        return module.apply({"params": weights}, x)
-
-    return train_step, predict
-
-
-def predict_all(predict, weights, inputs: np.ndarray, batch: int = 256) -> np.ndarray:
-    """Returns predictions for every input, float32, in fixed-size batches (one compilation)."""
-    outputs = []
-    for start in range(0, len(inputs), batch):
-        chunk = np.asarray(inputs[start : start + batch], np.float32)
-        padded = np.concatenate([chunk, np.zeros((batch - len(chunk), *chunk.shape[1:]), np.float32)]) if len(chunk) < batch else chunk
-        outputs.append(np.asarray(predict(weights, padded))[: len(chunk)])
-    return np.concatenate(outputs)
+    return train_step
 
 
 def validation_metrics(name: str, predictions: np.ndarray, targets: np.ndarray) -> dict:
@@ -300,7 +288,7 @@ def train_network(
         if state.epoch == config.epochs and os.path.exists(weights_file):
             return models.load(weights_file).info["metrics"]
 
-    train_step, predict = make_functions(module, tx, is_encoder)
+    train_step = make_train_step(module, tx, is_encoder)
     training = (state.weights, state.opt_state)
     while state.epoch < config.epochs:
         epoch = state.epoch + 1
@@ -317,11 +305,15 @@ def train_network(
             losses.append(loss)
             if step % 10 == 9 or step == steps - 1:
                 reporter.step(step + 1, float(loss), (step + 1) * config.batch_size / (time.perf_counter() - started))
-        predictions = predict_all(predict, training[0], inputs[n_training:])
+        predictions = models.apply_in_batches(module, {"params": training[0]}, inputs[n_training:])
         record = {
             "epoch": epoch,
             "train_loss": float(np.mean(jax.device_get(losses))),
-            **{key: value for key, value in validation_metrics(name, predictions, targets[n_training:]).items() if not key.endswith("_by_name")},
+            **{
+                key: value
+                for key, value in validation_metrics(name, predictions, targets[n_training:]).items()
+                if not key.endswith("_by_name")
+            },
             "seconds": time.perf_counter() - started,
         }
         state = Checkpoint(epoch, training[0], training[1], [*state.history, record], state.seconds + record["seconds"])
@@ -341,7 +333,7 @@ def train_network(
         "config": asdict(config),
         "weights_dtype": "float16",
         "parameter_count": models.parameter_count({"params": shipped}),
-        **validation_metrics(name, predict_all(predict, shipped, inputs[n_training:]), targets[n_training:]),
+        **validation_metrics(name, models.apply_in_batches(module, {"params": shipped}, inputs[n_training:]), targets[n_training:]),
         "history": state.history,
     }
     models.save(weights_file, models.Network(name, description, module, {"params": shipped}, {"metrics": metrics}))

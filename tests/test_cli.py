@@ -1,10 +1,11 @@
 import json
+import shutil
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from matfit import images
+from matfit import images, models
 from matfit.cli import app
 
 runner = CliRunner()
@@ -107,3 +108,62 @@ def test_dataset_with_other_settings_is_refused(tmp_path):
     assert run("render-dataset", tmp_path / "d", "--count", 4, "--resolution", 16, "--spp", 2).exit_code == 0
     result = run("render-dataset", tmp_path / "d", "--count", 4, "--resolution", 32, "--spp", 2)
     assert_one_line_error(result, "rendered with resolution 16, not 32")
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("model")
+    result = run("train", "--arch", "decoder,8", "--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8, "--out", out)
+    assert result.exit_code == 0, result.output
+    return out
+
+
+def test_train_writes_weights_metrics_and_checkpoints(trained):
+    for name in ("decoder", "encoder-8"):
+        assert (trained / f"{name}.msgpack").is_file()
+        assert (trained / "checkpoints" / f"{name}.ckpt").is_file()
+        metrics = json.loads((trained / f"{name}.json").read_text())
+        assert metrics["epochs"] == 1 and metrics["dataset"]["count"] == 48 and metrics["wall_time_s"] >= 0
+
+
+def test_evaluate_writes_the_model_card(trained, tiny_dataset):
+    result = run("evaluate", "--model", trained, "--references", tiny_dataset, "--card")
+    assert result.exit_code == 0, result.output
+    card = (trained / "MODEL.md").read_text()
+    assert "| encoder-8 |" in card and "best-of-1" in card
+    evaluation = json.loads((trained / "evaluation.json").read_text())
+    assert evaluation["references"]["count"] == 48
+    assert evaluation["best_of_n"]["image_rmse"] == pytest.approx(evaluation["encoders"]["8"]["image_rmse"])
+
+
+@pytest.mark.parametrize(
+    "arch, fragment", [("0", "--arch 0 does not exist"), ("10", "--arch 10 does not exist"), ("two", "--arch 'two' is not an architecture")]
+)
+def test_unknown_architectures(tiny_dataset, tmp_path, arch, fragment):
+    assert_one_line_error(run("train", "--arch", arch, "--dataset", tiny_dataset, "--out", tmp_path), fragment)
+
+
+def test_missing_and_corrupt_datasets(tmp_path, tiny_dataset):
+    assert_one_line_error(run("train", "--arch", "1", "--dataset", tmp_path / "none", "--out", tmp_path), "no meta.json", "render-dataset")
+    broken = tmp_path / "broken"
+    shutil.copytree(tiny_dataset, broken)
+    (broken / "images.npy").write_bytes(b"not numpy")
+    assert_one_line_error(run("train", "--arch", "1", "--dataset", broken, "--out", tmp_path), "images.npy is missing or corrupt")
+
+
+def test_corrupt_checkpoint_and_weights(tmp_path, tiny_dataset, trained):
+    out = tmp_path / "model"
+    shutil.copytree(trained, out)
+    (out / "checkpoints" / "encoder-8.ckpt").write_bytes(b"\x93garbage")
+    result = run("train", "--arch", "8", "--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8, "--out", out)
+    assert_one_line_error(result, "encoder-8.ckpt", "delete it and train again")
+    (out / "decoder.msgpack").write_bytes(b"")
+    assert_one_line_error(run("evaluate", "--model", out, "--references", tiny_dataset), "decoder.msgpack")
+    assert_one_line_error(run("evaluate", "--model", tmp_path / "nothing", "--references", tiny_dataset), "does not exist")
+
+
+def test_finished_networks_are_not_trained_again(trained, tiny_dataset):
+    before = models.load(str(trained / "encoder-8.msgpack")).info["metrics"]["wall_time_s"]
+    result = run("train", "--arch", "8", "--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8, "--out", trained)
+    assert result.exit_code == 0, result.output
+    assert models.load(str(trained / "encoder-8.msgpack")).info["metrics"]["wall_time_s"] == before

@@ -45,7 +45,7 @@ def test_encoder_steps_fit_a_batch(data, arch):
     module = models.encoder(arch)
     tx = train.optimiser(Config(epochs=1, learning_rate=1e-3), steps_per_epoch=40)
     variables = models.initialise(module, jax.random.key(0), (32, 32, 3))
-    train_step, _ = train.make_functions(module, tx, is_encoder=True)
+    train_step = train.make_train_step(module, tx, is_encoder=True)
     x, y = (np.asarray(a[:8], np.float32) for a in train.training_arrays(f"encoder-{arch}", data))
     state = (variables["params"], tx.init(variables["params"]))
     losses = []
@@ -97,7 +97,7 @@ def test_other_resolution_or_table_is_refused(tmp_path, monkeypatch):
     changed = params.table_fingerprint()
     changed["parameters"][4] = {**changed["parameters"][4], "high": 2.0}
     monkeypatch.setattr(params, "table_fingerprint", lambda: changed)
-    with pytest.raises(models.WeightsError, match="another parameter table .*'roughness'"):
+    with pytest.raises(models.WeightsError, match=r"another parameter table .*'roughness'"):
         models.load(path)
 
 
