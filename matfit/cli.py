@@ -300,7 +300,7 @@ def train(
         "runs/model"
     ),
     epochs: Annotated[
-        int | None, typer.Option(help="Epochs per network (default: decoder 30, encoders 12, encoder 7: 6, encoder 9: 24).")
+        int | None, typer.Option(help="Epochs per network (default: decoder 20, encoders 10; 4 and 5: 8, 7: 5, 9: 20).")
     ] = None,
     batch_size: Annotated[int, typer.Option(help="Samples per training step.")] = 64,
     learning_rate: Annotated[float, typer.Option(help="Peak Adam learning rate (warm-up, then cosine decay).")] = 1e-3,

@@ -39,40 +39,69 @@ WEIGHTS_SUFFIX = ".msgpack"
 DECODER = "decoder"
 
 
+def upsample(x: jax.Array) -> jax.Array:
+    """Returns (N, H, W, C) feature maps repeated to (N, 2H, 2W, C): nearest-neighbour upsampling.
+
+    Written as a broadcast, whose gradient is a sum; `jax.image.resize` differentiates through a
+    gather and made a training step several times slower on this CPU.
+    """
+    n, h, w, c = x.shape
+    return jnp.broadcast_to(x[:, :, None, :, None, :], (n, h, 2, w, 2, c)).reshape(n, 2 * h, 2 * w, c)
+
+
+def max_pool(x: jax.Array) -> jax.Array:
+    """Returns MaxPool(2, 2) of (N, H, W, C) feature maps (odd edges dropped, as with VALID padding).
+
+    A reshape and a max, whose gradient is a mask; XLA's select-and-scatter gradient of
+    `nn.max_pool` is slow on CPU.
+    """
+    n, h, w, c = x.shape
+    x = x[:, : h - h % 2, : w - w % 2]
+    return x.reshape(n, h // 2, 2, w // 2, 2, c).max(axis=(2, 4))
+
+
+def depth_to_space(x: jax.Array) -> jax.Array:
+    """Returns (N, H, W, 4C) feature maps rearranged to (N, 2H, 2W, C) (a sub-pixel convolution's shuffle)."""
+    n, h, w, c = x.shape
+    return x.reshape(n, h, w, 2, 2, c // 4).transpose(0, 1, 3, 2, 4, 5).reshape(n, 2 * h, 2 * w, c // 4)
+
+
 class Decoder(nn.Module):
     """Maps unit-cube parameters (..., 19) to sRGB images (..., resolution, resolution, 3).
 
-    Two dense layers to a 4 x 4 x `base_channels` map, then one stage per doubling: nearest
-    upsampling and `convs_per_stage` 3x3 convolutions with `stage_channels[k]` filters (the last
-    entry repeats for larger images), a 3x3 convolution to RGB, plus a learned per-pixel
-    `background` logit image before the sigmoid: the scene around the object hardly changes
-    with the material, so the convolutions only have to learn what does.
+    Two dense layers to a 4 x 4 x `base_channels` map; then one stage per doubling up to half
+    the resolution: nearest upsampling and `convs_per_stage` 3x3 convolutions with
+    `stage_channels[k]` filters (the last entry repeats for larger images); then a 3x3
+    convolution to 12 channels shuffled into the full-resolution RGB image (sub-pixel
+    convolution: no convolution runs at full resolution, where it would cost the most); plus a
+    learned per-pixel `background` logit image before the sigmoid: the scene around the object
+    hardly changes with the material, so the convolutions only learn what does.
     """
 
     resolution: int = 64
     hidden: int = 256
     base_channels: int = 128
-    stage_channels: Sequence[int] = (128, 64, 32, 16)
+    stage_channels: Sequence[int] = (64, 48, 32)
     convs_per_stage: int = 1
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        stages = self.resolution.bit_length() - 1 - 2  # from 4 x 4 up to resolution
-        if self.resolution < 8 or 4 * 2**stages != self.resolution:
+        stages = self.resolution.bit_length() - 1 - 3  # from 4 x 4 up to resolution / 2
+        if self.resolution < 8 or 8 * 2**stages != self.resolution:
             raise ValueError(f"decoder resolution must be 4 times a power of two (8, 16, ..., 256), got {self.resolution}")
         batch_shape = x.shape[:-1]
         x = x.reshape(-1, x.shape[-1])
         x = nn.gelu(nn.Dense(self.hidden)(x))
         x = nn.gelu(nn.Dense(self.hidden)(x))
-        x = nn.Dense(4 * 4 * self.base_channels)(x).reshape(-1, 4, 4, self.base_channels)
+        x = nn.gelu(nn.Dense(4 * 4 * self.base_channels)(x)).reshape(-1, 4, 4, self.base_channels)
         channels = list(self.stage_channels) + [self.stage_channels[-1]] * max(0, stages - len(self.stage_channels))
         for stage in range(stages):
-            n, h, w, c = x.shape
-            x = jax.image.resize(x, (n, 2 * h, 2 * w, c), method="nearest")
+            x = upsample(x)
             for _ in range(self.convs_per_stage):
                 x = nn.gelu(nn.Conv(channels[stage], (3, 3))(x))
+        x = depth_to_space(nn.Conv(4 * 3, (3, 3))(x))
         background = self.param("background", nn.initializers.zeros, (self.resolution, self.resolution, 3))
-        x = nn.sigmoid(nn.Conv(3, (3, 3))(x) + background)
+        x = nn.sigmoid(x + background)
         return x.reshape(*batch_shape, self.resolution, self.resolution, 3)
 
 
@@ -106,7 +135,7 @@ class Encoder(nn.Module):
         for block in self.blocks:
             for _ in range(block.repeat):
                 x = nn.relu(nn.Conv(block.filters, (3, 3), strides=(1, 1))(x))
-                x = nn.max_pool(x, (2, 2), strides=(2, 2))
+                x = max_pool(x)
         x = x.reshape(x.shape[0], -1)
         for _ in range(self.dense.repeat):
             x = nn.relu(nn.Dense(self.dense.neurons)(x))

@@ -70,12 +70,22 @@ def test_decoder_weights_do_not_grow_with_the_image_beyond_one_stage():
     for resolution in (64, 128, 256):
         model = models.Decoder(resolution=resolution)
         sizes[resolution] = models.parameter_count(models.initialise(model, jax.random.key(0), (19,)))
-    # one more upsampling stage of 64 channels: two 3x3 convolutions 64 -> 64
-    stage = 2 * (3 * 3 * 64 * 64 + 64)
-    assert sizes[128] - sizes[64] == stage
-    assert sizes[256] - sizes[128] == stage
+    # one more upsampling stage of 32 channels (one 3x3 convolution 32 -> 32) and a larger background image
+    stage = 3 * 3 * 32 * 32 + 32
+    assert sizes[128] - sizes[64] == stage + (128**2 - 64**2) * 3
+    assert sizes[256] - sizes[128] == stage + (256**2 - 128**2) * 3
 
 
 def test_decoder_rejects_resolutions_it_cannot_reach():
     with pytest.raises(ValueError, match="4 times a power of two"):
         models.initialise(models.Decoder(resolution=48), jax.random.key(0), (19,))
+
+
+def test_upsample_pool_and_shuffle_match_their_definitions():
+    x = jax.random.normal(jax.random.key(0), (2, 4, 6, 8))
+    np.testing.assert_array_equal(models.upsample(x), np.repeat(np.repeat(x, 2, axis=1), 2, axis=2))
+    np.testing.assert_array_equal(models.max_pool(x), jax.lax.reduce_window(x, -np.inf, jax.lax.max, (1, 2, 2, 1), (1, 2, 2, 1), "VALID"))
+    shuffled = models.depth_to_space(x)
+    assert shuffled.shape == (2, 8, 12, 2)
+    # output pixel (2i + a, 2j + b) channel c comes from input (i, j) channel (2a + b) * 2 + c
+    np.testing.assert_array_equal(shuffled[:, 3, 5, 1], x[:, 1, 2, (2 * 1 + 1) * 2 + 1])
