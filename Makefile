@@ -40,6 +40,7 @@ format: $(BIN)/matfit
 
 bench: $(BIN)/matfit
 	$(BIN)/matfit bench-render --count 200
+	$(BIN)/matfit bench-model
 
 presets: $(BIN)/matfit
 	$(BIN)/matfit presets -o data/presets.png --size 128 --spp 512

@@ -16,6 +16,7 @@ import typer
 
 from matfit import dataset, files, images, params, presets
 from matfit.dataset import DatasetError
+from matfit.fit import FitError
 from matfit.models import WeightsError
 from matfit.params import ParameterError
 from matfit.render import RenderError
@@ -29,8 +30,9 @@ app = typer.Typer(
     rich_markup_mode=None,
 )
 
-EXPECTED_ERRORS = (ParameterError, RenderError, files.OutputError, DatasetError, TrainingError, WeightsError)
+EXPECTED_ERRORS = (ParameterError, RenderError, files.OutputError, DatasetError, TrainingError, WeightsError, FitError)
 MAX_RENDER_SIZE = 4096
+DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "data" / "models" / "default"  # shipped in the repository
 
 
 def fail(message: str, code: int = 2) -> None:
@@ -247,6 +249,136 @@ def bench_render(
         typer.echo(f"| {resolution} | {spp} | {ours:.1f} | {bare:.1f} | {ours / bare:.2f} |")
 
 
+@command(name="fit")
+def fit_command(
+    target: Annotated[Path, typer.Argument(help="The edited picture: PNG, JPEG, TIFF (8/16-bit) or EXR (linear).")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="params.json to write (feeds `matfit render`).")] = Path("params.json"),
+    model_path: Annotated[Path, typer.Option("--model", help="Model directory (default: the shipped model).")] = DEFAULT_MODEL,
+    method: Annotated[
+        str, typer.Option(help="hybrid (best-of-n, then Nelder-Mead), nn (best-of-n only) or optimize (Nelder-Mead from a random start).")
+    ] = "hybrid",
+    evals: Annotated[int, typer.Option("--evals", help="Nelder-Mead budget in objective evaluations (the paper: 50, 300, 1500).")] = 1500,
+    seed: Annotated[int, typer.Option(help="Seed of the random start of --method optimize.")] = 0,
+    mask: Annotated[
+        Path | None, typer.Option(help="Per-pixel weights, same size as the target: white = match here, black = ignore.")
+    ] = None,
+    box: Annotated[str, typer.Option(help="Keeping inside the parameter box: clip (clip + penalty) or barrier (the paper's).")] = "clip",
+    polish: Annotated[int, typer.Option(help="Projected-Adam steps through the decoder after Nelder-Mead (0: none).")] = 0,
+    report: Annotated[
+        Path | None, typer.Option(help="Write a comparison picture: target | guess | fit | Mitsuba render | difference.")
+    ] = None,
+    render_path: Annotated[Path | None, typer.Option("--render", help="Render the fitted material with Mitsuba to this image.")] = None,
+    size: Annotated[int, typer.Option(help="Size of the --render image in pixels.")] = 512,
+    spp: Annotated[int, typer.Option(help="Samples per pixel of the --render image.")] = 256,
+) -> None:
+    """Find the shader parameters whose render looks most like the edited picture."""
+    import hashlib
+
+    from matfit import fit as fit_module
+    from matfit import models
+
+    settings = fit_module.Settings(method=method, evaluations=evals, box=box, polish_steps=polish, seed=seed)
+    settings.check()
+    check_range("--seed", seed, 0, 2**31 - 1)
+    check_range("--size", size, dataset.MIN_RESOLUTION, MAX_RENDER_SIZE)
+    check_range("--spp", spp, 1, dataset.MAX_SPP)
+    if output.suffix.lower() != ".json":
+        raise ParameterError(f"--output {output} must end in .json")
+    for path in (report, render_path):
+        if path is not None:
+            images.check_extension(str(path))
+    for path in (output, report, render_path):
+        if path is not None:
+            files.check_writable(str(path))
+    started = time.perf_counter()
+    loaded = images.load(str(target))
+    mask_image = images.load(str(mask)) if mask is not None else None
+    models.enable_compilation_cache()
+    model = models.load_model(str(model_path))
+    for notice in loaded.notices:
+        typer.echo(notice, err=True)
+    target_srgb, notices = fit_module.prepare_target(loaded.pixels, model.resolution, str(target))
+    for notice in notices:
+        typer.echo(notice, err=True)
+    weights = None
+    if mask_image is not None:
+        weights = fit_module.prepare_mask(mask_image.pixels, loaded.pixels.shape[:2], model.resolution, str(mask))
+    result = fit_module.fit(model, target_srgb, settings, weights)
+
+    extra = {}
+    rendered = None
+    if report is not None or render_path is not None:
+        from matfit.render import Renderer
+
+        renderer = Renderer(model.resolution, 256)
+        echo_notice(renderer.notice)
+        rendered = images.srgb_encode(renderer.render(result.values))
+        extra["mitsuba_rmse"] = round(images.rmse(rendered, target_srgb), 3)
+        if render_path is not None:
+            big = Renderer(size, spp, renderer.variant)
+            images.write(str(render_path), big.render(result.values))
+    document = params.params_document(
+        result.values,
+        method=method,
+        evaluations=result.evaluations,
+        neural_rmse=round(result.rmse, 3),
+        start=result.chosen,
+        start_rmse=round(result.start_rmse, 3),
+        **extra,
+        box=box,
+        polish_steps=polish,
+        model=os.path.abspath(model_path),
+        target=str(target),
+        target_sha256=hashlib.sha256(target.read_bytes()).hexdigest(),
+        mask=str(mask) if mask is not None else None,
+        fit_seconds=round(result.seconds, 3),
+        wall_time_s=round(time.perf_counter() - started, 3),
+    )
+    if report is not None:
+        from matfit import report as report_module
+
+        guess = models.apply(model.decoder.module, model.decoder.variables, result.start[None])[0]
+        panels = [
+            (target_srgb, "target"),
+            (np.asarray(guess), f"best-of-n {result.start_rmse:.2f}"),
+            (result.image, f"fit (neural) {result.rmse:.2f}"),
+            (rendered, f"fit (Mitsuba) {extra['mitsuba_rmse']:.2f}"),
+            (report_module.difference(rendered, target_srgb), "|Mitsuba - target| x4"),
+        ]
+        images.write(str(report), images.srgb_decode(report_module.compose(panels)))
+    files.write_text(str(output), json.dumps(document, indent=2) + "\n")
+    typer.echo(
+        f"{output}: {method}, {result.evaluations} evaluations, neural RMSE {result.rmse:.2f} (start {result.chosen} {result.start_rmse:.2f})"
+        + (f", Mitsuba RMSE {extra['mitsuba_rmse']:.2f}" if extra else "")
+        + f", {time.perf_counter() - started:.1f} s",
+        err=True,
+    )
+
+
+@command
+def bench_model(
+    model_path: Annotated[Path, typer.Option("--model", help="Model directory to time.")] = DEFAULT_MODEL,
+    repeats: Annotated[int, typer.Option(help="Timed decoder calls.")] = 500,
+) -> None:
+    """Time loading a model (all networks, weights ready in memory) and the decoder's forward pass at batch 1."""
+    check_range("--repeats", repeats, 10, 1_000_000)
+    from matfit import models
+
+    started = time.perf_counter()
+    model = models.load_model(str(model_path))
+    loaded = time.perf_counter() - started
+    decoder = model.decoder
+    x = np.full((1, params.COUNT), 0.5, np.float32)
+    models.apply(decoder.module, decoder.variables, x).block_until_ready()  # compile
+    started = time.perf_counter()
+    for _ in range(repeats):
+        models.apply(decoder.module, decoder.variables, x).block_until_ready()
+    forward = (time.perf_counter() - started) / repeats
+    typer.echo(
+        f"| networks | load (s) | decoder forward, batch 1 (ms) |\n|---|---|---|\n| {1 + len(model.encoders)} | {loaded:.3f} | {1e3 * forward:.2f} |"
+    )
+
+
 class TrainingProgress:
     """Shows training: a bar per epoch with loss and throughput on a terminal, a line per epoch otherwise."""
 
@@ -337,9 +469,7 @@ def train(
 
 @command
 def evaluate(
-    model_path: Annotated[Path, typer.Option("--model", help="Model directory (decoder.msgpack, encoder-N.msgpack).")] = Path(
-        "data/models/default"
-    ),
+    model_path: Annotated[Path, typer.Option("--model", help="Model directory (decoder.msgpack, encoder-N.msgpack).")] = DEFAULT_MODEL,
     references: Annotated[
         Path, typer.Option(help="Held-out reference dataset, e.g. `matfit render-dataset ref --spp 256 --seed 1`.")
     ] = Path("datasets/reference"),

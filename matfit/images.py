@@ -8,6 +8,7 @@ HDR as linear float.
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 
 import numpy as np
 import OpenImageIO as oiio
@@ -93,27 +94,76 @@ def write(path: str, linear: np.ndarray) -> None:
             raise ImageError(f"cannot write {path}: {error}")
 
 
-def read(path: str) -> np.ndarray:
-    """Returns an image file as linear float32 (H, W, 3); display formats are sRGB-decoded."""
+MAX_PIXELS = 50_000_000  # larger inputs are refused before their pixels are decoded
+
+
+@dataclass
+class Loaded:
+    """An image file's pixels (linear float32 (H, W, 3)) and what was done to make them RGB."""
+
+    pixels: np.ndarray
+    notices: list[str]
+
+
+def load(path: str, max_pixels: int = MAX_PIXELS) -> Loaded:
+    """Returns an image file as linear RGB float32, with notices for dropped alpha or grey input.
+
+    Display formats (PNG, JPEG, TIFF, any bit depth) are sRGB-decoded; EXR and HDR are linear.
+    Refuses missing, unreadable, truncated, oversized (more than `max_pixels`) and non-finite images.
+    """
     if not os.path.isfile(path):
         raise ImageError(f"{path} does not exist: check the path")
+    if os.path.getsize(path) == 0:
+        raise ImageError(f"{path} is empty: export the image again")
+    reader = oiio.ImageInput.open(path)
+    if reader is None:
+        raise ImageError(
+            f"{path} is not an image OpenImageIO can read ({oiio.geterror().splitlines()[0] if oiio.geterror() else 'unknown format'})"
+        )
+    spec = reader.spec()
+    width, height, channels, alpha = spec.width, spec.height, spec.nchannels, spec.alpha_channel
+    reader.close()
+    if width * height > max_pixels:
+        raise ImageError(
+            f"{path} is {width}x{height} = {width * height / 1e6:.0f} Mpixel, more than {max_pixels / 1e6:.0f}: scale it down first"
+        )
     buffer = oiio.ImageBuf(path)
     pixels = buffer.get_pixels(oiio.FLOAT)
     if buffer.has_error or pixels is None or pixels.size == 0:
-        raise ImageError(f"{path} is not a readable image: {buffer.geterror() or 'no pixels'}")
-    pixels = np.asarray(pixels, dtype=np.float32)
-    if pixels.ndim == 2:
-        pixels = pixels[:, :, None]
-    channels = pixels.shape[2]
-    if channels == 1:
-        pixels = np.repeat(pixels, 3, axis=2)
-    elif channels >= 3:
-        pixels = pixels[:, :, :3]
-    else:
+        message = buffer.geterror().splitlines()[0] if buffer.has_error else "no pixels"
+        raise ImageError(f"{path} is damaged or truncated ({message}): export it again")
+    pixels = np.asarray(pixels, dtype=np.float32).reshape(height, width, channels)
+    notices = []
+    if channels in (1, 2):
+        notices.append(f"{path}: greyscale image, replicated to RGB")
         pixels = np.repeat(pixels[:, :, :1], 3, axis=2)
+    elif channels >= 3:
+        if channels > 3:
+            dropped = "alpha" if alpha == 3 else f"channels 4 to {channels}"
+            notices.append(f"{path}: {dropped} dropped (the colour is used as it is, not composited)")
+        pixels = pixels[:, :, :3]
+    if not np.all(np.isfinite(pixels)):
+        raise ImageError(f"{path} contains NaN or infinite values: fix or clamp them in your editor")
     if os.path.splitext(path)[1].lower() not in LINEAR_EXTENSIONS:
         pixels = srgb_decode(pixels)
-    return np.ascontiguousarray(pixels)
+    return Loaded(np.ascontiguousarray(pixels), notices)
+
+
+def read(path: str) -> np.ndarray:
+    """Returns an image file as linear float32 (H, W, 3); display formats are sRGB-decoded."""
+    return load(path).pixels
+
+
+def resample(linear: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Returns a linear image (H, W, C) resized to (height, width, C) with OpenImageIO's filtered resize."""
+    linear = np.ascontiguousarray(linear, dtype=np.float32)
+    if linear.shape[:2] == (height, width):
+        return linear
+    channels = linear.shape[2]
+    resized = oiio.ImageBufAlgo.resize(oiio.ImageBuf(linear), roi=oiio.ROI(0, width, 0, height, 0, 1, 0, channels))
+    if resized.has_error:
+        raise ImageError(f"cannot resample the image to {width}x{height}: {resized.geterror()}")
+    return np.asarray(resized.get_pixels(oiio.FLOAT), np.float32).reshape(height, width, channels)
 
 
 def label(image_srgb: np.ndarray, text: str, height: int = 14) -> np.ndarray:

@@ -352,3 +352,19 @@ def load_model(directory: str) -> Model:
     if not encoders:
         raise WeightsError(f"{directory} has a decoder but no encoders: train them with `matfit train --arch 1..9 --out {directory}`")
     return Model(directory, decoder, encoders)
+
+
+def enable_compilation_cache() -> None:
+    """Turns on JAX's persistent compilation cache (under $XDG_CACHE_HOME/matfit or ~/.cache/matfit).
+
+    A second `matfit fit` then loads its compiled programs instead of compiling them again.
+    """
+    root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    directory = os.path.join(root, "matfit", "jax")
+    try:
+        os.makedirs(directory, exist_ok=True)
+    except OSError:
+        return  # no writable cache: compile every time
+    jax.config.update("jax_compilation_cache_dir", directory)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
