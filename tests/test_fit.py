@@ -1,0 +1,139 @@
+import jax
+import numpy as np
+import pytest
+
+from matfit import fit, models, params
+from matfit.fit import FitError, Settings
+
+R = 32
+
+
+@pytest.fixture(scope="module")
+def model():
+    """A random 16 px decoder and two random encoders: enough to test the machinery, not quality."""
+    decoder = models.Decoder(resolution=R, hidden=64, base_channels=32, stage_channels=(32,))
+    variables = models.initialise(decoder, jax.random.key(0), (19,))
+    networks = {}
+    for arch in (3, 8):
+        module = models.encoder(arch)
+        networks[arch] = models.Network(
+            f"encoder-{arch}",
+            models.architecture(f"encoder-{arch}", 64),
+            module,
+            models.initialise(module, jax.random.key(arch), (32, 32, 3)),
+            {},
+        )
+    return models.Model("memory", models.Network("decoder", models.architecture("decoder", R, decoder), decoder, variables, {}), networks)
+
+
+def decode(model, unit):
+    return np.asarray(models.apply(model.decoder.module, model.decoder.variables, np.asarray(unit, np.float32)[None])[0])
+
+
+def true_point(seed):
+    return np.random.default_rng(seed).uniform(0.15, 0.85, params.COUNT).astype(np.float32)
+
+
+def test_best_of_n_picks_the_closest_candidate(model):
+    truth = true_point(1)
+    extra = np.stack([true_point(2), truth, true_point(3)])
+    result = fit.fit(model, decode(model, truth), Settings(method="nn"), extra=extra)
+    assert result.chosen == "extra-2"
+    assert result.rmse == pytest.approx(0.0, abs=1e-3)
+    assert result.evaluations == 0
+    assert set(result.candidate_rmse) == {"encoder-3", "encoder-8", "extra-1", "extra-2", "extra-3"}
+    assert min(result.candidate_rmse, key=result.candidate_rmse.get) == "extra-2"
+
+
+def test_hybrid_improves_on_its_start_and_stays_in_the_box(model):
+    target = decode(model, true_point(4))
+    for box in ("clip", "barrier"):
+        result = fit.fit(model, target, Settings(evaluations=400, box=box))
+        assert result.evaluations == 400
+        assert result.rmse < 0.8 * result.start_rmse
+        assert result.unit.min() >= 0.0 and result.unit.max() <= 1.0
+        np.testing.assert_allclose(result.values, params.from_unit(result.unit))
+
+
+def test_box_terms():
+    decoder = models.Decoder(resolution=8, hidden=8, base_channels=4, stage_channels=(4,))
+    variables = models.initialise(decoder, jax.random.key(0), (19,))
+    target, weights = np.zeros((8, 8, 3), np.float32), np.ones((8, 8), np.float32)
+    inside = np.full(19, 0.5, np.float32)
+    outside = inside.copy()
+    outside[0] = 1.5
+    clipped = inside.copy()
+    clipped[0] = 1.0
+    f = {box: (lambda x, box=box: float(fit.objective(x, (decoder, variables, target, weights, box)))) for box in fit.BOXES}
+    assert f["clip"](outside) == pytest.approx(f["clip"](clipped) + fit.PENALTY * 0.5, rel=1e-5)
+    assert f["barrier"](outside) >= fit.BARRIER
+    assert f["barrier"](inside) == pytest.approx(f["clip"](inside))
+
+
+def test_objective_is_the_weighted_rmse():
+    rng = np.random.default_rng(0)
+    images, target = rng.uniform(size=(2, 4, 4, 3)), rng.uniform(size=(4, 4, 3))
+    weights = np.zeros((4, 4))
+    weights[:2] = 1.0
+    expected = [255 * np.sqrt(np.mean((image[:2] - target[:2]) ** 2)) for image in images]
+    np.testing.assert_allclose(fit.image_rmse(images, target, weights), expected, rtol=1e-5)
+
+
+def test_a_mask_ignores_what_it_blacks_out(model):
+    target = decode(model, true_point(5))
+    spoiled = target.copy()
+    spoiled[: R // 2] = 1.0 - spoiled[: R // 2]
+    weights = np.ones((R, R), np.float32)
+    weights[: R // 2] = 0.0
+    masked = fit.fit(model, spoiled, Settings(evaluations=300), weights=weights)
+    plain = fit.fit(model, spoiled, Settings(evaluations=300))
+    assert masked.rmse < plain.rmse
+
+
+def test_one_compilation_serves_every_target(model):
+    settings = Settings(evaluations=60)
+    fit.fit(model, decode(model, true_point(6)), settings)
+    before = fit._fit._cache_size()
+    for seed in (7, 8, 9):
+        fit.fit(model, decode(model, true_point(seed)), settings)
+    assert fit._fit._cache_size() == before
+
+
+def test_optimize_starts_from_a_seeded_random_point(model):
+    target = decode(model, true_point(10))
+    a = fit.fit(model, target, Settings(method="optimize", evaluations=100, seed=1))
+    b = fit.fit(model, target, Settings(method="optimize", evaluations=100, seed=1))
+    c = fit.fit(model, target, Settings(method="optimize", evaluations=100, seed=2))
+    np.testing.assert_array_equal(a.unit, b.unit)
+    assert not np.array_equal(a.unit, c.unit)
+
+
+@pytest.mark.parametrize(
+    "settings, message",
+    [
+        (Settings(evaluations=0), "--evals 0 is out of range"),
+        (Settings(evaluations=20), "--evals 20 is out of range"),
+        (Settings(method="magic"), "--method 'magic' is unknown"),
+        (Settings(box="soft"), "box handling 'soft' is unknown"),
+    ],
+)
+def test_bad_settings(model, settings, message):
+    with pytest.raises(FitError, match=message):
+        fit.fit(model, np.zeros((R, R, 3), np.float32), settings)
+
+
+def test_wrong_target_shape_and_bad_mask(model):
+    with pytest.raises(FitError, match=r"needs \(32, 32, 3\)"):
+        fit.fit(model, np.zeros((8, 8, 3), np.float32))
+    with pytest.raises(FitError, match="mask must be"):
+        fit.fit(model, np.zeros((R, R, 3), np.float32), weights=np.zeros((R, R)))
+    with pytest.raises(FitError, match="make the mask the same size"):
+        fit.prepare_mask(np.ones((10, 12, 3), np.float32), (12, 12), R, "m.png")
+
+
+def test_prepare_target_warns_about_aspect():
+    square, notices = fit.prepare_target(np.full((40, 40, 3), 0.2, np.float32), R, "t.png")
+    assert square.shape == (R, R, 3) and notices == []
+    np.testing.assert_allclose(square, 0.4845292, rtol=1e-4)  # sRGB of linear 0.2
+    _, notices = fit.prepare_target(np.full((40, 50, 3), 0.2, np.float32), R, "t.png")
+    assert len(notices) == 1 and "50x40" in notices[0] and "1.250" in notices[0] and "1.000" in notices[0]
