@@ -94,6 +94,12 @@ def write(path: str, linear: np.ndarray) -> None:
             raise ImageError(f"cannot write {path}: {error}")
 
 
+def first_line(text: str | None, default: str) -> str:
+    """Returns the first non-empty line of an OpenImageIO error message, or `default`."""
+    lines = [line.strip() for line in (text or "").splitlines() if line.strip()]
+    return lines[0] if lines else default
+
+
 MAX_PIXELS = 50_000_000  # larger inputs are refused before their pixels are decoded
 
 
@@ -117,9 +123,8 @@ def load(path: str, max_pixels: int = MAX_PIXELS) -> Loaded:
         raise ImageError(f"{path} is empty: export the image again")
     reader = oiio.ImageInput.open(path)
     if reader is None:
-        raise ImageError(
-            f"{path} is not an image OpenImageIO can read ({oiio.geterror().splitlines()[0] if oiio.geterror() else 'unknown format'})"
-        )
+        reason = first_line(oiio.geterror(), "unknown format")
+        raise ImageError(f"{path} is not an image OpenImageIO can read ({reason}): export it as PNG, TIFF, JPEG or EXR")
     spec = reader.spec()
     width, height, channels, alpha = spec.width, spec.height, spec.nchannels, spec.alpha_channel
     reader.close()
@@ -130,7 +135,7 @@ def load(path: str, max_pixels: int = MAX_PIXELS) -> Loaded:
     buffer = oiio.ImageBuf(path)
     pixels = buffer.get_pixels(oiio.FLOAT)
     if buffer.has_error or pixels is None or pixels.size == 0:
-        message = buffer.geterror().splitlines()[0] if buffer.has_error else "no pixels"
+        message = first_line(buffer.geterror() if buffer.has_error else "", "no pixels")
         raise ImageError(f"{path} is damaged or truncated ({message}): export it again")
     pixels = np.asarray(pixels, dtype=np.float32).reshape(height, width, channels)
     notices = []

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from matfit import images, models
+from matfit import images, models, params
 from matfit.cli import app
 
 runner = CliRunner()
@@ -167,3 +167,78 @@ def test_finished_networks_are_not_trained_again(trained, tiny_dataset):
     result = run("train", "--arch", "8", "--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8, "--out", trained)
     assert result.exit_code == 0, result.output
     assert models.load(str(trained / "encoder-8.msgpack")).info["metrics"]["wall_time_s"] == before
+
+
+def black_png(path, side):
+    """Writes a valid black side x side PNG cheaply (black rows compress to almost nothing)."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    compressor = zlib.compressobj(9)
+    row = b"\x00" * (1 + 3 * side)
+    pixels = b"".join([compressor.compress(row) for _ in range(side)] + [compressor.flush()])
+    header = struct.pack(">IIBBBBB", side, side, 8, 2, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", pixels) + chunk(b"IEND", b""))
+
+
+@pytest.fixture(scope="module")
+def target(tiny_dataset, tmp_path_factory):
+    from matfit import dataset
+
+    data = dataset.open_dataset(tiny_dataset)
+    path = tmp_path_factory.mktemp("target") / "edited.png"
+    images.write(str(path), np.asarray(data.images[-1], np.float32))
+    return path
+
+
+def test_fit_writes_params_and_report(trained, target, tmp_path):
+    out, report = tmp_path / "params.json", tmp_path / "report.png"
+    result = run("fit", target, "-o", out, "--model", trained, "--evals", 60, "--report", report)
+    assert result.exit_code == 0, result.output
+    document = json.loads(out.read_text())
+    assert document["evaluations"] == 60 and document["method"] == "hybrid" and document["start"] == "encoder-8"
+    assert document["neural_rmse"] <= document["start_rmse"] and document["mitsuba_rmse"] > 0
+    assert len(document["target_sha256"]) == 64
+    values = params.parse_params_json(out.read_text())
+    assert values.shape == (19,)
+    assert images.read(str(report)).shape[1] == 5 * 192
+    # params.json feeds `matfit render` directly
+    assert run("render", out, "-o", tmp_path / "again.png", "--size", 16, "--spp", 4).exit_code == 0
+
+
+def test_fit_bad_inputs(trained, target, tmp_path):
+    out = tmp_path / "params.json"
+
+    def fit(*arguments):
+        return run("fit", *arguments, "-o", out, "--model", trained)
+
+    (tmp_path / "text.png").write_text("not an image")
+    assert_one_line_error(fit(tmp_path / "text.png"), "text.png")
+    (tmp_path / "empty.png").write_bytes(b"")
+    assert_one_line_error(fit(tmp_path / "empty.png"), "empty.png is empty")
+    truncated = tmp_path / "truncated.png"
+    truncated.write_bytes(target.read_bytes()[:200])
+    assert_one_line_error(fit(truncated), "truncated.png")
+    black_png(tmp_path / "huge.png", 7100)  # 50.4 Mpixel, over images.MAX_PIXELS
+    assert_one_line_error(fit(tmp_path / "huge.png"), "huge.png is 7100x7100", "scale it down")
+    nan = np.full((32, 32, 3), 0.5, np.float32)
+    nan[3, 4, 1] = np.nan
+    import OpenImageIO as oiio
+
+    buffer = oiio.ImageBuf(nan)
+    buffer.write(str(tmp_path / "nan.exr"))
+    assert_one_line_error(fit(tmp_path / "nan.exr"), "nan.exr contains NaN")
+    images.write(str(tmp_path / "mask.png"), np.ones((20, 20, 3), np.float32))
+    assert_one_line_error(fit(target, "--mask", tmp_path / "mask.png"), "make the mask the same size")
+    assert_one_line_error(fit(target, "--evals", 0), "--evals 0 is out of range")
+    assert_one_line_error(fit(target, "--method", "magic"), "--method 'magic' is unknown")
+    assert_one_line_error(run("fit", target, "-o", tmp_path / "no" / "p.json", "--model", trained), "does not exist")
+    assert_one_line_error(run("fit", target, "-o", out, "--model", tmp_path / "nothing"), "does not exist")
+    incomplete = tmp_path / "incomplete"
+    incomplete.mkdir()
+    shutil.copy(trained / "decoder.msgpack", incomplete)
+    assert_one_line_error(run("fit", target, "-o", out, "--model", incomplete), "no encoders")
+    assert not out.exists()  # nothing half-written by any failure
