@@ -270,6 +270,8 @@ def fit_command(
     render_path: Annotated[Path | None, typer.Option("--render", help="Render the fitted material with Mitsuba to this image.")] = None,
     size: Annotated[int, typer.Option(help="Size of the --render image in pixels.")] = 512,
     spp: Annotated[int, typer.Option(help="Samples per pixel of the --render image.")] = 256,
+    mitsuba_xml: Annotated[Path | None, typer.Option("--mitsuba-xml", help="Write the BSDF and medium as Mitsuba 3 XML.")] = None,
+    blender: Annotated[Path | None, typer.Option(help="Write a Blender 4.x script that builds the material.")] = None,
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
     import hashlib
@@ -287,7 +289,10 @@ def fit_command(
     for path in (report, render_path):
         if path is not None:
             images.check_extension(str(path))
-    for path in (output, report, render_path):
+    for path, suffix in ((mitsuba_xml, ".xml"), (blender, ".py")):
+        if path is not None and path.suffix.lower() != suffix:
+            raise ParameterError(f"{path} must end in {suffix}")
+    for path in (output, report, render_path, mitsuba_xml, blender):
         if path is not None:
             files.check_writable(str(path))
     started = time.perf_counter()
@@ -346,6 +351,13 @@ def fit_command(
             (report_module.difference(rendered, target_srgb), "|Mitsuba - target| x4"),
         ]
         images.write(str(report), images.srgb_decode(report_module.compose(panels)))
+    if mitsuba_xml is not None or blender is not None:
+        from matfit import export
+
+        if mitsuba_xml is not None:
+            files.write_text(str(mitsuba_xml), export.mitsuba_xml(result.values))
+        if blender is not None:
+            files.write_text(str(blender), export.blender_script(result.values))
     files.write_text(str(output), json.dumps(document, indent=2) + "\n")
     typer.echo(
         f"{output}: {method}, {result.evaluations} evaluations, neural RMSE {result.rmse:.2f} (start {result.chosen} {result.start_rmse:.2f})"

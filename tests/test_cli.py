@@ -196,8 +196,12 @@ def target(tiny_dataset, tmp_path_factory):
 
 def test_fit_writes_params_and_report(trained, target, tmp_path):
     out, report = tmp_path / "params.json", tmp_path / "report.png"
-    result = run("fit", target, "-o", out, "--model", trained, "--evals", 60, "--report", report)
+    xml, blender = tmp_path / "mat.xml", tmp_path / "mat.py"
+    result = run(
+        "fit", target, "-o", out, "--model", trained, "--evals", 60, "--report", report, "--mitsuba-xml", xml, "--blender", blender
+    )
     assert result.exit_code == 0, result.output
+    assert 'id="matfit-material"' in xml.read_text() and "ShaderNodeBsdfPrincipled" in blender.read_text()
     document = json.loads(out.read_text())
     assert document["evaluations"] == 60 and document["method"] == "hybrid" and document["start"] == "encoder-8"
     assert document["neural_rmse"] <= document["start_rmse"] and document["mitsuba_rmse"] > 0
