@@ -3,7 +3,7 @@ VENV ?= .venv
 PYTHON ?= python3
 BIN := $(VENV)/bin
 
-.PHONY: install llvm test lint format bench presets model clean
+.PHONY: install llvm test lint format bench presets examples model clean
 
 install: $(BIN)/matfit llvm
 	@$(BIN)/matfit --help >/dev/null && echo "matfit installed in $(VENV): run '$(BIN)/matfit --help' or activate with '. $(BIN)/activate'"
@@ -54,6 +54,9 @@ model: $(BIN)/matfit
 	$(BIN)/matfit render-dataset datasets/reference --count 300 --resolution 64 --spp 256 --seed 1
 	$(BIN)/matfit train --arch all --dataset datasets/train --out $(MODEL)
 	$(BIN)/matfit evaluate --model $(MODEL) --references datasets/reference --card
+
+examples: $(BIN)/matfit
+	$(BIN)/python -m matfit.examples data/examples
 
 clean:
 	rm -rf $(VENV) *.egg-info .pytest_cache .ruff_cache
