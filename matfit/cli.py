@@ -391,6 +391,31 @@ def bench_model(
     )
 
 
+@command
+def bench_fit(
+    model_path: Annotated[Path, typer.Option("--model", help="Model directory.")] = DEFAULT_MODEL,
+    count: Annotated[int, typer.Option(help="Reachable targets (256-spp renders of held-out parameters).")] = 20,
+    evals: Annotated[int, typer.Option("--evals", help="Nelder-Mead budget of the main configurations.")] = 1500,
+) -> None:
+    """Compare the fitting methods on reachable targets: neural and Mitsuba RMSE, warm fit time."""
+    check_range("--count", count, 1, 10000)
+    check_range("--evals", evals, params.COUNT + 2, 1_000_000)
+    from matfit import bench, models
+    from matfit.render import Renderer
+
+    models.enable_compilation_cache()
+    model = models.load_model(str(model_path))
+    renderer = Renderer(model.resolution, 256)
+    echo_notice(renderer.notice)
+    typer.echo(f"rendering {count} reachable targets at {model.resolution} px, 256 spp", err=True)
+    targets = bench.reachable_targets(renderer, count)
+    configurations = bench.default_configurations(evals)
+    table = bench.compare(model, targets, configurations, progress=lambda label, done, total: None)
+    reference = f"hybrid {evals}"
+    mitsuba = {label: bench.mitsuba_rmse(renderer, table[label]["results"], targets) for label in ("nn (best-of-n)", reference)}
+    typer.echo(bench.markdown(table, reference, mitsuba))
+
+
 class TrainingProgress:
     """Shows training: a bar per epoch with loss and throughput on a terminal, a line per epoch otherwise."""
 
