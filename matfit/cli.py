@@ -20,6 +20,7 @@ from matfit.fit import FitError
 from matfit.models import WeightsError
 from matfit.params import ParameterError
 from matfit.render import RenderError
+from matfit.sequence import SequenceError
 from matfit.train import TrainingError
 
 app = typer.Typer(
@@ -30,7 +31,7 @@ app = typer.Typer(
     rich_markup_mode=None,
 )
 
-EXPECTED_ERRORS = (ParameterError, RenderError, files.OutputError, DatasetError, TrainingError, WeightsError, FitError)
+EXPECTED_ERRORS = (ParameterError, RenderError, files.OutputError, DatasetError, TrainingError, WeightsError, FitError, SequenceError)
 MAX_RENDER_SIZE = 4096
 DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "data" / "models" / "default"  # shipped in the repository
 
@@ -364,6 +365,74 @@ def fit_command(
         + (f", Mitsuba RMSE {extra['mitsuba_rmse']:.2f}" if extra else "")
         + f", {time.perf_counter() - started:.1f} s",
         err=True,
+    )
+
+
+@command
+def sequence(
+    frames_path: Annotated[
+        Path, typer.Argument(help="Folder of frames (PNG, JPEG, TIFF, EXR), fitted in natural order: frame_2 before frame_10.")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder: one JSON per frame, summary.md, preview.png.")] = Path(
+        "sequence"
+    ),
+    model_path: Annotated[Path, typer.Option("--model", help="Model directory (default: the shipped model).")] = DEFAULT_MODEL,
+    evals: Annotated[int, typer.Option("--evals", help="Nelder-Mead evaluations per frame.")] = 100,
+    method: Annotated[str, typer.Option(help="hybrid, nn or optimize, as in `matfit fit`.")] = "hybrid",
+    reinit: Annotated[bool, typer.Option("--reinit/--no-reinit", help="Add the previous frame's optimum to the best-of-n pool.")] = True,
+    render_frames: Annotated[
+        bool, typer.Option("--render", help="Also render every fitted frame with Mitsuba (<frame>-render.png).")
+    ] = False,
+    size: Annotated[int, typer.Option(help="Size of the --render images.")] = 256,
+    spp: Annotated[int, typer.Option(help="Samples per pixel of the --render images.")] = 64,
+) -> None:
+    """Fit every frame of an edited sequence, reusing each optimum for the next frame; resumable."""
+    from matfit import fit as fit_module
+    from matfit import models
+    from matfit import sequence as sequence_module
+
+    settings = fit_module.Settings(method=method, evaluations=evals)
+    settings.check()
+    check_range("--size", size, dataset.MIN_RESOLUTION, MAX_RENDER_SIZE)
+    check_range("--spp", spp, 1, dataset.MAX_SPP)
+    frames = sequence_module.list_frames(str(frames_path))
+    if out.exists() and not out.is_dir():
+        raise files.OutputError(f"--out {out} is a file: give a folder for the results")
+    out.mkdir(parents=True, exist_ok=True)
+    files.check_writable(str(out / "summary.md"))
+    models.enable_compilation_cache()
+    model = models.load_model(str(model_path))
+    progress = Progress(f"fitting {len(frames)} frames")
+    started = time.perf_counter()
+    try:
+        results = sequence_module.fit_sequence(
+            model,
+            frames,
+            str(out),
+            settings,
+            reinit,
+            progress=lambda done, total, frame: progress(done, total, done / (time.perf_counter() - started)),
+        )
+        if render_frames:
+            from matfit.render import Renderer
+
+            renderer = Renderer(size, spp)
+            echo_notice(renderer.notice)
+            for frame in results:
+                path = out / (Path(frame.path).stem + "-render.png")
+                if not path.exists():
+                    images.write(str(path), renderer.render(params.from_unit(frame.unit)))
+    except KeyboardInterrupt:
+        progress.close()
+        typer.echo(f"interrupted: finished frames are saved in {out}; run the same command to resume", err=True)
+        raise typer.Exit(130) from None
+    progress.close()
+    table = sequence_module.summary_table(results)
+    files.write_text(str(out / "summary.md"), table)
+    images.write(str(out / "preview.png"), images.srgb_decode(sequence_module.preview(model, results)))
+    typer.echo(table)
+    typer.echo(
+        f"{out}: {len(results)} frames, RMSE sum {sum(f.rmse for f in results):.2f}, {time.perf_counter() - started:.1f} s", err=True
     )
 
 

@@ -103,6 +103,21 @@ def first_line(text: str | None, default: str) -> str:
 MAX_PIXELS = 50_000_000  # larger inputs are refused before their pixels are decoded
 
 
+def header(path: str) -> tuple[int, int, int, int]:
+    """Returns (width, height, channels, alpha channel index or -1) from an image file's header only."""
+    if not os.path.isfile(path):
+        raise ImageError(f"{path} does not exist: check the path")
+    if os.path.getsize(path) == 0:
+        raise ImageError(f"{path} is empty: export the image again")
+    reader = oiio.ImageInput.open(path)
+    if reader is None:
+        reason = first_line(oiio.geterror(), "unknown format")
+        raise ImageError(f"{path} is not an image OpenImageIO can read ({reason}): export it as PNG, TIFF, JPEG or EXR")
+    spec = reader.spec()
+    reader.close()
+    return spec.width, spec.height, spec.nchannels, spec.alpha_channel
+
+
 @dataclass
 class Loaded:
     """An image file's pixels (linear float32 (H, W, 3)) and what was done to make them RGB."""
@@ -117,17 +132,7 @@ def load(path: str, max_pixels: int = MAX_PIXELS) -> Loaded:
     Display formats (PNG, JPEG, TIFF, any bit depth) are sRGB-decoded; EXR and HDR are linear.
     Refuses missing, unreadable, truncated, oversized (more than `max_pixels`) and non-finite images.
     """
-    if not os.path.isfile(path):
-        raise ImageError(f"{path} does not exist: check the path")
-    if os.path.getsize(path) == 0:
-        raise ImageError(f"{path} is empty: export the image again")
-    reader = oiio.ImageInput.open(path)
-    if reader is None:
-        reason = first_line(oiio.geterror(), "unknown format")
-        raise ImageError(f"{path} is not an image OpenImageIO can read ({reason}): export it as PNG, TIFF, JPEG or EXR")
-    spec = reader.spec()
-    width, height, channels, alpha = spec.width, spec.height, spec.nchannels, spec.alpha_channel
-    reader.close()
+    width, height, channels, alpha = header(path)
     if width * height > max_pixels:
         raise ImageError(
             f"{path} is {width}x{height} = {width * height / 1e6:.0f} Mpixel, more than {max_pixels / 1e6:.0f}: scale it down first"

@@ -246,3 +246,26 @@ def test_fit_bad_inputs(trained, target, tmp_path):
     shutil.copy(trained / "decoder.msgpack", incomplete)
     assert_one_line_error(run("fit", target, "-o", out, "--model", incomplete), "no encoders")
     assert not out.exists()  # nothing half-written by any failure
+
+
+def test_sequence_through_the_cli(trained, tiny_dataset, tmp_path):
+    from matfit import dataset
+
+    data = dataset.open_dataset(tiny_dataset)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(3):
+        images.write(str(frames / f"frame_{k + 8}.png"), np.asarray(data.images[k], np.float32))
+    out = tmp_path / "out"
+    result = run("sequence", frames, "-o", out, "--model", trained, "--evals", 30)
+    assert result.exit_code == 0, result.output
+    assert [line.split("|")[1].strip() for line in result.stdout.splitlines()[2:5]] == ["frame_8.png", "frame_9.png", "frame_10.png"]
+    assert (out / "summary.md").is_file() and (out / "preview.png").is_file()
+    assert json.loads((out / "frame_10.json").read_text())["sequence"]["index"] == 2
+    again = run("sequence", frames, "-o", out, "--model", trained, "--evals", 30)
+    assert again.exit_code == 0 and again.stdout == result.stdout  # resumed: every frame read back
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert_one_line_error(run("sequence", empty, "-o", out, "--model", trained), "holds no frames")
+    images.write(str(frames / "frame_99.png"), np.zeros((8, 8, 3), np.float32))
+    assert_one_line_error(run("sequence", frames, "-o", tmp_path / "o2", "--model", trained), "frame_99.png is 8x8", "same size")

@@ -1,0 +1,189 @@
+"""Fitting image sequences with reinitialisation (the paper's Section 5 extension).
+
+For frames t_0..t_k (say, a slider dragged in an editor), frame i's best-of-n pool is the
+encoders' guesses plus, from the second frame on, the previous frame's optimum; Nelder-Mead
+refines the winner within the budget. `reinit=False` fits every frame alone, for comparison.
+
+Each finished frame is written at once to `<out>/<frame stem>.json` (params.json format, plus how
+it was found), so an interrupted run resumes after the last finished frame, reading that frame's
+optimum back as the next frame's candidate: a resumed run gives the same results as a whole one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from matfit import files, fit, images, models, params
+
+FRAME_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr")
+PREVIOUS = "previous frame"
+
+
+class SequenceError(ValueError):
+    """A frames folder or output that cannot be used; the message names it and the fix."""
+
+
+def natural_key(name: str) -> list:
+    """Returns a sort key that puts frame_2 before frame_10."""
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+
+
+def list_frames(directory: str) -> list[str]:
+    """Returns the image files of a folder in natural order; refuses a missing or empty folder."""
+    if not os.path.isdir(directory):
+        raise SequenceError(f"{directory} is not a folder: give the folder that holds the frames")
+    names = [name for name in os.listdir(directory) if os.path.splitext(name)[1].lower() in FRAME_EXTENSIONS and not name.startswith(".")]
+    if not names:
+        raise SequenceError(f"{directory} holds no frames ({', '.join(FRAME_EXTENSIONS)}): export the frames there first")
+    return [os.path.join(directory, name) for name in sorted(names, key=natural_key)]
+
+
+@dataclass
+class Frame:
+    """One fitted frame, as written to its JSON file."""
+
+    path: str
+    unit: np.ndarray
+    rmse: float
+    start: str
+    start_rmse: float
+    evaluations: int
+    seconds: float
+    image: np.ndarray | None = None  # phi(x), only for frames fitted in this run
+    target: np.ndarray | None = None
+
+
+def frame_json_path(out: str, frame: str) -> str:
+    """Returns where a frame's result is written."""
+    return os.path.join(out, os.path.splitext(os.path.basename(frame))[0] + ".json")
+
+
+def run_settings(settings: fit.Settings, reinit: bool, model: models.Model) -> dict:
+    """Returns what a resumed run must share with the run that wrote the finished frames."""
+    return {
+        "method": settings.method,
+        "evaluations": settings.evaluations,
+        "box": settings.box,
+        "reinit": reinit,
+        "model": os.path.abspath(model.path),
+    }
+
+
+def read_finished(path: str, expected: dict) -> Frame | None:
+    """Returns a finished frame's result if its file exists and was made with the same settings."""
+    if not os.path.exists(path):
+        return None
+    try:
+        with open(path) as file:
+            document = json.load(file)
+        stored = document["sequence"]
+        unit = np.asarray(stored["unit"], np.float64)  # exact, unlike the rounded physical values
+        if unit.shape != (params.COUNT,):
+            raise ValueError("unit vector of the wrong length")
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise SequenceError(f"{path} is damaged ({type(error).__name__}): delete it to fit that frame again") from None
+    if stored.get("settings") != expected:
+        raise SequenceError(f"{path} was made with other settings ({stored.get('settings')}): use another --out folder or delete it")
+    return Frame(stored["frame"], unit, stored["rmse"], stored["start"], stored["start_rmse"], stored["evaluations"], stored["seconds"])
+
+
+def check_sizes(frames: list[str]) -> None:
+    """Raises SequenceError unless every frame has the first frame's size (headers only)."""
+    first = images.header(frames[0])[:2]
+    for path in frames[1:]:
+        size = images.header(path)[:2]
+        if size != first:
+            raise SequenceError(f"{path} is {size[0]}x{size[1]}, the first frame is {first[0]}x{first[1]}: give every frame the same size")
+
+
+def load_frame(path: str, resolution: int, shape: tuple[int, int] | None) -> tuple[np.ndarray, tuple[int, int]]:
+    """Returns a frame as the model's sRGB target, checking that every frame has the same size."""
+    loaded = images.load(path)
+    size = loaded.pixels.shape[:2]
+    if shape is not None and size != shape:
+        raise SequenceError(f"{path} is {size[1]}x{size[0]}, the first frame is {shape[1]}x{shape[0]}: give every frame the same size")
+    target, _ = fit.prepare_target(loaded.pixels, resolution, path)
+    return target, size
+
+
+def fit_sequence(
+    model: models.Model,
+    frames: list[str],
+    out: str,
+    settings: fit.Settings,
+    reinit: bool = True,
+    progress: Callable[[int, int, Frame], None] | None = None,
+) -> list[Frame]:
+    """Fits every frame in order, writing each result at once; returns all frames' results."""
+    settings.check()
+    check_sizes(frames)
+    os.makedirs(out, exist_ok=True)
+    expected = run_settings(settings, reinit, model)
+    results: list[Frame] = []
+    shape = None
+    for index, path in enumerate(frames):
+        json_path = frame_json_path(out, path)
+        finished = read_finished(json_path, expected)
+        target, shape = load_frame(path, model.resolution, shape)
+        if finished is not None:
+            finished.target = target
+            results.append(finished)
+        else:
+            previous = results[-1].unit[None] if reinit and results else None
+            result = fit.fit(model, target, settings, extra=previous)
+            start = PREVIOUS if result.chosen == "extra-1" else result.chosen
+            frame = Frame(
+                path, result.unit, result.rmse, start, result.start_rmse, result.evaluations, result.seconds, result.image, target
+            )
+            document = params.params_document(
+                result.values,
+                sequence={
+                    "frame": path,
+                    "index": index,
+                    "rmse": result.rmse,
+                    "start": start,
+                    "start_rmse": result.start_rmse,
+                    "evaluations": result.evaluations,
+                    "seconds": result.seconds,
+                    "settings": expected,
+                    "unit": [float(u) for u in result.unit],
+                },
+            )
+            files.write_text(json_path, json.dumps(document, indent=2) + "\n")
+            results.append(frame)
+        if progress is not None:
+            progress(index + 1, len(frames), results[-1])
+    return results
+
+
+def summary_table(results: list[Frame]) -> str:
+    """Returns the per-frame table (frame, start chosen, RMSE, evaluations, time) in Markdown."""
+    lines = ["| frame | start | start RMSE | RMSE | evaluations | time (s) |", "|---|---|---|---|---|---|"]
+    for frame in results:
+        lines.append(
+            f"| {os.path.basename(frame.path)} | {frame.start} | {frame.start_rmse:.2f} | {frame.rmse:.2f} | {frame.evaluations} | {frame.seconds:.3f} |"
+        )
+    lines.append(
+        f"| sum | | | {sum(frame.rmse for frame in results):.2f} | {sum(f.evaluations for f in results)} | {sum(f.seconds for f in results):.2f} |"
+    )
+    return "\n".join(lines) + "\n"
+
+
+def preview(model: models.Model, results: list[Frame], columns: int = 12, tile: int = 96) -> np.ndarray:
+    """Returns an sRGB strip: targets on top, fitted (neural) images below, for up to `columns` frames."""
+    from matfit import report
+
+    chosen = np.unique(np.linspace(0, len(results) - 1, min(columns, len(results))).round().astype(int))
+    units = np.stack([results[k].unit for k in chosen]).astype(np.float32)
+    decoded = models.apply_in_batches(model.decoder.module, model.decoder.variables, units, batch=len(units))
+    top = report.compose([(results[k].target, os.path.basename(results[k].path)) for k in chosen], size=tile, caption=12)
+    bottom = report.compose(
+        [(image, f"RMSE {results[k].rmse:.2f}") for image, k in zip(decoded, chosen, strict=True)], size=tile, caption=12
+    )
+    return np.concatenate([top, bottom], axis=0)

@@ -1,0 +1,88 @@
+import json
+
+import numpy as np
+import pytest
+from helpers import decode, random_model, true_point
+
+from matfit import fit, images, sequence
+from matfit.sequence import SequenceError
+
+
+@pytest.fixture(scope="module")
+def model():
+    return random_model()
+
+
+def test_natural_order(tmp_path):
+    for name in ("frame_10.png", "frame_2.png", "frame_1.png", "notes.txt", "Frame_3.PNG"):
+        (tmp_path / name).write_bytes(b"")
+    assert [p.split("/")[-1] for p in sequence.list_frames(str(tmp_path))] == ["frame_1.png", "frame_2.png", "Frame_3.PNG", "frame_10.png"]
+
+
+def test_empty_or_missing_folder(tmp_path):
+    with pytest.raises(SequenceError, match="holds no frames"):
+        sequence.list_frames(str(tmp_path))
+    with pytest.raises(SequenceError, match="is not a folder"):
+        sequence.list_frames(str(tmp_path / "none"))
+
+
+@pytest.fixture
+def frames(tmp_path, model):
+    directory = tmp_path / "frames"
+    directory.mkdir()
+    base = decode(model, true_point(11))
+    for k in range(4):
+        images.write(str(directory / f"f{k}.png"), images.srgb_decode(np.clip(base * (1 - 0.05 * k), 0, 1)))
+    return sequence.list_frames(str(directory))
+
+
+def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, model, frames):
+    settings = fit.Settings(evaluations=40)
+    whole = sequence.fit_sequence(model, frames, str(tmp_path / "whole"), settings)
+    assert len(whole) == 4
+    seen = []
+    original = fit.fit
+
+    def spy(model_, target, settings_, weights=None, extra=None):
+        result = original(model_, target, settings_, weights, extra)
+        seen.append((extra, result.candidate_rmse))
+        return result
+
+    fit.fit = spy
+    try:
+        partial = sequence.fit_sequence(model, frames[:2], str(tmp_path / "parts"), settings)
+        resumed = sequence.fit_sequence(model, frames, str(tmp_path / "parts"), settings)
+    finally:
+        fit.fit = original
+    assert seen[0][0] is None and "extra-1" not in seen[0][1]
+    np.testing.assert_array_equal(seen[1][0][0], partial[0].unit)  # the previous optimum is a candidate
+    assert "extra-1" in seen[1][1]
+    assert len(seen) == 4  # the resumed run fitted only frames 3 and 4
+    np.testing.assert_array_equal(seen[2][0][0], partial[1].unit.astype(np.float32))
+    for a, b in zip(whole, resumed, strict=True):
+        np.testing.assert_allclose(a.unit, b.unit, atol=1e-6)
+        assert a.rmse == pytest.approx(b.rmse, abs=1e-4)
+    document = json.loads((tmp_path / "parts" / "f3.json").read_text())
+    assert document["sequence"]["index"] == 3 and document["sequence"]["settings"]["reinit"] is True
+
+
+def test_no_reinit_never_offers_the_previous_frame(tmp_path, model, frames):
+    results = sequence.fit_sequence(model, frames, str(tmp_path), fit.Settings(evaluations=30), reinit=False)
+    assert all(frame.start != sequence.PREVIOUS for frame in results)
+
+
+def test_mixed_sizes_and_other_settings_are_refused(tmp_path, model, frames):
+    images.write(str(tmp_path / "frames" / "f9.png"), np.zeros((20, 20, 3), np.float32))
+    with pytest.raises(SequenceError, match=r"f9\.png is 20x20, the first frame is 32x32"):
+        sequence.fit_sequence(model, sequence.list_frames(str(tmp_path / "frames")), str(tmp_path / "out"), fit.Settings(evaluations=30))
+    assert not (tmp_path / "out").exists()  # refused before fitting anything
+    sequence.fit_sequence(model, frames[:1], str(tmp_path / "out"), fit.Settings(evaluations=30))
+    with pytest.raises(SequenceError, match="other settings"):
+        sequence.fit_sequence(model, frames, str(tmp_path / "out"), fit.Settings(evaluations=31))
+
+
+def test_summary_table_sums():
+    frames = [sequence.Frame(f"f{k}.png", np.zeros(19), 1.5 * k, "encoder-1", 2.0, 100, 0.1) for k in range(3)]
+    table = sequence.summary_table(frames)
+    assert "| f2.png | encoder-1 | 2.00 | 3.00 | 100 | 0.100 |" in table
+    assert "| sum | | | 4.50 | 300 | 0.30 |" in table
