@@ -485,6 +485,31 @@ def bench_fit(
     typer.echo(bench.markdown(table, reference, mitsuba))
 
 
+@command
+def bench_sequence(
+    model_path: Annotated[Path, typer.Option("--model", help="Model directory.")] = DEFAULT_MODEL,
+    frames: Annotated[int, typer.Option(help="Frames of the built-in black-level sequence.")] = 120,
+    frames_out: Annotated[Path | None, typer.Option("--write-frames", help="Also write the sequence's frames to this folder.")] = None,
+) -> None:
+    """Reinitialisation against per-frame fitting on a built-in sequence (a rising black level), as in the paper."""
+    check_range("--frames", frames, 2, 100000)
+    from matfit import bench, models
+    from matfit.render import Renderer
+
+    models.enable_compilation_cache()
+    model = models.load_model(str(model_path))
+    renderer = Renderer(model.resolution, 256)
+    echo_notice(renderer.notice)
+    _, sequence_frames = bench.black_level_sequence(renderer, frames)
+    if frames_out is not None:
+        frames_out.mkdir(parents=True, exist_ok=True)
+        for k, frame in enumerate(sequence_frames):
+            images.write(str(frames_out / f"frame_{k}.png"), images.srgb_decode(frame))
+    started = time.perf_counter()
+    typer.echo(bench.sequence_table(model, sequence_frames))
+    typer.echo(f"{6 * frames} fits in {time.perf_counter() - started:.1f} s", err=True)
+
+
 class TrainingProgress:
     """Shows training: a bar per epoch with loss and throughput on a terminal, a line per epoch otherwise."""
 
