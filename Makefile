@@ -41,6 +41,8 @@ format: $(BIN)/matfit
 bench: $(BIN)/matfit
 	$(BIN)/matfit bench-render --count 200
 	$(BIN)/matfit bench-model
+	$(BIN)/matfit bench-fit --count 20
+	$(BIN)/matfit bench-sequence --frames 120
 
 presets: $(BIN)/matfit
 	$(BIN)/matfit presets -o data/presets.png --size 128 --spp 512
