@@ -118,12 +118,15 @@ def card(model: models.Model, evaluation: dict) -> str:
             f"| {network.name} | {metrics.get('parameter_count', 0):,} | {metrics.get('epochs', '?')} | {config.get('batch_size', '?')} "
             f"| {metrics.get('wall_time_s', 0) / 60:.1f} min | {figure} |"
         )
+    total = sum(network.info.get("metrics", {}).get("wall_time_s", 0) for network in [model.decoder, *model.encoders.values()])
+    lines += ["", f"Training all {1 + len(model.encoders)} networks took {total / 60:.0f} min on this machine's CPU."]
     references = evaluation["references"]
     lines += [
         "",
         f"## Against {references['count']} held-out references at {references['spp']} spp",
         "",
-        "RMSE on 0-255 sRGB values, per image, then averaged (median and 95th percentile in brackets).",
+        "RMSE on 0-255 sRGB values per image; mean, median and 95th percentile over the references. The references",
+        "carry Monte Carlo noise of about 2.2 themselves (256 spp), part of every figure below.",
         "",
         "| decoder phi(x) vs Mitsuba | mean | median | p95 |",
         "|---|---|---|---|",
