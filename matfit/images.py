@@ -137,7 +137,9 @@ def load(path: str, max_pixels: int = MAX_PIXELS) -> Loaded:
         raise ImageError(
             f"{path} is {width}x{height} = {width * height / 1e6:.0f} Mpixel, more than {max_pixels / 1e6:.0f}: scale it down first"
         )
-    buffer = oiio.ImageBuf(path)
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # the colour as painted, not multiplied by alpha
+    buffer = oiio.ImageBuf(path, 0, 0, config)
     pixels = buffer.get_pixels(oiio.FLOAT)
     if buffer.has_error or pixels is None or pixels.size == 0:
         message = first_line(buffer.geterror() if buffer.has_error else "", "no pixels")

@@ -51,3 +51,23 @@ def test_label_adds_a_caption_strip():
     out = images.label(np.zeros((20, 40, 3), np.float32), "gold", height=12)
     assert out.shape == (32, 40, 3)
     assert out[20:].max() > 0.5 and out[:20].max() == 0.0
+
+
+def test_load_drops_alpha_and_replicates_grey_with_notices(tmp_path):
+    import OpenImageIO as oiio
+
+    rgba = np.zeros((4, 6, 4), np.float32)
+    rgba[..., 0], rgba[..., 3] = 1.0, 0.5
+    spec = oiio.ImageSpec(6, 4, 4, "uint16")
+    spec.alpha_channel = 3
+    buffer = oiio.ImageBuf(spec)
+    buffer.set_pixels(oiio.ROI(), rgba)
+    buffer.write(str(tmp_path / "rgba.png"))
+    loaded = images.load(str(tmp_path / "rgba.png"))
+    assert loaded.pixels.shape == (4, 6, 3) and loaded.pixels[0, 0, 0] == 1.0
+    assert len(loaded.notices) == 1 and "alpha dropped" in loaded.notices[0]
+    grey = oiio.ImageBuf(np.full((4, 6, 1), 0.5, np.float32))
+    grey.write(str(tmp_path / "grey.tif"))
+    loaded = images.load(str(tmp_path / "grey.tif"))
+    np.testing.assert_allclose(loaded.pixels[0, 0], [images.srgb_decode(np.float32(0.5))] * 3, rtol=1e-3)
+    assert "greyscale" in loaded.notices[0]
