@@ -41,8 +41,7 @@ format: $(BIN)/matfit
 bench: $(BIN)/matfit
 	$(BIN)/matfit bench-render --count 200
 	$(BIN)/matfit bench-model
-	$(BIN)/matfit bench-fit --count 20
-	$(BIN)/matfit bench-sequence --frames 120
+	$(BIN)/matfit bench --out data/bench
 
 presets: $(BIN)/matfit
 	$(BIN)/matfit presets -o data/presets.png --size 128 --spp 512

@@ -510,6 +510,52 @@ def bench_sequence(
     typer.echo(f"{6 * frames} fits in {time.perf_counter() - started:.1f} s", err=True)
 
 
+@command
+def bench(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder: report.md, report.json, cases/*.png.")] = Path("data/bench"),
+    model_path: Annotated[Path, typer.Option("--model", help="Model directory.")] = DEFAULT_MODEL,
+    full: Annotated[
+        bool, typer.Option("--full", help="Everything: 10 seeds, 60 s basin-hopping, 120 frames (the quick version: 5, 5 s, 40).")
+    ] = False,
+) -> None:
+    """Reproduce the paper's evaluation tables on the built-in edit suite (quick version by default)."""
+    from matfit import bench as bench_module
+    from matfit import models
+    from matfit.render import Renderer
+
+    seeds, basin_seconds, frames = (10, 60.0, 120) if full else (5, 5.0, 40)
+    (out / "cases").mkdir(parents=True, exist_ok=True)
+    files.check_writable(str(out / "report.md"))
+    models.enable_compilation_cache()
+    model = models.load_model(str(model_path))
+    renderer = Renderer(model.resolution, 256)
+    echo_notice(renderer.notice)
+    started = time.perf_counter()
+    cases = bench_module.suite_targets(renderer)
+    typer.echo(f"main table: {len(cases)} cases x (best-of-9, optimiser over {seeds} seeds, hybrid) at 50, 300, 1500 evaluations", err=True)
+    main = bench_module.main_table(model, cases, seeds=seeds)
+    for (name, _, target), row in zip(cases, main, strict=True):
+        picture, row["mitsuba_hybrid_1500"], row["mitsuba_best_of_n"] = bench_module.case_picture(model, renderer, target, row, 1500)
+        images.write(str(out / "cases" / f"{bench_module.slug(name)}.png"), images.srgb_decode(picture))
+    typer.echo(f"optimiser table: L-BFGS-B, SLSQP, CG, Nelder-Mead, basin-hopping ({basin_seconds:g} s) from two starts", err=True)
+    optimisers = bench_module.optimiser_table(model, cases, basin_seconds=basin_seconds)
+    typer.echo(f"sequence table: {frames} frames", err=True)
+    _, sequence_frames = bench_module.black_level_sequence(renderer, frames)
+    sequence_text = bench_module.sequence_table(model, sequence_frames, every=max(1, frames // 12))
+    settings = (
+        f"{'Full' if full else 'Quick'} version (`matfit bench{' --full' if full else ''}`), model {model_path}, targets at "
+        f"{model.resolution} px rendered at 256 spp; {seeds} seeds; basin-hopping time-boxed to {basin_seconds:g} s per run; "
+        f"{frames} sequence frames. Total {time.perf_counter() - started:.0f} s on this machine."
+    )
+    report_text = bench_module.suite_report(main, optimisers, sequence_text, seeds=seeds, settings=settings)
+    files.write_text(str(out / "report.md"), report_text)
+    files.write_text(
+        str(out / "report.json"),
+        json.dumps({"main": main, "optimisers": optimisers, "sequence": sequence_text, "settings": settings}, indent=1) + "\n",
+    )
+    typer.echo(report_text)
+
+
 class TrainingProgress:
     """Shows training: a bar per epoch with loss and throughput on a terminal, a line per epoch otherwise."""
 

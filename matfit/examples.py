@@ -13,41 +13,16 @@ from __future__ import annotations
 import os
 import sys
 
-import numpy as np
-
 from matfit import images, presets
+from matfit.edits import hue_rotate, paint_highlight, saturate
 
 SIZE = 256
 SPP = 256
 
 
-def hue_rotate(srgb: np.ndarray, degrees: float) -> np.ndarray:
-    """Returns sRGB colours rotated about the grey axis by `degrees` (greys stay grey)."""
-    angle = np.radians(degrees)
-    axis = np.ones(3) / np.sqrt(3.0)
-    cross = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    rotation = np.cos(angle) * np.eye(3) + np.sin(angle) * cross + (1 - np.cos(angle)) * np.outer(axis, axis)
-    return np.clip(srgb @ rotation.T, 0.0, 1.0)
-
-
-def desaturate(srgb: np.ndarray, amount: float) -> np.ndarray:
-    """Returns sRGB colours moved `amount` of the way to their grey (Rec. 709 luma)."""
-    grey = srgb @ np.array([0.2126, 0.7152, 0.0722])
-    return np.clip(srgb + amount * (grey[..., None] - srgb), 0.0, 1.0)
-
-
-def paint_highlight(srgb: np.ndarray, centre: tuple[float, float], radius: float, strength: float) -> np.ndarray:
-    """Returns the image with a soft white spot painted at `centre` (fractions of width, height)."""
-    height, width = srgb.shape[:2]
-    y, x = np.mgrid[0:height, 0:width]
-    distance = np.hypot(x - centre[0] * width, y - centre[1] * height) / (radius * width)
-    alpha = strength * np.exp(-(distance**2))[..., None]
-    return srgb * (1 - alpha) + alpha
-
-
 EXAMPLES = {
     "recoloured.png": ("red-plastic", lambda image: hue_rotate(image, 120.0)),
-    "desaturated.png": ("copper", lambda image: desaturate(image, 0.85)),
+    "desaturated.png": ("copper", lambda image: saturate(image, 0.85)),
     "painted-highlight.png": ("red-plastic", lambda image: paint_highlight(image, (0.38, 0.38), 0.035, 0.95)),
 }
 
