@@ -39,7 +39,7 @@ format: $(BIN)/matfit
 	$(BIN)/ruff check --fix matfit tests
 
 bench: $(BIN)/matfit
-	$(BIN)/matfit bench-render --count 200
+	$(BIN)/matfit bench-render --count 100
 	$(BIN)/matfit bench-model
 	$(BIN)/matfit bench --out data/bench
 
