@@ -9,6 +9,7 @@ Mitsuba render of the result against the target: the honest figure.
 
 from __future__ import annotations
 
+import itertools
 import time
 from dataclasses import dataclass
 
@@ -203,10 +204,15 @@ def optimiser_table(model: models.Model, cases, evaluations: int = 1500, basin_s
 
 def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int, basin_seconds: float) -> dict:
     """Returns RMSE and seconds of every optimiser from both starts on one target."""
+    import warnings
+
     import jax
     import jax.numpy as jnp
-    import jaxopt
     import scipy.optimize
+
+    with warnings.catch_warnings():  # jaxopt warns on import that it is no longer maintained; the design card names it
+        warnings.simplefilter("ignore", DeprecationWarning)
+        import jaxopt
 
     decoder, variables = model.decoder.module, model.decoder.variables
     weights = jnp.ones(target.shape[:2], jnp.float32)
@@ -332,7 +338,16 @@ def suite_report(
         lines.append(
             f"| {method} | " + " | ".join(f"{np.median([row[f'{method}_{b}_seconds'] for row in main]):.3f}" for b in budgets) + " |"
         )
-    lines += ["", "## 5. Pictures", "", "target | best-of-9 | optimiser | hybrid | Mitsuba render of the hybrid result, per case:", ""]
+    lines += [
+        "",
+        "## 5. Pictures",
+        "",
+        "Mean RMSE over the suite against the budget:",
+        "",
+        "![RMSE against evaluations](rmse-vs-evaluations.png)",
+        "",
+    ]
+    lines += ["target | best-of-9 | optimiser | hybrid | Mitsuba render of the hybrid result, per case:", ""]
     lines += [f"![{row['case']}](cases/{slug(row['case'])}.png)" for row in main]
     return "\n".join(lines) + "\n"
 
@@ -340,3 +355,32 @@ def suite_report(
 def slug(name: str) -> str:
     """Returns a file-name-safe version of a case name."""
     return "".join(c if c.isalnum() else "-" for c in name).strip("-")
+
+
+def line_plot(series: dict[str, tuple[list[float], list[float], tuple[float, float, float]]], title: str, size=(480, 300)) -> np.ndarray:
+    """Returns an sRGB picture of a few lines: series = {label: (x values, y values, colour)}; x on a log scale."""
+    width, height = size
+    margin = 40
+    canvas = np.ones((height, width, 3), np.float32)
+    xs = np.log10(np.concatenate([np.asarray(x, float) for x, _, _ in series.values()]))
+    ys = np.concatenate([np.asarray(y, float) for _, y, _ in series.values()])
+    x_low, x_high = xs.min(), xs.max() + 1e-9
+    y_low, y_high = 0.0, ys.max() * 1.1 + 1e-9
+
+    def to_pixel(x, y):
+        return margin + (np.log10(x) - x_low) / (x_high - x_low) * (width - 2 * margin), height - margin - (y - y_low) / (
+            y_high - y_low
+        ) * (height - 2 * margin)
+
+    canvas[height - margin, margin : width - margin] = 0.0
+    canvas[margin : height - margin, margin] = 0.0
+    for x_values, y_values, colour in series.values():
+        points = [to_pixel(x, y) for x, y in zip(x_values, y_values, strict=True)]
+        for (x0, y0), (x1, y1) in itertools.pairwise(points):
+            for t in np.linspace(0.0, 1.0, 400):
+                px, py = round(x0 + t * (x1 - x0)), round(y0 + t * (y1 - y0))
+                canvas[py - 1 : py + 2, px - 1 : px + 2] = colour
+        for px, py in points:
+            canvas[round(py) - 3 : round(py) + 4, round(px) - 3 : round(px) + 4] = colour
+    titled = images.label(canvas, f"{title}; y from 0 to {y_high:.1f}", 18)
+    return images.label(titled, "   ".join(series), 18)

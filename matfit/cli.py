@@ -547,6 +547,18 @@ def bench(
         f"{model.resolution} px rendered at 256 spp; {seeds} seeds; basin-hopping time-boxed to {basin_seconds:g} s per run; "
         f"{frames} sequence frames. Total {time.perf_counter() - started:.0f} s on this machine."
     )
+    budgets = [50, 300, 1500]
+    mean = {key: [float(np.mean([row[f"{key}_{b}"] for row in main])) for b in budgets] for key in ("optimize", "hybrid")}
+    best_of_n = float(np.mean([row["best_of_n"] for row in main]))
+    plot = bench_module.line_plot(
+        {
+            "optimiser (red)": (budgets, mean["optimize"], (0.85, 0.2, 0.15)),
+            "hybrid (blue)": (budgets, mean["hybrid"], (0.15, 0.3, 0.85)),
+            "best-of-9 (grey)": ([50, 1500], [best_of_n, best_of_n], (0.6, 0.6, 0.6)),
+        },
+        "mean RMSE vs evaluations 50, 300, 1500",
+    )
+    images.write(str(out / "rmse-vs-evaluations.png"), images.srgb_decode(plot))
     report_text = bench_module.suite_report(main, optimisers, sequence_text, seeds=seeds, settings=settings)
     files.write_text(str(out / "report.md"), report_text)
     files.write_text(

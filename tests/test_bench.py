@@ -28,3 +28,18 @@ def test_compare_and_tables(model):
     frames = [bench.black_level(decode(model, true_point(3)), level) for level in (0.0, 0.05, 0.1)]
     sequence = bench.sequence_table(model, frames, budgets=(30,), every=1)
     assert sequence.count("\n") == 2 + 3 + 2 - 1 and "| sum |" in sequence and "/3 |" in sequence
+
+
+def test_optimiser_comparison_runs_every_optimiser_from_both_starts(model):
+    target = decode(model, true_point(5))
+    row = bench.compare_optimisers(model, target, evaluations=30, basin_seconds=0.2)
+    for optimiser in ("L-BFGS-B", "SLSQP", "CG", "Nelder-Mead", "basin-hopping"):
+        for start in ("random", "best-of-9"):
+            assert np.isfinite(row[f"{optimiser} ({start})"]) and row[f"{optimiser} ({start}) seconds"] >= 0
+    assert row["L-BFGS-B (best-of-9)"] <= fit.fit(model, target, fit.Settings(method="nn")).rmse + 1e-4
+
+
+def test_line_plot_draws_its_series():
+    picture = bench.line_plot({"a": ([50, 300, 1500], [3.0, 2.0, 1.0], (1.0, 0.0, 0.0))}, "t", size=(120, 80))
+    assert picture.shape == (80 + 36, 120, 3)
+    assert np.any(np.all(picture[:80] == [1.0, 0.0, 0.0], axis=-1))
