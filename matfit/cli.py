@@ -535,7 +535,7 @@ def bench(
     typer.echo(f"main table: {len(cases)} cases x (best-of-9, optimiser over {seeds} seeds, hybrid) at 50, 300, 1500 evaluations", err=True)
     main = bench_module.main_table(model, cases, seeds=seeds)
     for (name, _, target), row in zip(cases, main, strict=True):
-        picture, row["mitsuba_hybrid_1500"], row["mitsuba_best_of_n"] = bench_module.case_picture(model, renderer, target, row, 1500)
+        picture = bench_module.case_picture(model, renderer, target, row, 1500)
         images.write(str(out / "cases" / f"{bench_module.slug(name)}.png"), images.srgb_decode(picture))
     typer.echo(f"optimiser table: L-BFGS-B, SLSQP, CG, Nelder-Mead, basin-hopping ({basin_seconds:g} s) from two starts", err=True)
     optimisers = bench_module.optimiser_table(model, cases, basin_seconds=basin_seconds)
