@@ -19,6 +19,7 @@ from matfit import edits, fit, images, models, params, presets
 
 TARGET_SEED = 1
 TARGET_OFFSET = 100_000  # sample indices far from the reference set's 0..N
+BUDGETS = (50, 300, 1500)  # the paper's Nelder-Mead budgets, in evaluations
 
 
 @dataclass
@@ -170,7 +171,7 @@ def random_guess_rmse(model: models.Model, target: np.ndarray, seeds: int) -> fl
     return float(np.mean(np.asarray(fit.image_rmse(decoded, target, np.ones(target.shape[:2], np.float32)))))
 
 
-def main_table(model: models.Model, cases, budgets=(50, 300, 1500), seeds: int = 5) -> list[dict]:
+def main_table(model: models.Model, cases, budgets=BUDGETS, seeds: int = 5) -> list[dict]:
     """Returns the paper's main table: random guess, best-of-9, then optimiser (mean over seeds) vs hybrid per budget."""
     rows = []
     for name, description, target in cases:
@@ -294,9 +295,7 @@ def case_picture(model: models.Model, renderer, target: np.ndarray, row: dict, b
     return report.compose(panels, size=128, caption=14)
 
 
-def suite_report(
-    main: list[dict], optimisers: list[dict], sequence: str, budgets=(50, 300, 1500), seeds: int = 5, settings: str = ""
-) -> str:
+def suite_report(main: list[dict], optimisers: list[dict], sequence: str, budgets=BUDGETS, seeds: int = 5, settings: str = "") -> str:
     """Returns the Markdown report of the edit suite: main table with Mitsuba column, optimisers, sequence, timings."""
     lines = ["# matfit bench: the paper's tables on the built-in edit suite", "", settings, "", "## 1. Main table (RMSE, 0-255 sRGB)", ""]
     header = (
@@ -391,3 +390,17 @@ def line_plot(series: dict[str, tuple[list[float], list[float], tuple[float, flo
             canvas[round(py) - 3 : round(py) + 4, round(px) - 3 : round(px) + 4] = colour
     titled = images.label(canvas, f"{title}; y from 0 to {y_high:.1f}", 18)
     return images.label(titled, "   ".join(series), 18)
+
+
+def budget_plot(main: list[dict], budgets=BUDGETS) -> np.ndarray:
+    """Returns the plot of the main table: mean RMSE over the cases against the budget, optimiser, hybrid and best-of-9."""
+    mean = {key: [float(np.mean([row[f"{key}_{b}"] for row in main])) for b in budgets] for key in ("optimize", "hybrid")}
+    best_of_n = float(np.mean([row["best_of_n"] for row in main]))
+    return line_plot(
+        {
+            "optimiser (red)": (list(budgets), mean["optimize"], (0.85, 0.2, 0.15)),
+            "hybrid (blue)": (list(budgets), mean["hybrid"], (0.15, 0.3, 0.85)),
+            "best-of-9 (grey)": ([budgets[0], budgets[-1]], [best_of_n, best_of_n], (0.6, 0.6, 0.6)),
+        },
+        "mean RMSE vs evaluations " + ", ".join(map(str, budgets)),
+    )

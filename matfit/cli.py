@@ -343,10 +343,9 @@ def fit_command(
     if report is not None:
         from matfit import report as report_module
 
-        guess = models.apply(model.decoder.module, model.decoder.variables, result.start[None])[0]
         panels = [
             (target_srgb, "target"),
-            (np.asarray(guess), f"best-of-n {result.start_rmse:.2f}"),
+            (result.start_image, f"best-of-n {result.start_rmse:.2f}"),
             (result.image, f"fit (neural) {result.rmse:.2f}"),
             (rendered, f"fit (Mitsuba) {extra['mitsuba_rmse']:.2f}"),
             (report_module.difference(rendered, target_srgb), "|Mitsuba - target| x4"),
@@ -532,10 +531,13 @@ def bench(
     echo_notice(renderer.notice)
     started = time.perf_counter()
     cases = bench_module.suite_targets(renderer)
-    typer.echo(f"main table: {len(cases)} cases x (best-of-9, optimiser over {seeds} seeds, hybrid) at 50, 300, 1500 evaluations", err=True)
+    typer.echo(
+        f"main table: {len(cases)} cases x (best-of-9, optimiser over {seeds} seeds, hybrid) at {bench_module.BUDGETS} evaluations",
+        err=True,
+    )
     main = bench_module.main_table(model, cases, seeds=seeds)
     for (name, _, target), row in zip(cases, main, strict=True):
-        picture = bench_module.case_picture(model, renderer, target, row, 1500)
+        picture = bench_module.case_picture(model, renderer, target, row, bench_module.BUDGETS[-1])
         images.write(str(out / "cases" / f"{bench_module.slug(name)}.png"), images.srgb_decode(picture))
     typer.echo(f"optimiser table: L-BFGS-B, SLSQP, CG, Nelder-Mead, basin-hopping ({basin_seconds:g} s) from two starts", err=True)
     optimisers = bench_module.optimiser_table(model, cases, basin_seconds=basin_seconds)
@@ -547,18 +549,7 @@ def bench(
         f"{model.resolution} px rendered at 256 spp; {seeds} seeds; basin-hopping time-boxed to {basin_seconds:g} s per run; "
         f"{frames} sequence frames. Total {time.perf_counter() - started:.0f} s on this machine."
     )
-    budgets = [50, 300, 1500]
-    mean = {key: [float(np.mean([row[f"{key}_{b}"] for row in main])) for b in budgets] for key in ("optimize", "hybrid")}
-    best_of_n = float(np.mean([row["best_of_n"] for row in main]))
-    plot = bench_module.line_plot(
-        {
-            "optimiser (red)": (budgets, mean["optimize"], (0.85, 0.2, 0.15)),
-            "hybrid (blue)": (budgets, mean["hybrid"], (0.15, 0.3, 0.85)),
-            "best-of-9 (grey)": ([50, 1500], [best_of_n, best_of_n], (0.6, 0.6, 0.6)),
-        },
-        "mean RMSE vs evaluations 50, 300, 1500",
-    )
-    images.write(str(out / "rmse-vs-evaluations.png"), images.srgb_decode(plot))
+    images.write(str(out / "rmse-vs-evaluations.png"), images.srgb_decode(bench_module.budget_plot(main)))
     report_text = bench_module.suite_report(main, optimisers, sequence_text, seeds=seeds, settings=settings)
     files.write_text(str(out / "report.md"), report_text)
     files.write_text(

@@ -22,7 +22,7 @@ import numpy as np
 
 from matfit import files, models, params
 from matfit.dataset import Dataset
-from matfit.train import TrainingError, check_finished, srgb_targets
+from matfit.train import NETWORKS, TrainingError, check_finished, srgb_targets
 
 GLASS_THRESHOLD = 0.5
 
@@ -154,9 +154,12 @@ def card(model: models.Model, evaluation: dict) -> str:
 
 def weights_megabytes(directory: str) -> float:
     """Returns the size of the weight files in a model directory, in MB (10^6 bytes)."""
-    names = [models.DECODER, *models.ENCODER_NAMES]
     return (
-        sum(os.path.getsize(models.weights_path(directory, name)) for name in names if os.path.exists(models.weights_path(directory, name)))
+        sum(
+            os.path.getsize(models.weights_path(directory, name))
+            for name in NETWORKS
+            if os.path.exists(models.weights_path(directory, name))
+        )
         / 1e6
     )
 

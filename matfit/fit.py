@@ -110,7 +110,8 @@ def polish(decoder, variables, target, weights, x: jax.Array, steps: int, rate: 
 def _fit(decoder, encoders, settings: Settings, decoder_variables, encoder_variables, target, encoder_target, weights, extra, start):
     guesses = [encoder.apply(variables, encoder_target[None])[0] for encoder, variables in zip(encoders, encoder_variables, strict=True)]
     candidates = jnp.concatenate([jnp.stack(guesses), extra]) if guesses else extra
-    candidate_errors = image_rmse(decoder.apply(decoder_variables, candidates), target, weights)
+    candidate_images = decoder.apply(decoder_variables, candidates)
+    candidate_errors = image_rmse(candidate_images, target, weights)
     chosen = jnp.argmin(candidate_errors)
     x = candidates[chosen]
     evaluations = jnp.array(0)
@@ -132,6 +133,7 @@ def _fit(decoder, encoders, settings: Settings, decoder_variables, encoder_varia
         "image": image,
         "rmse": image_rmse(image, target, weights),
         "candidates": candidates,
+        "start_image": candidate_images[chosen],
         "candidate_rmse": candidate_errors,
         "chosen": chosen,
         "evaluations": evaluations,
@@ -148,6 +150,7 @@ class Result:
     rmse: float  # neural RMSE against the target, 0-255
     start_rmse: float  # RMSE of the best-of-n start
     start: np.ndarray  # unit-cube start chosen by best-of-n
+    start_image: np.ndarray  # phi(start), sRGB (R, R, 3)
     chosen: str  # which candidate won best-of-n ("encoder-4", "extra-1", ...)
     candidate_rmse: dict = field(default_factory=dict)
     evaluations: int = 0
@@ -210,6 +213,7 @@ def fit(
         rmse=float(out["rmse"]),
         start_rmse=float(out["candidate_rmse"][chosen]),
         start=np.asarray(out["candidates"][chosen]),
+        start_image=np.asarray(out["start_image"]),
         chosen=names[chosen],
         candidate_rmse=dict(zip(names, map(float, out["candidate_rmse"]), strict=True)),
         evaluations=int(out["evaluations"]),

@@ -17,6 +17,7 @@ def test_best_of_n_picks_the_closest_candidate(model):
     extra = np.stack([true_point(2), truth, true_point(3)])
     result = fit.fit(model, decode(model, truth), Settings(method="nn"), extra=extra)
     assert result.chosen == "extra-2"
+    np.testing.assert_allclose(result.start_image, decode(model, truth), atol=1e-5)
     assert result.rmse == pytest.approx(0.0, abs=1e-3)
     assert result.evaluations == 0
     assert set(result.candidate_rmse) == {"encoder-3", "encoder-8", "extra-1", "extra-2", "extra-3"}
