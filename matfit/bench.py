@@ -9,13 +9,15 @@ Mitsuba render of the result against the target: the honest figure.
 
 from __future__ import annotations
 
-import itertools
+import json
+import os
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import edits, fit, images, models, params, presets
+from matfit import edits, files, fit, images, models, params, presets
+from matfit.errors import OutputError
 
 TARGET_SEED = 1
 TARGET_OFFSET = 100_000  # sample indices far from the reference set's 0..N
@@ -40,7 +42,7 @@ def reachable_targets(renderer, count: int, spp: int = 256) -> Targets:
 def default_configurations(evaluations: int) -> dict[str, fit.Settings]:
     """Returns the compared configurations: the paper's three methods and our variations."""
     return {
-        "nn (best-of-n)": fit.Settings(method="nn"),
+        "nn (best-of-n)": fit.Settings(method=fit.Method.nn),
         f"optimize {evaluations} (random start)": fit.Settings(method="optimize", evaluations=evaluations),
         "hybrid 50": fit.Settings(evaluations=50),
         "hybrid 300": fit.Settings(evaluations=300),
@@ -74,7 +76,7 @@ def mitsuba_rmse(renderer, results: list[fit.Result], targets: Targets, spp: int
     errors = []
     for k, (result, target) in enumerate(zip(results, targets.images, strict=True)):
         rendered = images.srgb_encode(renderer.render(result.values, seed=7 + k, spp=spp))
-        errors.append(images.rmse(rendered, target))
+        errors.append(float(images.rmse(rendered, target)))
     return np.array(errors)
 
 
@@ -166,9 +168,8 @@ def suite_targets(renderer, spp: int = 256) -> list[tuple[str, str, np.ndarray]]
 
 def random_guess_rmse(model: models.Model, target: np.ndarray, seeds: int) -> float:
     """Returns the mean RMSE of phi at uniformly random parameters (the optimiser's random starts)."""
-    starts = np.stack([np.random.default_rng(seed).uniform(0.0, 1.0, params.COUNT) for seed in range(seeds)]).astype(np.float32)
-    decoded = models.apply_in_batches(model.decoder.module, model.decoder.variables, starts, batch=len(starts))
-    return float(np.mean(np.asarray(fit.image_rmse(decoded, target, np.ones(target.shape[:2], np.float32)))))
+    starts = np.stack([np.random.default_rng(seed).uniform(0.0, 1.0, params.COUNT) for seed in range(seeds)])
+    return float(np.mean(images.rmse(model.decode(starts), target)))
 
 
 def main_table(model: models.Model, cases, budgets=BUDGETS, seeds: int = 5) -> list[dict]:
@@ -176,11 +177,12 @@ def main_table(model: models.Model, cases, budgets=BUDGETS, seeds: int = 5) -> l
     rows = []
     for name, description, target in cases:
         row = {"case": name, "description": description, "random": random_guess_rmse(model, target, seeds)}
-        row["best_of_n"] = fit.fit(model, target, fit.Settings(method="nn")).rmse
+        row["best_of_n"] = fit.fit(model, target, fit.Settings(method=fit.Method.nn)).rmse
         for budget in budgets:
-            for method in ("optimize", "hybrid"):  # compile outside the timing
+            for method in (fit.Method.optimize, fit.Method.hybrid):  # compile outside the timing
                 fit.fit(model, target, fit.Settings(method=method, evaluations=budget))
-            optimised = [fit.fit(model, target, fit.Settings(method="optimize", evaluations=budget, seed=seed)) for seed in range(seeds)]
+            settings = fit.Settings(method=fit.Method.optimize, evaluations=budget)
+            optimised = [fit.fit(model, target, settings, seed=seed) for seed in range(seeds)]
             started = time.perf_counter()
             hybrid = fit.fit(model, target, fit.Settings(evaluations=budget))
             row[f"optimize_{budget}"] = float(np.mean([r.rmse for r in optimised]))
@@ -220,10 +222,10 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
     target_j = jnp.asarray(target)
 
     def bounded(x):
-        return fit.image_rmse(decoder.apply(variables, jnp.clip(x, 0.0, 1.0)), target_j, weights)
+        return images.rmse(decoder.apply(variables, jnp.clip(x, 0.0, 1.0)), target_j, weights)
 
     def penalised(x):
-        return fit.objective(x, (decoder, variables, target_j, weights, "clip"))
+        return fit.objective(x, (decoder, variables, target_j, weights, fit.Box.clip))
 
     value_and_grad = jax.jit(jax.value_and_grad(bounded))
 
@@ -237,7 +239,7 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
         "SLSQP": lambda x0: jaxopt.ScipyBoundedMinimize(fun=bounded, method="SLSQP", maxiter=evaluations).run(x0, bounds=box).params,
         "CG": lambda x0: jaxopt.ScipyMinimize(fun=penalised, method="CG", maxiter=evaluations).run(x0).params,
     }
-    best = fit.fit(model, target, fit.Settings(method="nn"))
+    best = fit.fit(model, target, fit.Settings(method=fit.Method.nn))
     starts = {"random": np.random.default_rng(0).uniform(0.0, 1.0, params.COUNT).astype(np.float32), "best-of-9": best.start}
     row = {}
     for start_name, x0 in starts.items():
@@ -248,7 +250,8 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
             row[f"{solver_name} ({start_name})"] = float(bounded(jnp.asarray(x)))
             row[f"{solver_name} ({start_name}) seconds"] = time.perf_counter() - started
         started = time.perf_counter()
-        result = fit.fit(model, target, fit.Settings(method="hybrid" if start_name == "best-of-9" else "optimize", evaluations=evaluations))
+        method = fit.Method.hybrid if start_name == "best-of-9" else fit.Method.optimize
+        result = fit.fit(model, target, fit.Settings(method=method, evaluations=evaluations))
         row[f"Nelder-Mead ({start_name})"] = result.rmse
         row[f"Nelder-Mead ({start_name}) seconds"] = time.perf_counter() - started
         deadline = time.perf_counter() + basin_seconds
@@ -272,24 +275,24 @@ def case_picture(model: models.Model, renderer, target: np.ndarray, row: dict, b
     Mitsuba renders of the best-of-9, optimiser (seed 0) and hybrid results against the target."""
     from matfit import report
 
-    best = fit.fit(model, target, fit.Settings(method="nn"))
+    best = fit.fit(model, target, fit.Settings(method=fit.Method.nn))
 
     def decode(values):
-        return models.apply(model.decoder.module, model.decoder.variables, params.to_unit(np.asarray(values))[None].astype(np.float32))[0]
+        return model.decode(params.to_unit(np.asarray(values)))[0]
 
     hybrid_values = np.asarray(row[f"hybrid_{budget}_values"])
     rendered = images.srgb_encode(renderer.render(hybrid_values, seed=11, spp=spp))
     rendered_best = images.srgb_encode(renderer.render(best.values, seed=11, spp=spp))
     rendered_optimiser = images.srgb_encode(renderer.render(np.asarray(row[f"optimize_{budget}_values"]), seed=11, spp=spp))
-    hybrid_render_rmse = images.rmse(rendered, target)
+    hybrid_render_rmse = float(images.rmse(rendered, target))
     row[f"mitsuba_hybrid_{budget}"] = hybrid_render_rmse
-    row["mitsuba_best_of_n"] = images.rmse(rendered_best, target)
-    row[f"mitsuba_optimize_{budget}"] = images.rmse(rendered_optimiser, target)
+    row["mitsuba_best_of_n"] = float(images.rmse(rendered_best, target))
+    row[f"mitsuba_optimize_{budget}"] = float(images.rmse(rendered_optimiser, target))
     panels = [
         (target, f"{row['case']}"),
         (best.image, f"best-of-9 {best.rmse:.2f}"),
-        (np.asarray(decode(row[f"optimize_{budget}_values"])), f"optimiser {row[f'optimize_{budget}']:.2f}"),
-        (np.asarray(decode(hybrid_values)), f"hybrid {row[f'hybrid_{budget}']:.2f}"),
+        (decode(row[f"optimize_{budget}_values"]), f"optimiser {row[f'optimize_{budget}']:.2f}"),
+        (decode(hybrid_values), f"hybrid {row[f'hybrid_{budget}']:.2f}"),
         (rendered, f"Mitsuba {hybrid_render_rmse:.2f}"),
     ]
     return report.compose(panels, size=128, caption=14)
@@ -363,44 +366,144 @@ def slug(name: str) -> str:
     return "".join(c if c.isalnum() else "-" for c in name).strip("-")
 
 
-def line_plot(series: dict[str, tuple[list[float], list[float], tuple[float, float, float]]], title: str, size=(480, 300)) -> np.ndarray:
-    """Returns an sRGB picture of a few lines: series = {label: (x values, y values, colour)}; x on a log scale."""
-    width, height = size
-    margin = 40
-    canvas = np.ones((height, width, 3), np.float32)
-    xs = np.log10(np.concatenate([np.asarray(x, float) for x, _, _ in series.values()]))
-    ys = np.concatenate([np.asarray(y, float) for _, y, _ in series.values()])
-    x_low, x_high = xs.min(), xs.max() + 1e-9
-    y_low, y_high = 0.0, ys.max() * 1.1 + 1e-9
+def budget_plot(main: list[dict], path: str, budgets=BUDGETS) -> None:
+    """Writes the main table as a plot: mean RMSE over the cases against the budget for optimiser, hybrid and best-of-9."""
+    import matplotlib
 
-    def to_pixel(x, y):
-        return margin + (np.log10(x) - x_low) / (x_high - x_low) * (width - 2 * margin), height - margin - (y - y_low) / (
-            y_high - y_low
-        ) * (height - 2 * margin)
+    matplotlib.use("Agg")
+    from matplotlib import pyplot
 
-    canvas[height - margin, margin : width - margin] = 0.0
-    canvas[margin : height - margin, margin] = 0.0
-    for x_values, y_values, colour in series.values():
-        points = [to_pixel(x, y) for x, y in zip(x_values, y_values, strict=True)]
-        for (x0, y0), (x1, y1) in itertools.pairwise(points):
-            for t in np.linspace(0.0, 1.0, 400):
-                px, py = round(x0 + t * (x1 - x0)), round(y0 + t * (y1 - y0))
-                canvas[py - 1 : py + 2, px - 1 : px + 2] = colour
-        for px, py in points:
-            canvas[round(py) - 3 : round(py) + 4, round(px) - 3 : round(px) + 4] = colour
-    titled = images.label(canvas, f"{title}; y from 0 to {y_high:.1f}", 18)
-    return images.label(titled, "   ".join(series), 18)
-
-
-def budget_plot(main: list[dict], budgets=BUDGETS) -> np.ndarray:
-    """Returns the plot of the main table: mean RMSE over the cases against the budget, optimiser, hybrid and best-of-9."""
     mean = {key: [float(np.mean([row[f"{key}_{b}"] for row in main])) for b in budgets] for key in ("optimize", "hybrid")}
     best_of_n = float(np.mean([row["best_of_n"] for row in main]))
-    return line_plot(
-        {
-            "optimiser (red)": (list(budgets), mean["optimize"], (0.85, 0.2, 0.15)),
-            "hybrid (blue)": (list(budgets), mean["hybrid"], (0.15, 0.3, 0.85)),
-            "best-of-9 (grey)": ([budgets[0], budgets[-1]], [best_of_n, best_of_n], (0.6, 0.6, 0.6)),
-        },
-        "mean RMSE vs evaluations " + ", ".join(map(str, budgets)),
+    figure, axes = pyplot.subplots(figsize=(6.4, 4.0), dpi=100)
+    axes.plot(budgets, mean["optimize"], "o-", color="tab:red", label="optimiser (Nelder-Mead from a random start)")
+    axes.plot(budgets, mean["hybrid"], "o-", color="tab:blue", label="hybrid (Nelder-Mead from best-of-9)")
+    axes.axhline(best_of_n, color="grey", linestyle="--", label="best-of-9 (no optimisation)")
+    axes.set_xscale("log")
+    axes.set_xticks(list(budgets), [str(b) for b in budgets])
+    axes.set_ylim(bottom=0.0)
+    axes.set_xlabel("budget (objective evaluations)")
+    axes.set_ylabel("mean RMSE over the suite (0-255 sRGB)")
+    axes.set_title(f"The edit suite ({len(main)} cases): neural RMSE against budget")
+    axes.grid(True, which="major", alpha=0.3)
+    axes.legend()
+    figure.tight_layout()
+    with files.atomic_path(path) as temporary:
+        figure.savefig(temporary, format="png")
+    pyplot.close(figure)
+
+
+def render_speed(count: int, variant: str | None = None) -> str:
+    """Returns a Markdown table of images per second of `Renderer` against a bare `mi.render` loop on the same materials."""
+    from matfit.render import Renderer
+
+    lines = ["| resolution | spp | matfit img/s | bare mi.render img/s | matfit / bare |", "|---|---|---|---|---|"]
+    for resolution, spp in ((64, 16), (128, 32)):
+        renderer = Renderer(resolution, spp, variant)
+        materials = [params.from_unit(params.sample_index(1, i)) for i in range(count)]
+        for values in materials[:3]:  # compile every kernel before timing
+            renderer.render(values)
+        started = time.perf_counter()
+        for i, values in enumerate(materials):
+            renderer.render(values, seed=i)
+        ours = count / (time.perf_counter() - started)
+        bare_seconds = 0.0  # the same materials, with only mi.render inside the timer
+        for i, values in enumerate(materials):
+            renderer.set_material(values)
+            started = time.perf_counter()
+            renderer.render_current(seed=i)
+            bare_seconds += time.perf_counter() - started
+        bare = count / bare_seconds
+        lines.append(f"| {resolution} | {spp} | {ours:.1f} | {bare:.1f} | {ours / bare:.2f} |")
+    return "\n".join(lines)
+
+
+def model_speed(model_path: str, repeats: int) -> str:
+    """Returns a Markdown table: seconds to load a model's networks, milliseconds per decoder forward at batch 1."""
+    started = time.perf_counter()
+    model = models.load_model(model_path)
+    loaded = time.perf_counter() - started
+    x = np.full((1, params.COUNT), 0.5, np.float32)
+    decoder = model.decoder
+    models.apply(decoder.module, decoder.variables, x).block_until_ready()  # compile
+    started = time.perf_counter()
+    for _ in range(repeats):
+        models.apply(decoder.module, decoder.variables, x).block_until_ready()
+    forward = (time.perf_counter() - started) / repeats
+    networks = 1 + len(model.encoders)
+    return f"| networks | load (s) | decoder forward, batch 1 (ms) |\n|---|---|---|\n| {networks} | {loaded:.3f} | {1e3 * forward:.2f} |"
+
+
+def fit_comparison(model: models.Model, count: int, evaluations: int, log=print) -> str:
+    """Returns the methods compared on `count` reachable targets: neural and Mitsuba RMSE, warm fit time (Markdown)."""
+    from matfit.render import Renderer
+
+    renderer = Renderer(model.resolution, 256)
+    log(f"rendering {count} reachable targets at {model.resolution} px, 256 spp")
+    targets = reachable_targets(renderer, count)
+    table = compare(model, targets, default_configurations(evaluations))
+    reference = f"hybrid {evaluations}"
+    mitsuba = {label: mitsuba_rmse(renderer, table[label]["results"], targets) for label in ("nn (best-of-n)", reference)}
+    return markdown(table, reference, mitsuba)
+
+
+def check_output_folder(path: str, field: str) -> None:
+    """Raises OutputError unless `path` is a folder or can become one."""
+    if os.path.exists(path) and not os.path.isdir(path):
+        raise OutputError(f"{field} {path} is a file: give a folder", field=field)
+    parent = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(parent):
+        raise OutputError(f"{field} {path} cannot be created: {parent} does not exist (create it first)", field=field)
+
+
+def sequence_benchmark(model: models.Model, frames: int, frames_out: str | None = None) -> str:
+    """Returns the reinitialisation table on the built-in black-level sequence; writes its frames to `frames_out` if given."""
+    from matfit.render import Renderer
+
+    if frames_out is not None:
+        check_output_folder(frames_out, "frames_out")
+    renderer = Renderer(model.resolution, 256)
+    _, sequence_frames = black_level_sequence(renderer, frames)
+    if frames_out is not None:
+        os.makedirs(frames_out, exist_ok=True)
+        for k, frame in enumerate(sequence_frames):
+            images.write(os.path.join(frames_out, f"frame_{k}.png"), images.srgb_decode(frame))
+    return sequence_table(model, sequence_frames)
+
+
+def run_suite(model: models.Model, model_label: str, out: str, full: bool = False, log=print) -> str:
+    """Runs the paper's tables on the edit suite; writes report.md, report.json, the plot and a picture per case into `out`.
+
+    Quick: 5 seeds, basin-hopping time-boxed to 5 s, 40 sequence frames; `full`: 10, 60 s, 120.
+    Returns the report's Markdown.
+    """
+    from matfit.render import Renderer
+
+    check_output_folder(out, "out")
+    seeds, basin_seconds, frames = (10, 60.0, 120) if full else (5, 5.0, 40)
+    os.makedirs(os.path.join(out, "cases"), exist_ok=True)
+    files.check_writable(os.path.join(out, "report.md"))
+    renderer = Renderer(model.resolution, 256)
+    started = time.perf_counter()
+    cases = suite_targets(renderer)
+    log(f"main table: {len(cases)} cases x (best-of-9, optimiser over {seeds} seeds, hybrid) at {BUDGETS} evaluations")
+    main = main_table(model, cases, seeds=seeds)
+    for (name, _, target), row in zip(cases, main, strict=True):
+        picture = case_picture(model, renderer, target, row, BUDGETS[-1])
+        images.write(os.path.join(out, "cases", f"{slug(name)}.png"), images.srgb_decode(picture))
+    log(f"optimiser table: L-BFGS-B, SLSQP, CG, Nelder-Mead, basin-hopping ({basin_seconds:g} s) from two starts")
+    optimisers = optimiser_table(model, cases, basin_seconds=basin_seconds)
+    log(f"sequence table: {frames} frames")
+    _, sequence_frames = black_level_sequence(renderer, frames)
+    sequence_text = sequence_table(model, sequence_frames, every=max(1, frames // 12))
+    settings = (
+        f"{'Full' if full else 'Quick'} version (`matfit bench{' --full' if full else ''}`), model {model_label}, targets at "
+        f"{model.resolution} px rendered at 256 spp; {seeds} seeds; basin-hopping time-boxed to {basin_seconds:g} s per run; "
+        f"{frames} sequence frames. Total {time.perf_counter() - started:.0f} s on this machine."
     )
+    budget_plot(main, os.path.join(out, "rmse-vs-evaluations.png"))
+    report_text = suite_report(main, optimisers, sequence_text, seeds=seeds, settings=settings)
+    files.write_text(os.path.join(out, "report.md"), report_text)
+    document = {"main": main, "optimisers": optimisers, "sequence": sequence_text, "settings": settings}
+    files.write_text(os.path.join(out, "report.json"), json.dumps(document, indent=1) + "\n")
+    return report_text

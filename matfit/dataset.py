@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from matfit import files, params
+from matfit.errors import DatasetError
 
 FORMAT = "matfit-dataset"
 FORMAT_VERSION = 1
@@ -39,12 +40,9 @@ IMAGE_DTYPE = np.float16
 MIN_RESOLUTION, MAX_RESOLUTION = 8, 1024
 MAX_SPP = 65536
 MAX_COUNT = 10_000_000
+MAX_WORKERS = 64
 CHUNK = 16
 ARRAYS = ("params.npy", "images.npy", "done.npy")
-
-
-class DatasetError(ValueError):
-    """A dataset cannot be created, extended or read; the message says what to change."""
 
 
 @dataclass(frozen=True)
@@ -59,17 +57,19 @@ class Settings:
     def check(self) -> None:
         """Raises DatasetError for values no dataset should be made with."""
         if not MIN_RESOLUTION <= self.resolution <= MAX_RESOLUTION:
-            raise DatasetError(f"resolution {self.resolution} is out of range: use {MIN_RESOLUTION} to {MAX_RESOLUTION} pixels")
+            raise DatasetError(
+                f"resolution {self.resolution} is out of range: use {MIN_RESOLUTION} to {MAX_RESOLUTION} pixels", field="resolution"
+            )
         if not 1 <= self.spp <= MAX_SPP:
-            raise DatasetError(f"spp {self.spp} is out of range: use 1 to {MAX_SPP} samples per pixel")
-        if not 0 <= self.seed < 2**32:
-            raise DatasetError(f"seed {self.seed} is out of range: use 0 to {2**32 - 1}")
+            raise DatasetError(f"spp {self.spp} is out of range: use 1 to {MAX_SPP} samples per pixel", field="spp")
+        if not 0 <= self.seed <= params.MAX_SEED:
+            raise DatasetError(f"seed {self.seed} is out of range: use 0 to {params.MAX_SEED}", field="seed")
 
 
-def check_count(count: int, name: str = "count") -> None:
-    """Raises DatasetError unless 1 <= count <= MAX_COUNT; `name` is how the message calls it."""
+def check_count(count: int) -> None:
+    """Raises DatasetError unless 1 <= count <= MAX_COUNT."""
     if not 1 <= count <= MAX_COUNT:
-        raise DatasetError(f"{name} {count} is out of range: use 1 to {MAX_COUNT}")
+        raise DatasetError(f"count {count} is out of range: use 1 to {MAX_COUNT}", field="count")
 
 
 def image_seed(seed: int, index: int) -> int:
@@ -339,3 +339,31 @@ def render_missing(
     finally:
         pool.join()
     return rendered
+
+
+def render_dataset(
+    path: str,
+    count: int,
+    resolution: int = 64,
+    spp: int = 16,
+    seed: int = 0,
+    workers: int = 1,
+    variant: str | None = None,
+    progress: Callable[[int, int, float], None] | None = None,
+) -> tuple[Dataset, int, list[str]]:
+    """Creates, resumes or grows the dataset at `path` to `count` rendered samples.
+
+    Returns (the dataset, how many were rendered in this call, notices such as the renderer's
+    fallback). Every argument is checked before anything is written.
+    """
+    from matfit import render
+
+    if not 1 <= workers <= MAX_WORKERS:
+        raise DatasetError(f"workers {workers} is out of range: use 1 to {MAX_WORKERS}", field="workers")
+    chosen, notice = render.choose_variant(variant)
+    settings = Settings(resolution, spp, seed, chosen)
+    settings.check()
+    check_count(count)
+    render.mitsuba(chosen)
+    data = prepare(path, settings, count, render.versions())
+    return data, render_missing(data, workers, progress), [notice] if notice else []

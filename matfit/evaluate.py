@@ -20,16 +20,11 @@ import os
 
 import numpy as np
 
-from matfit import files, models, params
+from matfit import files, images, models, params, pipeline
 from matfit.dataset import Dataset
-from matfit.train import NETWORKS, TrainingError, check_finished, srgb_targets
+from matfit.errors import DatasetError
 
 GLASS_THRESHOLD = 0.5
-
-
-def per_image_rmse(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Returns 255 sqrt(mean((a - b)^2)) over each image of two (N, H, W, 3) sRGB stacks."""
-    return 255.0 * np.sqrt(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2, axis=(1, 2, 3)))
 
 
 def summary(values: np.ndarray) -> dict:
@@ -37,24 +32,19 @@ def summary(values: np.ndarray) -> dict:
     return {"mean": float(np.mean(values)), "median": float(np.median(values)), "p95": float(np.percentile(values, 95))}
 
 
-def decode(model: models.Model, unit: np.ndarray) -> np.ndarray:
-    """Returns phi(x) for unit-cube parameters (N, 19): sRGB images (N, R, R, 3)."""
-    return models.apply_in_batches(model.decoder.module, model.decoder.variables, unit)
-
-
 def evaluate(model: models.Model, references: Dataset) -> dict:
     """Returns the decoder's fidelity, each encoder's errors and the best-of-n figures."""
-    check_finished(references)
+    pipeline.check_finished(references)
     if references.resolution != model.resolution:
-        raise TrainingError(
+        raise DatasetError(
             f"{references.path} has {references.resolution} px images, the model's decoder makes {model.resolution} px: "
             f"render references at {model.resolution} px"
         )
     unit = references.unit_params()
-    targets = srgb_targets(references).astype(np.float32)
+    targets = pipeline.srgb_targets(references).astype(np.float32)
     glass = references.params[:, params.INDEX["spec_trans"]] >= GLASS_THRESHOLD
 
-    decoder_error = per_image_rmse(decode(model, unit), targets)
+    decoder_error = images.rmse(model.decode(unit), targets)
     result = {
         "references": {
             "path": references.path,
@@ -67,11 +57,11 @@ def evaluate(model: models.Model, references: Dataset) -> dict:
         "decoder_rmse_opaque": summary(decoder_error[~glass]) if (~glass).any() else None,
         "encoders": {},
     }
-    encoder_inputs = models.encoder_input(np.asarray(references.images, np.float32))
+    encoder_inputs = pipeline.encoder_inputs(references)
     image_errors = []
     for arch, network in model.encoders.items():
         guess = models.apply_in_batches(network.module, network.variables, encoder_inputs)
-        error = per_image_rmse(decode(model, guess), targets)
+        error = images.rmse(model.decode(guess), targets)
         image_errors.append(error)
         result["encoders"][str(arch)] = {
             "parameter_rmse": float(np.sqrt(np.mean((guess - unit) ** 2))),
@@ -157,7 +147,7 @@ def weights_megabytes(directory: str) -> float:
     return (
         sum(
             os.path.getsize(models.weights_path(directory, name))
-            for name in NETWORKS
+            for name in models.NETWORKS
             if os.path.exists(models.weights_path(directory, name))
         )
         / 1e6

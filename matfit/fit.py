@@ -18,7 +18,6 @@ one jitted function, compiled once per model and settings and reused for every t
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass, field
 from functools import partial
@@ -29,61 +28,29 @@ import numpy as np
 import optax
 
 from matfit import images, models, params, simplex
+from matfit.errors import FitError
+from matfit.methods import Box, Method, Settings
 
-METHODS = ("hybrid", "nn", "optimize")
-BOXES = ("clip", "barrier")
+__all__ = ["Box", "FitError", "Method", "Result", "Settings", "fit", "objective", "prepare_mask", "prepare_target"]
+
 PENALTY = 100.0
 BARRIER = 1e4
-
-
 ASPECT_TOLERANCE = 0.01
 
 
-class FitError(ValueError):
-    """Fit settings that cannot work; the message names the value and the fix."""
-
-
-@dataclass(frozen=True)
-class Settings:
-    """How to fit: method, budget in objective evaluations, box handling, gradient polish steps."""
-
-    method: str = "hybrid"
-    evaluations: int = 1500
-    box: str = "clip"
-    adaptive: bool = True
-    initial_step: float = 0.1
-    polish_steps: int = 0
-    polish_rate: float = 3e-3
-    seed: int = 0
-
-    def check(self) -> None:
-        """Raises FitError for settings that cannot run."""
-        if self.method not in METHODS:
-            raise FitError(f"--method {self.method!r} is unknown: use one of {', '.join(METHODS)}")
-        if self.box not in BOXES:
-            raise FitError(f"box handling {self.box!r} is unknown: use clip or barrier")
-        if self.method != "nn" and not params.COUNT + 2 <= self.evaluations <= 1_000_000:
-            raise FitError(f"--evals {self.evaluations} is out of range: Nelder-Mead in 19 dimensions needs 21 to 1000000")
-        if not 0 <= self.polish_steps <= 100_000:
-            raise FitError(f"--polish {self.polish_steps} is out of range: use 0 to 100000")
-
-
-def image_rmse(images: jax.Array, target: jax.Array, weights: jax.Array) -> jax.Array:
-    """Returns the weighted RMSE on the 0-255 scale of images (..., R, R, 3) against target (R, R, 3).
-
-    255 sqrt(sum_p w_p |I_p - t_p|^2 / (3 sum_p w_p)); weights (R, R) are 1 everywhere without a mask.
-    """
-    squared = jnp.sum(weights[..., None] * (images - target) ** 2, axis=(-3, -2, -1))
-    return 255.0 * jnp.sqrt(squared / (3.0 * jnp.sum(weights)))
+def distance_outside(x: jax.Array) -> jax.Array:
+    """Returns the Euclidean distance from x to the unit cube, with a zero (not NaN) gradient inside it."""
+    squared = jnp.sum((x - jnp.clip(x, 0.0, 1.0)) ** 2)
+    positive = squared > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), 0.0)
 
 
 def objective(x: jax.Array, args: tuple) -> jax.Array:
     """Returns E(x) plus the box term; args = (decoder module, decoder variables, target, weights, box)."""
     decoder, variables, target, weights, box = args
-    inside = jnp.clip(x, 0.0, 1.0)
-    error = image_rmse(decoder.apply(variables, inside), target, weights)
-    outside = jnp.sqrt(jnp.sum((x - inside) ** 2))
-    if box == "barrier":
+    error = images.rmse(decoder.apply(variables, jnp.clip(x, 0.0, 1.0)), target, weights)
+    outside = distance_outside(x)
+    if box == Box.barrier:
         return jnp.where(outside > 0, error + BARRIER, error)
     return error + PENALTY * outside
 
@@ -91,7 +58,7 @@ def objective(x: jax.Array, args: tuple) -> jax.Array:
 def polish(decoder, variables, target, weights, x: jax.Array, steps: int, rate: float) -> jax.Array:
     """Returns the best point of `steps` projected Adam steps on E from x (x itself if none is better)."""
     tx = optax.adam(rate)
-    loss = jax.value_and_grad(lambda y: image_rmse(decoder.apply(variables, y), target, weights))
+    loss = jax.value_and_grad(lambda y: images.rmse(decoder.apply(variables, y), target, weights))
 
     def body(_, carry):
         y, state, best, best_value = carry
@@ -102,7 +69,7 @@ def polish(decoder, variables, target, weights, x: jax.Array, steps: int, rate: 
         return jnp.clip(optax.apply_updates(y, updates), 0.0, 1.0), state, best, best_value
 
     y, _, best, best_value = jax.lax.fori_loop(0, steps, body, (x, tx.init(x), x, jnp.inf))
-    last = image_rmse(decoder.apply(variables, y), target, weights)
+    last = images.rmse(decoder.apply(variables, y), target, weights)
     return jnp.where(last < best_value, y, best)
 
 
@@ -111,12 +78,12 @@ def _fit(decoder, encoders, settings: Settings, decoder_variables, encoder_varia
     guesses = [encoder.apply(variables, encoder_target[None])[0] for encoder, variables in zip(encoders, encoder_variables, strict=True)]
     candidates = jnp.concatenate([jnp.stack(guesses), extra]) if guesses else extra
     candidate_images = decoder.apply(decoder_variables, candidates)
-    candidate_errors = image_rmse(candidate_images, target, weights)
+    candidate_errors = images.rmse(candidate_images, target, weights)
     chosen = jnp.argmin(candidate_errors)
     x = candidates[chosen]
     evaluations = jnp.array(0)
-    if settings.method != "nn":
-        y0 = x if settings.method == "hybrid" else start
+    if settings.method != Method.nn:
+        y0 = x if settings.method == Method.hybrid else start
         solver = simplex.NelderMead(adaptive=settings.adaptive, initial_step=settings.initial_step)
 
         def fn(y, args):  # the module and box mode are structure; the data travels in args
@@ -131,7 +98,7 @@ def _fit(decoder, encoders, settings: Settings, decoder_variables, encoder_varia
     return {
         "unit": x,
         "image": image,
-        "rmse": image_rmse(image, target, weights),
+        "rmse": images.rmse(image, target, weights),
         "candidates": candidates,
         "start_image": candidate_images[chosen],
         "candidate_rmse": candidate_errors,
@@ -168,11 +135,13 @@ def fit(
     settings: Settings | None = None,
     weights: np.ndarray | None = None,
     extra: np.ndarray | None = None,
+    seed: int = 0,
 ) -> Result:
     """Returns the parameters whose decoded image best matches `target`.
 
     target: sRGB (R, R, 3) in [0, 1] at the model's resolution (`prepare_target`); weights: (R, R)
-    per-pixel weights (a mask) or None; extra: unit-cube candidates (k, 19) joining best-of-n.
+    per-pixel weights (a mask) or None; extra: unit-cube candidates (k, 19) joining best-of-n;
+    seed: draws the random start of `optimize` (data, not a setting: no recompilation).
     """
     settings = settings or Settings()
     settings.check()
@@ -184,15 +153,15 @@ def fit(
     if weights.shape != (side, side) or not np.all(np.isfinite(weights)) or weights.min() < 0 or weights.sum() <= 0:
         raise FitError("the mask must be (R, R) finite non-negative weights, not all zero: paint some of it white")
     extra = np.zeros((0, params.COUNT), np.float32) if extra is None else np.asarray(extra, np.float32).reshape(-1, params.COUNT)
-    if not model.encoders and not len(extra) and settings.method != "optimize":
+    if not model.encoders and not len(extra) and settings.method != Method.optimize:
         raise FitError("best-of-n needs at least one encoder or extra candidate: use a model with encoders")
-    start = np.random.default_rng(settings.seed).uniform(0.0, 1.0, params.COUNT).astype(np.float32)
+    start = np.random.default_rng(seed).uniform(0.0, 1.0, params.COUNT).astype(np.float32)
     encoder_target = models.encoder_input(images.srgb_decode(target))
     started = time.perf_counter()
     out = _fit(
         model.decoder.module,
         tuple(network.module for network in model.encoders.values()),
-        dataclasses.replace(settings, seed=0),  # the seed only draws `start`: one compilation serves every seed
+        settings,
         model.decoder.variables,
         tuple(network.variables for network in model.encoders.values()),
         target,

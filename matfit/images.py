@@ -1,7 +1,7 @@
 """Image files and colour encoding: the only module that imports OpenImageIO.
 
 Renders are linear RGB. Everything compared or reported (losses, RMSE) is on sRGB-encoded values,
-as in the paper: `rmse` works on 0-255 sRGB. PNG, JPEG and TIFF are written as 8-bit sRGB; EXR and
+as in the paper: `rmse` measures on 0-255 sRGB. PNG, JPEG and TIFF are written as 8-bit sRGB; EXR and
 HDR as linear float.
 """
 
@@ -13,14 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 import OpenImageIO as oiio
 
-from matfit.files import OutputError, atomic_path
+from matfit.errors import ImageError
+from matfit.files import atomic_path, check_writable
 
 LINEAR_EXTENSIONS = (".exr", ".hdr")
 DISPLAY_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
-
-
-class ImageError(OutputError):
-    """An image cannot be read or written; the message names the file and the fix."""
 
 
 def srgb_encode(linear: np.ndarray) -> np.ndarray:
@@ -35,16 +32,27 @@ def srgb_decode(encoded: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
 
 
-def rmse(a_srgb: np.ndarray, b_srgb: np.ndarray) -> float:
-    """Returns the RMSE on the 0-255 scale between two sRGB images in [0, 1].
+def rmse(images, targets, weights=None):
+    """Returns the RMSE on the 0-255 scale of sRGB images (..., H, W, 3) against targets: one figure per image.
 
-    sqrt(mean((255 a - 255 b) ** 2)), over every pixel and channel.
+    Targets are (H, W, 3), one for every image, or (..., H, W, 3), one each. With per-pixel weights
+    (H, W) (a mask) it is 255 sqrt(sum_p w_p |I_p - t_p|^2 / (3 sum_p w_p)); without, every pixel
+    counts once. The one RMSE of matfit: training, evaluation, fitting and the bench use it. It is
+    written with array methods only, so NumPy arrays give NumPy figures and JAX arrays (traced,
+    batched, differentiated) give JAX figures.
     """
-    a = np.asarray(a_srgb, dtype=np.float64)
-    b = np.asarray(b_srgb, dtype=np.float64)
-    if a.shape != b.shape:
-        raise ValueError(f"Shape mismatch: got {a.shape} and {b.shape}.")
-    return float(255.0 * np.sqrt(np.mean((a - b) ** 2)))
+    if images.ndim < 3 or targets.ndim < 3 or tuple(images.shape[-3:]) != tuple(targets.shape[-3:]):
+        raise ValueError(f"Shape mismatch: got {tuple(images.shape)} and {tuple(targets.shape)}.")
+    rank = max(images.ndim, targets.ndim)
+    images = images.reshape((1,) * (rank - images.ndim) + tuple(images.shape))
+    targets = targets.reshape((1,) * (rank - targets.ndim) + tuple(targets.shape))
+    squared = (images - targets) ** 2
+    if weights is None:
+        return 255.0 * squared.mean(axis=(-3, -2, -1)) ** 0.5
+    if tuple(weights.shape) != tuple(images.shape[-3:-1]):
+        raise ValueError(f"Shape mismatch: weights {tuple(weights.shape)} for images {tuple(images.shape)}.")
+    weighted = weights.reshape((1,) * (rank - 3) + (*weights.shape, 1)) * squared
+    return 255.0 * (weighted.sum(axis=(-3, -2, -1)) / (3.0 * weights.sum())) ** 0.5
 
 
 def box_downsample(linear: np.ndarray, size: int) -> np.ndarray:
@@ -69,6 +77,12 @@ def check_extension(path: str) -> str:
         supported = ", ".join(LINEAR_EXTENSIONS + DISPLAY_EXTENSIONS)
         raise ImageError(f"cannot write {path}: unknown image type {extension or '(none)'}; use one of {supported}")
     return extension
+
+
+def check_output(path: str) -> None:
+    """Raises ImageError or OutputError unless an image can be written at `path` (known type, writable place)."""
+    check_extension(path)
+    check_writable(path)
 
 
 def write(path: str, linear: np.ndarray) -> None:

@@ -31,6 +31,7 @@ import numpy as np
 from flax import serialization
 
 from matfit import files, images, params
+from matfit.errors import WeightsError
 
 ENCODER_RESOLUTION = 32
 WEIGHTS_FORMAT = "matfit-weights"
@@ -101,7 +102,7 @@ class Decoder(nn.Module):
                 x = nn.gelu(nn.Conv(channels[stage], (3, 3))(x))
         x = depth_to_space(nn.Conv(4 * 3, (3, 3))(x))
         background = self.param("background", nn.initializers.zeros, (self.resolution, self.resolution, 3))
-        x = nn.sigmoid(x + background)
+        x = nn.sigmoid(x + background[None])
         return x.reshape(*batch_shape, self.resolution, self.resolution, 3)
 
 
@@ -159,6 +160,7 @@ ENCODERS: dict[int, partial] = {
 
 
 ENCODER_NAMES = tuple(f"encoder-{arch}" for arch in ENCODERS)
+NETWORKS = (DECODER, *ENCODER_NAMES)  # the ten networks of a model directory, in training order
 
 
 def encoder(arch: int) -> Encoder:
@@ -185,7 +187,8 @@ def apply(module: nn.Module, variables: dict, x: jax.Array) -> jax.Array:
 
 
 def apply_in_batches(module: nn.Module, variables: dict, inputs: np.ndarray, batch: int = 256) -> np.ndarray:
-    """Returns `module` applied to every input, float32, in fixed-size batches (one compilation)."""
+    """Returns `module` applied to every input, float32, in batches of one size (one compilation per size)."""
+    batch = max(1, min(batch, len(inputs)))
     outputs = []
     for start in range(0, len(inputs), batch):
         chunk = np.asarray(inputs[start : start + batch], np.float32)
@@ -199,10 +202,6 @@ def encoder_input(linear: np.ndarray) -> np.ndarray:
     """Returns what every encoder sees of linear images (..., R, R, 3): box-filtered to
     ENCODER_RESOLUTION, then sRGB-encoded, float32. R must be a multiple of ENCODER_RESOLUTION."""
     return images.srgb_encode(images.box_downsample(linear, ENCODER_RESOLUTION))
-
-
-class WeightsError(ValueError):
-    """A weights or checkpoint file that cannot be used; the message names the file and the fix."""
 
 
 def architecture(name: str, resolution: int, decoder: Decoder | None = None) -> dict:
@@ -332,6 +331,10 @@ class Model:
     def resolution(self) -> int:
         """Returns the decoder's image side."""
         return self.decoder.resolution
+
+    def decode(self, unit: np.ndarray) -> np.ndarray:
+        """Returns phi(x) of unit-cube parameters (N, 19): sRGB images (N, R, R, 3), float32, decoded in batches."""
+        return apply_in_batches(self.decoder.module, self.decoder.variables, np.asarray(unit, np.float32).reshape(-1, params.COUNT))
 
 
 def weights_path(directory: str, name: str) -> str:

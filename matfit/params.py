@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from matfit.errors import ParameterError
+
 
 @dataclass(frozen=True)
 class Parameter:
@@ -93,12 +95,9 @@ MINIMUM_EXTINCTION = 1e-4
 # Bumped whenever `PARAMETERS` or the sampling changes, so that datasets and models made with
 # another table are recognised as such.
 TABLE_VERSION = 1
+MAX_SEED = 2**32 - 1  # every seed of matfit (sampling, renders, training, fits) is in [0, MAX_SEED]
 
 assert COUNT == 19, "the paper's shader has m = 19 parameters"
-
-
-class ParameterError(ValueError):
-    """A parameter name or value that the shader cannot take; the message says how to fix it."""
 
 
 def to_unit(values: np.ndarray) -> np.ndarray:
@@ -231,6 +230,16 @@ def parse_params_json(text: str, source: str = "params.json") -> np.ndarray:
         return from_mapping(data)
     except ParameterError as error:
         raise ParameterError(f"{source}: {error}") from None
+
+
+def read_file(path: str) -> np.ndarray:
+    """Returns the physical parameter vector of a params.json file."""
+    try:
+        with open(path) as file:
+            text = file.read()
+    except (OSError, UnicodeDecodeError) as error:
+        raise ParameterError(f"cannot read {path}: {getattr(error, 'strerror', None) or error}") from None
+    return parse_params_json(text, path)
 
 
 def params_document(values: np.ndarray, **extra: object) -> dict:

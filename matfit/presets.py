@@ -1,10 +1,11 @@
-"""Named starting materials for `matfit render --preset`: partial parameter sets over the defaults."""
+"""Named starting materials (partial parameter sets over the defaults), and choosing the material to render."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from matfit import params
+from matfit.errors import ParameterError
 
 PRESETS: dict[str, dict[str, float]] = {
     "gold": {"base_color_r": 1.0, "base_color_g": 0.71, "base_color_b": 0.29, "metallic": 1.0, "roughness": 0.25},
@@ -58,5 +59,26 @@ PRESETS: dict[str, dict[str, float]] = {
 def preset(name: str) -> np.ndarray:
     """Returns the physical parameter vector (19,) of a named preset."""
     if name not in PRESETS:
-        raise params.ParameterError(f"unknown preset {name!r}: choose one of {', '.join(PRESETS)}")
+        raise ParameterError(f"unknown preset {name!r}: choose one of {', '.join(PRESETS)}", field="preset")
     return params.from_mapping(PRESETS[name])
+
+
+def material(params_file: str | None = None, preset_name: str | None = None, random_seed: int | None = None) -> np.ndarray:
+    """Returns the physical vector (19,) of exactly one source: a params.json file, a preset or a random draw."""
+    if sum(source is not None for source in (params_file, preset_name, random_seed)) != 1:
+        raise ParameterError("give exactly one material: a params.json file, --preset NAME or --random")
+    if params_file is not None:
+        return params.read_file(params_file)
+    if preset_name is not None:
+        return preset(preset_name)
+    return params.from_unit(params.sample_unit(np.random.default_rng(random_seed)))
+
+
+def sheet(size: int, spp: int, variant: str | None = None) -> np.ndarray:
+    """Returns every preset rendered side by side with its name under it, as one linear image."""
+    from matfit import images
+    from matfit.render import Renderer
+
+    renderer = Renderer(size, spp, variant)
+    tiles = [images.label(images.srgb_encode(renderer.render(preset(name))), name) for name in PRESETS]
+    return images.srgb_decode(np.concatenate(tiles, axis=1))

@@ -15,11 +15,13 @@ from __future__ import annotations
 import glob
 import os
 import re
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from matfit import params, scene
+from matfit.errors import RenderError
 
 LLVM_VARIANT = "llvm_ad_rgb"
 SCALAR_VARIANT = "scalar_rgb"
@@ -32,10 +34,6 @@ LLVM_SEARCH = (
     "/usr/lib64/libLLVM*.so*",
     "/usr/local/lib/libLLVM*.so*",
 )
-
-
-class RenderError(RuntimeError):
-    """Rendering cannot proceed; the message says what to change."""
 
 
 def llvm_major(path: str) -> int | None:
@@ -203,3 +201,23 @@ class Renderer:
         """Returns the image of whatever material is loaded, without touching the scene."""
         image = self.mi.render(self.scene, seed=int(seed) & 0xFFFFFFFF, spp=int(spp or self.spp))
         return np.array(image, dtype=np.float32)
+
+
+@dataclass
+class Rendered:
+    """What `render_file` did: the variant it rendered with, notices (such as the scalar fallback), seconds."""
+
+    variant: str
+    notices: list[str]
+    seconds: float
+
+
+def render_file(values: np.ndarray, path: str, size: int, spp: int, seed: int = 0, variant: str | None = None) -> Rendered:
+    """Renders a material (19 physical values) at size x size and writes it to an image file; checks the path first."""
+    from matfit import images
+
+    images.check_output(path)
+    started = time.perf_counter()
+    renderer = Renderer(size, spp, variant)
+    images.write(path, renderer.render(values, seed=seed))
+    return Rendered(renderer.variant, [renderer.notice] if renderer.notice else [], time.perf_counter() - started)

@@ -14,19 +14,17 @@ from __future__ import annotations
 import json
 import os
 import re
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from matfit import files, fit, images, models, params
+from matfit.errors import SequenceError
 
 FRAME_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr")
 PREVIOUS = "previous frame"
-
-
-class SequenceError(ValueError):
-    """A frames folder or output that cannot be used; the message names it and the fix."""
 
 
 def natural_key(name: str) -> list:
@@ -102,14 +100,10 @@ def check_sizes(frames: list[str]) -> None:
             raise SequenceError(f"{path} is {size[0]}x{size[1]}, the first frame is {first[0]}x{first[1]}: give every frame the same size")
 
 
-def load_frame(path: str, resolution: int, shape: tuple[int, int] | None) -> tuple[np.ndarray, tuple[int, int]]:
-    """Returns a frame as the model's sRGB target, checking that every frame has the same size."""
-    loaded = images.load(path)
-    size = loaded.pixels.shape[:2]
-    if shape is not None and size != shape:
-        raise SequenceError(f"{path} is {size[1]}x{size[0]}, the first frame is {shape[1]}x{shape[0]}: give every frame the same size")
-    target, _ = fit.prepare_target(loaded.pixels, resolution, path)
-    return target, size
+def load_frame(path: str, resolution: int) -> np.ndarray:
+    """Returns a frame as the model's sRGB target (sizes were checked from the headers by `check_sizes`)."""
+    target, _ = fit.prepare_target(images.load(path).pixels, resolution, path)
+    return target
 
 
 def fit_sequence(
@@ -126,11 +120,10 @@ def fit_sequence(
     os.makedirs(out, exist_ok=True)
     expected = run_settings(settings, reinit, model)
     results: list[Frame] = []
-    shape = None
     for index, path in enumerate(frames):
         json_path = frame_json_path(out, path)
         finished = read_finished(json_path, expected)
-        target, shape = load_frame(path, model.resolution, shape)
+        target = load_frame(path, model.resolution)
         if finished is not None:
             finished.target = target
             results.append(finished)
@@ -180,10 +173,50 @@ def preview(model: models.Model, results: list[Frame], columns: int = 12, tile: 
     from matfit import report
 
     chosen = np.unique(np.linspace(0, len(results) - 1, min(columns, len(results))).round().astype(int))
-    units = np.stack([results[k].unit for k in chosen]).astype(np.float32)
-    decoded = models.apply_in_batches(model.decoder.module, model.decoder.variables, units, batch=len(units))
+    decoded = model.decode(np.stack([results[k].unit for k in chosen]))
     top = report.compose([(results[k].target, os.path.basename(results[k].path)) for k in chosen], size=tile, caption=12)
     bottom = report.compose(
         [(image, f"RMSE {results[k].rmse:.2f}") for image, k in zip(decoded, chosen, strict=True)], size=tile, caption=12
     )
     return np.concatenate([top, bottom], axis=0)
+
+
+def run(
+    model: models.Model,
+    frames_path: str,
+    out: str,
+    settings: fit.Settings,
+    reinit: bool = True,
+    render: tuple[int, int] | None = None,
+    progress: Callable[[int, int, float], None] | None = None,
+) -> list[Frame]:
+    """Fits a folder of frames into `out`: a JSON per frame, summary.md and preview.png; returns the frames' results.
+
+    `render` = (size, spp) also renders every fitted frame with Mitsuba (`<frame>-render.png`).
+    `progress(done, total, frames per second)` follows the fits. Finished frames are read back, so
+    running it again after an interruption resumes.
+    """
+    frames = list_frames(frames_path)
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise SequenceError(f"output folder {out} is a file: give a folder for the results", field="out")
+    parent = os.path.dirname(os.path.abspath(out))
+    if not os.path.isdir(parent):
+        raise SequenceError(f"output folder {out} cannot be created: {parent} does not exist (create it first)", field="out")
+    started = time.perf_counter()
+
+    def report(done: int, total: int, frame: Frame) -> None:
+        if progress is not None:
+            progress(done, total, done / max(time.perf_counter() - started, 1e-9))
+
+    results = fit_sequence(model, frames, out, settings, reinit, report)
+    if render is not None:
+        from matfit.render import Renderer
+
+        renderer = Renderer(*render)
+        for frame in results:
+            path = os.path.join(out, os.path.splitext(os.path.basename(frame.path))[0] + "-render.png")
+            if not os.path.exists(path):
+                images.write(path, renderer.render(params.from_unit(frame.unit)))
+    files.write_text(os.path.join(out, "summary.md"), summary_table(results))
+    images.write(os.path.join(out, "preview.png"), images.srgb_decode(preview(model, results)))
+    return results

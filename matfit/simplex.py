@@ -60,7 +60,7 @@ def initial_simplex(y0: Array, step: float, lower: float | Array, upper: float |
     """Returns the (n + 1, n) simplex y0, y0 +- step e_k, each vertex inside [lower, upper]."""
     n = y0.shape[0]
     inside = jnp.clip(y0, lower, upper)
-    offsets = jnp.where(inside + step <= upper, step, -step) * jnp.eye(n, dtype=y0.dtype)
+    offsets = jnp.where(inside + step <= upper, step, -step)[None, :] * jnp.eye(n, dtype=y0.dtype)
     return jnp.concatenate([inside[None], inside[None] + offsets])
 
 
@@ -187,9 +187,9 @@ class NelderMead(optx.AbstractMinimiser):
         if self.rtol == 0 and self.atol == 0:
             return jnp.array(False)
         best = jnp.argmin(values)
-        x_scale = self.atol + self.rtol * jnp.abs(simplex[best])
+        x_scale = self.atol + self.rtol * jnp.abs(simplex[best])[None, :]
         f_scale = self.atol + self.rtol * jnp.abs(values[best])
-        return jnp.all(jnp.abs(simplex - simplex[best]) <= x_scale) & jnp.all(jnp.abs(values - values[best]) <= f_scale)
+        return jnp.all(jnp.abs(simplex - simplex[best][None, :]) <= x_scale) & jnp.all(jnp.abs(values - values[best]) <= f_scale)
 
     def terminate(self, fn, y, args, options, state: _State, tags):
         return state.converged, optx.RESULTS.successful

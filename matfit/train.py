@@ -1,7 +1,8 @@
 """Training the decoder and the encoders on a rendered dataset, resumably.
 
-One function, `train_network`, trains one network ("decoder" or "encoder-N") on a finished
-`matfit render-dataset` directory:
+`train_network` trains one network ("decoder" or "encoder-N") on a finished `matfit render-dataset`
+directory, in the Flax examples' steps: `create_run` (module, data split, optimiser),
+`create_train_state` (fresh or resumed), `train_epoch`, `finish`:
 
 - the last `validation_fraction` of the samples are held out and never trained on;
 - the decoder learns parameters -> sRGB image (L2 on sRGB values, as the paper's RMSE);
@@ -21,8 +22,7 @@ import hashlib
 import json
 import os
 import time
-from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import jax
 import jax.numpy as jnp
@@ -30,11 +30,12 @@ import numpy as np
 import optax
 from flax import serialization
 
-from matfit import files, images, models, params
+from matfit import files, images, models, params, pipeline
 from matfit.dataset import Dataset
+from matfit.errors import TrainingError
+from matfit.models import NETWORKS
 
 CHECKPOINT_FORMAT = "matfit-checkpoint"
-NETWORKS = (models.DECODER, *models.ENCODER_NAMES)
 # The paper trains the isomorphic encoders 6, 7 and 9 for different numbers of epochs.
 # Sized so that `make model` trains all ten in about 50 minutes on a 2-core CPU (README).
 DEFAULT_EPOCHS = {
@@ -45,32 +46,36 @@ DEFAULT_EPOCHS = {
     "encoder-7": 5,
     "encoder-9": 20,
 }
-CONVERT_CHUNK = 1024
-
-
-class TrainingError(ValueError):
-    """Training cannot start or resume; the message names the file or value and the fix."""
+MAX_EPOCHS = 10000
 
 
 @dataclass(frozen=True)
 class Config:
     """What defines a training run: resuming needs the same values."""
 
-    epochs: int
+    epochs: int | None = None  # None: the network's default (DEFAULT_EPOCHS)
     batch_size: int = 64
     learning_rate: float = 1e-3
     validation_fraction: float = 0.05
     seed: int = 0
 
+    def for_network(self, name: str) -> Config:
+        """Returns this configuration with the network's default number of epochs where none is set."""
+        return self if self.epochs is not None else replace(self, epochs=DEFAULT_EPOCHS[name])
+
     def check(self, samples: int) -> None:
         """Raises TrainingError for values that cannot train on `samples` samples."""
-        if not 1 <= self.epochs <= 10000:
-            raise TrainingError(f"--epochs {self.epochs} is out of range: use 1 to 10000")
+        if self.epochs is None or not 1 <= self.epochs <= MAX_EPOCHS:
+            raise TrainingError(f"epochs {self.epochs} is out of range: use 1 to {MAX_EPOCHS}", field="epochs")
+        if not 0.0 < self.learning_rate <= 1.0:
+            raise TrainingError(f"learning rate {self.learning_rate} is out of range: use a value in (0, 1]", field="learning_rate")
         if not 0.0 < self.validation_fraction < 0.5:
             raise TrainingError(f"validation fraction {self.validation_fraction} is out of range: use a value in (0, 0.5)")
         training = samples - validation_count(samples, self.validation_fraction)
         if not 1 <= self.batch_size <= training:
-            raise TrainingError(f"--batch-size {self.batch_size} does not fit {training} training samples: use 1 to {training}")
+            raise TrainingError(
+                f"batch size {self.batch_size} does not fit {training} training samples: use 1 to {training}", field="batch_size"
+            )
 
 
 def validation_count(samples: int, fraction: float) -> int:
@@ -79,11 +84,10 @@ def validation_count(samples: int, fraction: float) -> int:
 
 
 def dataset_identity(data: Dataset) -> dict:
-    """Returns what identifies a dataset's content: its settings and a hash of its parameters."""
+    """Returns what identifies a dataset's content wherever it lies: its settings and a hash of its parameters."""
     digest = hashlib.sha256(np.ascontiguousarray(data.params).tobytes()).hexdigest()
     meta = data.meta
     return {
-        "path": os.path.abspath(data.path),
         "count": data.count,
         "resolution": data.resolution,
         "spp": int(meta["spp"]),
@@ -91,45 +95,6 @@ def dataset_identity(data: Dataset) -> dict:
         "variant": meta.get("variant"),
         "params_sha256": digest,
     }
-
-
-def check_finished(data: Dataset) -> None:
-    """Raises TrainingError unless every sample of the dataset has been rendered."""
-    if data.finished < data.count:
-        raise TrainingError(
-            f"{data.path} has {data.finished}/{data.count} samples rendered: finish it with "
-            f"`matfit render-dataset {data.path} --count {data.count}` (same settings) before training"
-        )
-
-
-def srgb_targets(data: Dataset) -> np.ndarray:
-    """Returns every image sRGB-encoded, float16 (count, R, R, 3), converted in chunks."""
-    out = np.empty(data.images.shape, np.float16)
-    for start in range(0, data.count, CONVERT_CHUNK):
-        chunk = np.asarray(data.images[start : start + CONVERT_CHUNK], np.float32)
-        out[start : start + CONVERT_CHUNK] = images.srgb_encode(chunk)
-    return out
-
-
-def encoder_inputs(data: Dataset) -> np.ndarray:
-    """Returns every image as the encoders see it, float16 (count, 32, 32, 3)."""
-    side = models.ENCODER_RESOLUTION
-    if data.resolution % side:
-        raise TrainingError(
-            f"encoders need images whose side is a multiple of {side} px; {data.path} has {data.resolution}: render one at 64 px"
-        )
-    out = np.empty((data.count, side, side, 3), np.float16)
-    for start in range(0, data.count, CONVERT_CHUNK):
-        out[start : start + CONVERT_CHUNK] = models.encoder_input(np.asarray(data.images[start : start + CONVERT_CHUNK], np.float32))
-    return out
-
-
-def training_arrays(name: str, data: Dataset) -> tuple[np.ndarray, np.ndarray]:
-    """Returns (inputs, targets) of network `name` for every sample of the dataset."""
-    unit = data.unit_params()
-    if name == models.DECODER:
-        return unit, srgb_targets(data)
-    return encoder_inputs(data), unit
 
 
 def optimiser(config: Config, steps_per_epoch: int) -> optax.GradientTransformation:
@@ -159,7 +124,8 @@ def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool):
     def train_step(state, x, y, key):
         weights, opt_state = state
         loss, grads = jax.value_and_grad(loss_fn)(weights, x, y, key)
-        updates, opt_state = tx.update(grads, opt_state, weights)
+        with jax.numpy_dtype_promotion("standard"):  # optax mixes Python floats with its int32 step count
+            updates, opt_state = tx.update(grads, opt_state, weights)
         return (optax.apply_updates(weights, updates), opt_state), loss
 
     return train_step
@@ -170,7 +136,7 @@ def validation_metrics(name: str, predictions: np.ndarray, targets: np.ndarray) 
     targets = np.asarray(targets, np.float64)
     error = predictions.astype(np.float64) - targets
     if name == models.DECODER:
-        per_image = 255.0 * np.sqrt(np.mean(error**2, axis=(1, 2, 3)))
+        per_image = images.rmse(predictions.astype(np.float64), targets)
         return {"validation_loss": float(np.mean(error**2)), "validation_rmse": float(per_image.mean())}
     per_parameter = np.sqrt(np.mean(error**2, axis=0))
     return {
@@ -242,111 +208,179 @@ def load_checkpoint(path: str, name: str, description: dict, config: Config, ide
 
 
 class Reporter:
-    """Receives progress; the command line shows it, tests ignore it."""
+    """Receives progress (`progress.TrainingProgress` shows it); the default ignores it."""
 
-    def start(self, name: str, epoch: int, epochs: int, steps: int) -> None:
+    def start_epoch(self, name: str, epoch: int, epochs: int, steps: int) -> None:
         """Called before each epoch."""
 
     def step(self, step: int, loss: float, samples_per_second: float) -> None:
-        """Called after each training step."""
+        """Called after training steps."""
 
     def end_epoch(self, record: dict) -> None:
-        """Called after each epoch with its history record."""
+        """Called after each epoch, once its checkpoint is written, with its history record."""
+
+
+@dataclass(frozen=True)
+class Run:
+    """What stays fixed while one network trains: the module, the data split, the optimiser, the files."""
+
+    name: str
+    description: dict
+    module: object
+    inputs: np.ndarray
+    targets: np.ndarray
+    training_samples: int
+    steps: int
+    tx: optax.GradientTransformation
+    root: jax.Array  # the network's PRNG key; epochs and steps fold into it
+    config: Config
+    identity: dict
+    checkpoint_file: str
+    weights_file: str
+
+    @property
+    def network_index(self) -> int:
+        """Returns the network's place in NETWORKS, which separates its random streams from the others'."""
+        return NETWORKS.index(self.name)
+
+
+def create_run(name: str, data: Dataset, out: str, config: Config, decoder: models.Decoder | None = None) -> Run:
+    """Returns the run of network `name` on a finished dataset; `decoder` overrides the decoder architecture (tiny in tests)."""
+    if name not in NETWORKS:
+        raise TrainingError(f"unknown network {name!r}: use decoder or 1 to 9", field="arch")
+    pipeline.check_finished(data)
+    config.check(data.count)
+    description = models.architecture(name, data.resolution, decoder)
+    weights_file = models.weights_path(out, name)
+    checkpoint_file = checkpoint_path(out, name)
+    os.makedirs(os.path.dirname(checkpoint_file), exist_ok=True)
+    files.check_writable(weights_file)
+    inputs, targets = pipeline.training_arrays(name, data)
+    training_samples = data.count - validation_count(data.count, config.validation_fraction)
+    steps = training_samples // config.batch_size
+    root = jax.random.fold_in(jax.random.key(config.seed), NETWORKS.index(name))
+    module = models.build(description)
+    return Run(
+        name,
+        description,
+        module,
+        inputs,
+        targets,
+        training_samples,
+        steps,
+        optimiser(config, steps),
+        root,
+        config,
+        dataset_identity(data),
+        checkpoint_file,
+        weights_file,
+    )
+
+
+def create_train_state(run: Run) -> Checkpoint:
+    """Returns the state to continue from: the run's checkpoint if there is one, else fresh weights."""
+    variables = models.initialise(run.module, run.root, models.input_shape(run.description))
+    state = Checkpoint(0, variables["params"], run.tx.init(variables["params"]))
+    if os.path.exists(run.checkpoint_file):
+        state = load_checkpoint(run.checkpoint_file, run.name, run.description, run.config, run.identity, state)
+    return state
+
+
+def train_epoch(run: Run, train_step, state: Checkpoint, reporter: Reporter) -> Checkpoint:
+    """Returns the state after one more epoch, its validation figures appended to the history.
+
+    Shuffling and dropout depend only on (seed, network, epoch, step), so an epoch gives the same
+    weights whether or not the run was interrupted before it.
+    """
+    epoch = state.epoch + 1
+    batch_size = run.config.batch_size
+    reporter.start_epoch(run.name, epoch, run.config.epochs, run.steps)
+    started = time.perf_counter()
+    order = np.random.default_rng([run.config.seed, run.network_index, epoch]).permutation(run.training_samples)
+    epoch_key = jax.random.fold_in(run.root, epoch)
+    training, losses = (state.weights, state.opt_state), []
+    for step in range(run.steps):
+        batch = order[step * batch_size : (step + 1) * batch_size]
+        x, y = np.asarray(run.inputs[batch], np.float32), np.asarray(run.targets[batch], np.float32)
+        training, loss = train_step(training, x, y, jax.random.fold_in(epoch_key, step))
+        losses.append(loss)
+        if step % 10 == 9 or step == run.steps - 1:
+            reporter.step(step + 1, float(loss), (step + 1) * batch_size / (time.perf_counter() - started))
+    figures = validate(run, training[0])
+    record = {
+        "epoch": epoch,
+        "train_loss": float(np.mean(jax.device_get(losses))),
+        **{key: value for key, value in figures.items() if not key.endswith("_by_name")},
+        "seconds": time.perf_counter() - started,
+    }
+    return Checkpoint(epoch, training[0], training[1], [*state.history, record], state.seconds + record["seconds"])
+
+
+def validate(run: Run, weights: dict) -> dict:
+    """Returns the validation figures of `weights` on the held-out samples."""
+    predictions = models.apply_in_batches(run.module, {"params": weights}, run.inputs[run.training_samples :])
+    return validation_metrics(run.name, predictions, run.targets[run.training_samples :])
+
+
+def finish(run: Run, state: Checkpoint) -> dict:
+    """Rounds the weights to float16 (what ships), validates them, writes `<name>.msgpack` and `<name>.json`; returns the metrics."""
+    shipped = jax.tree_util.tree_map(lambda leaf: jnp.asarray(leaf, jnp.float16).astype(jnp.float32), state.weights)
+    metrics = {
+        "network": run.name,
+        "epochs": run.config.epochs,
+        "training_samples": run.training_samples,
+        "validation_samples": len(run.inputs) - run.training_samples,
+        "wall_time_s": round(state.seconds, 1),
+        "dataset": run.identity,
+        "config": asdict(run.config),
+        "weights_dtype": "float16",
+        "parameter_count": models.parameter_count({"params": shipped}),
+        **validate(run, shipped),
+        "history": state.history,
+    }
+    network = models.Network(run.name, run.description, run.module, {"params": shipped}, {"metrics": metrics})
+    models.save(run.weights_file, network)
+    files.write_text(os.path.splitext(run.weights_file)[0] + ".json", json.dumps(metrics, indent=2) + "\n")
+    return metrics
 
 
 def train_network(
-    name: str,
-    data: Dataset,
-    out: str,
-    config: Config,
-    reporter: Reporter | None = None,
-    decoder: models.Decoder | None = None,
-    should_stop: Callable[[], bool] | None = None,
+    name: str, data: Dataset, out: str, config: Config, reporter: Reporter | None = None, decoder: models.Decoder | None = None
 ) -> dict:
     """Trains (or resumes, or finds finished) network `name` and returns its final metrics.
 
-    `decoder` overrides the default decoder architecture (tests use tiny ones). `should_stop` is
-    polled after each epoch's checkpoint, for tests of interruption.
+    After every epoch the whole state is checkpointed; an interruption (Ctrl-C, kill -9, an
+    exception from the reporter) loses at most the epoch under way.
     """
-    if name not in NETWORKS:
-        raise TrainingError(f"unknown network {name!r}: use decoder or 1 to 9")
     reporter = reporter or Reporter()
-    check_finished(data)
-    config.check(data.count)
-    description = models.architecture(name, data.resolution, decoder)
-    identity = dataset_identity(data)
-    weights_file = models.weights_path(out, name)
-    ckpt_file = checkpoint_path(out, name)
-    os.makedirs(os.path.dirname(ckpt_file), exist_ok=True)
-    files.check_writable(weights_file)
-
-    module = models.build(description)
-    is_encoder = name != models.DECODER
-    inputs, targets = training_arrays(name, data)
-    n_validation = validation_count(data.count, config.validation_fraction)
-    n_training = data.count - n_validation
-    steps = n_training // config.batch_size
-    tx = optimiser(config, steps)
-    network_index = NETWORKS.index(name)
-    root = jax.random.fold_in(jax.random.key(config.seed), network_index)
-    variables = models.initialise(module, root, models.input_shape(description))
-    state = Checkpoint(0, variables["params"], tx.init(variables["params"]))
-    if os.path.exists(ckpt_file):
-        state = load_checkpoint(ckpt_file, name, description, config, identity, state)
-        if state.epoch == config.epochs and os.path.exists(weights_file):
-            return models.load(weights_file).info["metrics"]
-
-    train_step = make_train_step(module, tx, is_encoder)
-    training = (state.weights, state.opt_state)
+    run = create_run(name, data, out, config, decoder)
+    state = create_train_state(run)
+    if state.epoch == config.epochs and os.path.exists(run.weights_file):
+        return models.load(run.weights_file).info["metrics"]
+    train_step = make_train_step(run.module, run.tx, name != models.DECODER)
     while state.epoch < config.epochs:
-        epoch = state.epoch + 1
-        reporter.start(name, epoch, config.epochs, steps)
-        started = time.perf_counter()
-        order = np.random.default_rng([config.seed, network_index, epoch]).permutation(n_training)
-        epoch_key = jax.random.fold_in(root, epoch)
-        losses = []
-        for step in range(steps):
-            batch = order[step * config.batch_size : (step + 1) * config.batch_size]
-            x = np.asarray(inputs[batch], np.float32)
-            y = np.asarray(targets[batch], np.float32)
-            training, loss = train_step(training, x, y, jax.random.fold_in(epoch_key, step))
-            losses.append(loss)
-            if step % 10 == 9 or step == steps - 1:
-                reporter.step(step + 1, float(loss), (step + 1) * config.batch_size / (time.perf_counter() - started))
-        predictions = models.apply_in_batches(module, {"params": training[0]}, inputs[n_training:])
-        record = {
-            "epoch": epoch,
-            "train_loss": float(np.mean(jax.device_get(losses))),
-            **{
-                key: value
-                for key, value in validation_metrics(name, predictions, targets[n_training:]).items()
-                if not key.endswith("_by_name")
-            },
-            "seconds": time.perf_counter() - started,
-        }
-        state = Checkpoint(epoch, training[0], training[1], [*state.history, record], state.seconds + record["seconds"])
-        save_checkpoint(ckpt_file, name, description, config, identity, state)
-        reporter.end_epoch(record)
-        if should_stop is not None and epoch < config.epochs and should_stop():
-            raise KeyboardInterrupt
+        state = train_epoch(run, train_step, state, reporter)
+        save_checkpoint(run.checkpoint_file, name, run.description, config, run.identity, state)
+        reporter.end_epoch(state.history[-1])
+    return finish(run, state)
 
-    shipped = jax.tree_util.tree_map(lambda leaf: jnp.asarray(leaf, jnp.float16).astype(jnp.float32), state.weights)
-    metrics = {
-        "network": name,
-        "epochs": config.epochs,
-        "training_samples": n_training,
-        "validation_samples": n_validation,
-        "wall_time_s": round(state.seconds, 1),
-        "dataset": identity,
-        "config": asdict(config),
-        "weights_dtype": "float16",
-        "parameter_count": models.parameter_count({"params": shipped}),
-        **validation_metrics(name, models.apply_in_batches(module, {"params": shipped}, inputs[n_training:]), targets[n_training:]),
-        "history": state.history,
-    }
-    models.save(weights_file, models.Network(name, description, module, {"params": shipped}, {"metrics": metrics}))
-    files.write_text(os.path.join(out, name + ".json"), json.dumps(metrics, indent=2) + "\n")
-    return metrics
+
+def train_networks(names: list[str], data: Dataset, out: str, config: Config, reporter: Reporter | None = None):
+    """Trains the named networks one after another into model directory `out`; yields (name, metrics) as each finishes."""
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise files.OutputError(f"model directory {out} is a file: give a directory for the model", field="out")
+    os.makedirs(out, exist_ok=True)
+    for name in names:
+        yield name, train_network(name, data, out, config.for_network(name), reporter)
+
+
+def summary(name: str, metrics: dict) -> str:
+    """Returns one line on a trained network: epochs, validation figure, time."""
+    if "validation_rmse" in metrics:
+        figure = f"validation image RMSE {metrics['validation_rmse']:.2f} (0-255 sRGB)"
+    else:
+        figure = f"validation parameter RMSE {metrics['validation_parameter_rmse']:.4f} (unit cube)"
+    return f"{name}: {metrics['epochs']} epochs, {figure}, {metrics['wall_time_s']:.0f} s"
 
 
 def parse_arch(text: str) -> list[str]:
@@ -370,7 +404,7 @@ def _arch_number(text: str) -> int:
     try:
         arch = int(text)
     except ValueError:
-        raise TrainingError(f"--arch {text!r} is not an architecture: use decoder, 1 to 9, 1..9 or all") from None
+        raise TrainingError(f"arch {text!r} is not an architecture: use decoder, 1 to 9, 1..9 or all", field="arch") from None
     if arch not in models.ENCODERS:
-        raise TrainingError(f"--arch {arch} does not exist: the paper's encoders are 1 to 9 (or use decoder)")
+        raise TrainingError(f"arch {arch} does not exist: the paper's encoders are 1 to 9 (or use decoder)", field="arch")
     return arch

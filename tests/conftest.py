@@ -1,13 +1,18 @@
-"""Shared fixtures: one tiny renderer for the whole session (loading a scene compiles kernels)."""
+"""Shared fixtures: one tiny renderer for the whole session (loading a scene compiles kernels); strict JAX promotion."""
 
 from __future__ import annotations
 
+import jax
 import pytest
 
 from matfit.render import Renderer
 
 TEST_RESOLUTION = 16
 TEST_SPP = 16
+
+# As optimistix's tests do: a silent broadcast or dtype promotion in matfit's JAX code is an error.
+jax.config.update("jax_numpy_rank_promotion", "raise")
+jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 
 @pytest.fixture(scope="session")

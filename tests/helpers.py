@@ -26,7 +26,7 @@ def random_model() -> models.Model:
 
 
 def decode(model, unit):
-    return np.asarray(models.apply(model.decoder.module, model.decoder.variables, np.asarray(unit, np.float32)[None])[0])
+    return model.decode(unit)[0]
 
 
 def true_point(seed):

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from helpers import decode, random_model, true_point
 
-from matfit import bench, fit
+from matfit import bench, fit, images
 
 
 @pytest.fixture(scope="module")
@@ -35,11 +35,28 @@ def test_optimiser_comparison_runs_every_optimiser_from_both_starts(model):
     row = bench.compare_optimisers(model, target, evaluations=30, basin_seconds=0.2)
     for optimiser in ("L-BFGS-B", "SLSQP", "CG", "Nelder-Mead", "basin-hopping"):
         for start in ("random", "best-of-9"):
-            assert np.isfinite(row[f"{optimiser} ({start})"]) and row[f"{optimiser} ({start}) seconds"] >= 0
+            assert 0.0 <= row[f"{optimiser} ({start})"] < 255.0 and 0.0 < row[f"{optimiser} ({start}) seconds"] < 60.0
     assert row["L-BFGS-B (best-of-9)"] <= fit.fit(model, target, fit.Settings(method="nn")).rmse + 1e-4
 
 
-def test_line_plot_draws_its_series():
-    picture = bench.line_plot({"a": ([50, 300, 1500], [3.0, 2.0, 1.0], (1.0, 0.0, 0.0))}, "t", size=(120, 80))
-    assert picture.shape == (80 + 36, 120, 3)
-    assert np.any(np.all(picture[:80] == [1.0, 0.0, 0.0], axis=-1))
+def test_budget_plot_is_a_readable_picture(tmp_path):
+    rows = [
+        {
+            "optimize_50": 9.0,
+            "optimize_300": 7.0,
+            "optimize_1500": 6.0,
+            "hybrid_50": 5.0,
+            "hybrid_300": 4.5,
+            "hybrid_1500": 4.0,
+            "best_of_n": 5.5,
+        }
+    ]
+    path = tmp_path / "plot.png"
+    bench.budget_plot(rows, str(path))
+    picture = images.read(str(path))
+    assert picture.shape == (400, 640, 3)
+    red, blue = np.array([0.839, 0.153, 0.157]), np.array([0.122, 0.467, 0.706])  # matplotlib's tab:red and tab:blue
+    encoded = images.srgb_encode(picture)
+    for colour in (red, blue):
+        assert np.sum(np.all(np.abs(encoded - colour) < 0.02, axis=-1)) > 100  # each line is drawn
+    assert [p.name for p in tmp_path.iterdir()] == ["plot.png"]  # no temporary file left behind

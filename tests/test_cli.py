@@ -86,10 +86,10 @@ def test_bad_params_files(tmp_path, content, fragments):
         (("render", "--preset", "gold", "-o", "{tmp}/missing/x.png"), ("does not exist",)),
         (("render", "--preset", "gold", "-o", "/proc/x.png"), ("read-only",)),
         (("render", "--preset", "gold", "-o", "{tmp}/x.bmp"), ("unknown image type .bmp",)),
-        (("render", "--preset", "gold", "-o", "{tmp}/x.png", "--size", "100000"), ("--size 100000 is out of range",)),
+        (("render", "--preset", "gold", "-o", "{tmp}/x.png", "--size", "100000"), ("--size 100000 is out of range: use 8 to 4096",)),
         (("render", "--preset", "gold", "-o", "{tmp}/x.png", "--spp", "0"), ("--spp 0 is out of range",)),
         (("render", "{tmp}/none.json", "-o", "{tmp}/x.png"), ("cannot read", "none.json")),
-        (("render", "--preset", "gold", "-o", "{tmp}/x.png", "--variant", "cuda"), ("unknown variant 'cuda'",)),
+        (("render", "--preset", "gold", "-o", "{tmp}/x.png", "--variant", "cuda"), ("--variant cuda", "llvm_ad_rgb")),
         (("render-dataset", "{tmp}/d", "--count", "0"), ("--count 0 is out of range",)),
         (("render-dataset", "{tmp}/d", "--count", "-5"), ("--count -5 is out of range",)),
         (("render-dataset", "{tmp}/d", "--count", "5", "--resolution", "5000"), ("resolution 5000 is out of range",)),
@@ -123,7 +123,8 @@ def test_train_writes_weights_metrics_and_checkpoints(trained):
         assert (trained / f"{name}.msgpack").is_file()
         assert (trained / "checkpoints" / f"{name}.ckpt").is_file()
         metrics = json.loads((trained / f"{name}.json").read_text())
-        assert metrics["epochs"] == 1 and metrics["dataset"]["count"] == 48 and metrics["wall_time_s"] >= 0
+        assert metrics["epochs"] == 1 and metrics["dataset"]["count"] == 48 and len(metrics["history"]) == 1
+        assert metrics["wall_time_s"] == pytest.approx(metrics["history"][0]["seconds"], abs=0.05)
 
 
 def test_evaluate_writes_the_model_card(trained, tiny_dataset):
@@ -238,7 +239,9 @@ def test_fit_bad_inputs(trained, target, tmp_path):
     images.write(str(tmp_path / "mask.png"), np.ones((20, 20, 3), np.float32))
     assert_one_line_error(fit(target, "--mask", tmp_path / "mask.png"), "make the mask the same size")
     assert_one_line_error(fit(target, "--evals", 0), "--evals 0 is out of range")
-    assert_one_line_error(fit(target, "--method", "magic"), "--method 'magic' is unknown")
+    assert_one_line_error(fit(target, "--method", "magic"), "--method magic", "'hybrid', 'nn', 'optimize'")
+    assert_one_line_error(fit(target, "--evals", "abc"), "--evals abc", "integer")
+    assert_one_line_error(fit(target, "--bogus", "1"), "No such option: --bogus")
     assert_one_line_error(run("fit", target, "-o", tmp_path / "no" / "p.json", "--model", trained), "does not exist")
     assert_one_line_error(run("fit", target, "-o", out, "--model", tmp_path / "nothing"), "does not exist")
     incomplete = tmp_path / "incomplete"
@@ -269,3 +272,29 @@ def test_sequence_through_the_cli(trained, tiny_dataset, tmp_path):
     assert_one_line_error(run("sequence", empty, "-o", out, "--model", trained), "holds no frames")
     images.write(str(frames / "frame_99.png"), np.zeros((8, 8, 3), np.float32))
     assert_one_line_error(run("sequence", frames, "-o", tmp_path / "o2", "--model", trained), "frame_99.png is 8x8", "same size")
+
+
+def test_presets_sheet(tmp_path):
+    result = run("presets", "-o", tmp_path / "sheet.png", "--size", 32, "--spp", 2)
+    assert result.exit_code == 0, result.output
+    from matfit import presets
+
+    assert images.read(str(tmp_path / "sheet.png")).shape == (32 + 14, 32 * len(presets.PRESETS), 3)
+    assert_one_line_error(run("presets", "-o", tmp_path / "sheet.png", "--size", 16), "--size 16 is out of range: use 32 to 1024")
+
+
+def test_bench_render_prints_both_configurations():
+    result = run("bench-render", "--count", 5)
+    assert result.exit_code == 0, result.output
+    rows = [line.split("|")[1:-1] for line in result.stdout.splitlines()[2:]]
+    assert [(row[0].strip(), row[1].strip()) for row in rows] == [("64", "16"), ("128", "32")]
+    for row in rows:
+        ours, bare, ratio = (float(cell) for cell in row[2:])
+        assert ours > 0 and bare > 0 and ratio == pytest.approx(ours / bare, rel=0.1)
+
+
+def test_bench_model_times_the_trained_networks(trained):
+    result = run("bench-model", "--model", trained, "--repeats", 10)
+    assert result.exit_code == 0, result.output
+    networks, load, forward = (cell.strip() for cell in result.stdout.splitlines()[2].split("|")[1:-1])
+    assert networks == "2" and 0.0 < float(load) < 60.0 and 0.0 < float(forward) < 1000.0

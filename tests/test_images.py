@@ -26,6 +26,20 @@ def test_rmse_is_on_the_0_255_scale():
         images.rmse(a, np.zeros((2, 2, 3)))
 
 
+def test_rmse_per_image_weighted_and_in_jax():
+    rng = np.random.default_rng(0)
+    batch, target = rng.uniform(size=(2, 4, 4, 3)), rng.uniform(size=(4, 4, 3))
+    weights = np.zeros((4, 4))
+    weights[:2] = 1.0
+    expected = [255 * np.sqrt(np.mean((image[:2] - target[:2]) ** 2)) for image in batch]
+    np.testing.assert_allclose(images.rmse(batch, target, weights), expected, rtol=1e-12)
+    np.testing.assert_allclose(images.rmse(batch, batch[::-1])[0], 255 * np.sqrt(np.mean((batch[0] - batch[1]) ** 2)))
+    import jax.numpy as jnp
+
+    jax_figures = images.rmse(jnp.asarray(batch, jnp.float32), jnp.asarray(target, jnp.float32), jnp.asarray(weights, jnp.float32))
+    np.testing.assert_allclose(np.asarray(jax_figures), expected, rtol=1e-5)
+
+
 def test_png_and_exr_round_trips(tmp_path):
     rng = np.random.default_rng(0)
     linear = rng.random((8, 12, 3)).astype(np.float32) * 1.5

@@ -57,8 +57,9 @@ def test_glass_shows_the_checker_through_the_object(renderer):
         for key, value in before.items():
             renderer.parameters[key] = value
         renderer.parameters.update()
-    glass_change = images.rmse(lit[0][mask], dark[0][mask])
-    opaque_change = images.rmse(lit[1][mask], dark[1][mask])
+    weights = mask.astype(np.float32)
+    glass_change = images.rmse(lit[0], dark[0], weights)
+    opaque_change = images.rmse(lit[1], dark[1], weights)
     assert glass_change > 40.0
     assert glass_change > 2.5 * opaque_change
 

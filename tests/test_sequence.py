@@ -36,7 +36,7 @@ def frames(tmp_path, model):
     return sequence.list_frames(str(directory))
 
 
-def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, model, frames):
+def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, model, frames, monkeypatch):
     settings = fit.Settings(evaluations=40)
     whole = sequence.fit_sequence(model, frames, str(tmp_path / "whole"), settings)
     assert len(whole) == 4
@@ -48,12 +48,10 @@ def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, mod
         seen.append((extra, result.candidate_rmse))
         return result
 
-    fit.fit = spy
-    try:
+    with monkeypatch.context() as patch:
+        patch.setattr(fit, "fit", spy)
         partial = sequence.fit_sequence(model, frames[:2], str(tmp_path / "parts"), settings)
         resumed = sequence.fit_sequence(model, frames, str(tmp_path / "parts"), settings)
-    finally:
-        fit.fit = original
     assert seen[0][0] is None and "extra-1" not in seen[0][1]
     np.testing.assert_array_equal(seen[1][0][0], partial[0].unit)  # the previous optimum is a candidate
     assert "extra-1" in seen[1][1]

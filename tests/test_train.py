@@ -5,7 +5,8 @@ import jax
 import numpy as np
 import pytest
 
-from matfit import dataset, models, params, train
+from matfit import dataset, models, params, pipeline, train
+from matfit.errors import DatasetError
 from matfit.train import Config, TrainingError
 
 TINY_DECODER = models.Decoder(resolution=32, hidden=32, base_channels=16, stage_channels=(16, 8, 8))
@@ -14,6 +15,13 @@ TINY_DECODER = models.Decoder(resolution=32, hidden=32, base_channels=16, stage_
 @pytest.fixture(scope="module")
 def data(tiny_dataset):
     return dataset.open_dataset(tiny_dataset)
+
+
+class StopAfterOneEpoch(train.Reporter):
+    """Interrupts a run as Ctrl-C would, once the first epoch's checkpoint is written."""
+
+    def end_epoch(self, record: dict) -> None:
+        raise KeyboardInterrupt
 
 
 def weights_equal(a, b):
@@ -46,7 +54,7 @@ def test_encoder_steps_fit_a_batch(data, arch):
     tx = train.optimiser(Config(epochs=1, learning_rate=1e-3), steps_per_epoch=40)
     variables = models.initialise(module, jax.random.key(0), (32, 32, 3))
     train_step = train.make_train_step(module, tx, is_encoder=True)
-    x, y = (np.asarray(a[:8], np.float32) for a in train.training_arrays(f"encoder-{arch}", data))
+    x, y = (np.asarray(a[:8], np.float32) for a in pipeline.training_arrays(f"encoder-{arch}", data))
     state = (variables["params"], tx.init(variables["params"]))
     losses = []
     for step in range(40):
@@ -61,7 +69,7 @@ def test_interrupted_run_resumes_to_the_same_weights(tmp_path, data):
     train.train_network("encoder-3", data, str(whole), config)
     parts = tmp_path / "parts"
     with pytest.raises(KeyboardInterrupt):
-        train.train_network("encoder-3", data, str(parts), config, should_stop=lambda: True)
+        train.train_network("encoder-3", data, str(parts), config, StopAfterOneEpoch())
     assert not os.path.exists(models.weights_path(str(parts), "encoder-3"))
     resumed = train.train_network("encoder-3", data, str(parts), config)
     assert [r["epoch"] for r in resumed["history"]] == [1, 2, 3]
@@ -122,7 +130,7 @@ def test_corrupt_weights_are_refused(tmp_path, damage, message):
 def test_checkpoint_of_other_settings_or_damaged_is_refused(tmp_path, data):
     out = str(tmp_path)
     with pytest.raises(KeyboardInterrupt):
-        train.train_network("encoder-8", data, out, Config(epochs=2, batch_size=8), should_stop=lambda: True)
+        train.train_network("encoder-8", data, out, Config(epochs=2, batch_size=8), StopAfterOneEpoch())
     with pytest.raises(TrainingError, match=r"other settings \(batch_size 8 \(now 16\)\)"):
         train.train_network("encoder-8", data, out, Config(epochs=2, batch_size=16))
     checkpoint = train.checkpoint_path(out, "encoder-8")
@@ -133,16 +141,18 @@ def test_checkpoint_of_other_settings_or_damaged_is_refused(tmp_path, data):
 
 
 def test_bad_settings_are_refused(tmp_path, data):
-    with pytest.raises(TrainingError, match="--epochs 0"):
+    with pytest.raises(TrainingError, match="epochs 0 is out of range"):
         train.train_network("encoder-8", data, str(tmp_path), Config(epochs=0))
-    with pytest.raises(TrainingError, match="--batch-size 64 does not fit 46"):
+    with pytest.raises(TrainingError, match=r"learning rate 2\.0 is out of range"):
+        train.train_network("encoder-8", data, str(tmp_path), Config(epochs=1, learning_rate=2.0))
+    with pytest.raises(TrainingError, match="batch size 64 does not fit 46"):
         train.train_network("encoder-8", data, str(tmp_path), Config(epochs=1, batch_size=64))
 
 
 def test_unfinished_dataset_is_refused(tmp_path, renderer):
     path = str(tmp_path / "partial")
     dataset.prepare(path, dataset.Settings(32, 1, 0, renderer.variant), 4, {})
-    with pytest.raises(TrainingError, match="0/4 samples rendered"):
+    with pytest.raises(DatasetError, match="0/4 samples rendered"):
         train.train_network("decoder", dataset.open_dataset(path), str(tmp_path), Config(epochs=1, batch_size=1))
 
 
@@ -151,7 +161,7 @@ def test_arch_parsing():
     assert train.parse_arch("4") == ["encoder-4"]
     assert train.parse_arch("1..9") == [f"encoder-{i}" for i in range(1, 10)]
     assert train.parse_arch("all")[0] == "decoder" and len(train.parse_arch("all")) == 10
-    for bad, message in (("0", "--arch 0 does not exist"), ("10", "--arch 10 does not exist"), ("x", "not an architecture")):
+    for bad, message in (("0", "arch 0 does not exist"), ("10", "arch 10 does not exist"), ("x", "not an architecture")):
         with pytest.raises(TrainingError, match=message):
             train.parse_arch(bad)
 

@@ -1,0 +1,111 @@
+"""The command line's conventions, shared by every command: one-line errors, interruptions, option names in messages.
+
+A command's fixable error (`errors.MatfitError`) and Typer's own usage errors become one `error:`
+line and exit code 2; Ctrl-C or `kill` one `interrupted:` line and exit code 130. An error about
+one value (`MatfitError.field`, in the library's words) is reworded with the option the user typed.
+"""
+
+from __future__ import annotations
+
+import functools
+import signal
+import sys
+import typing
+
+import typer
+from typer.core import TyperGroup
+
+from matfit import errors
+
+
+class OneLineErrors(TyperGroup):
+    """Typer's command group, with usage errors (an unknown option, `--evals abc`) as one `error:` line, exit 2."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        arguments = list(sys.argv[1:] if args is None else args)
+        try:
+            code = super().main(arguments, prog_name, complete_var, standalone_mode=False, **extra)
+        except typer._click.exceptions.NoArgsIsHelpError as error:
+            typer.echo(error.format_message())
+            code = 0
+        except typer._click.exceptions.UsageError as error:
+            typer.echo(f"error: {usage_message(error, arguments)}", err=True)
+            code = 2
+        except typer.Abort:
+            code = 130
+        if not standalone_mode:
+            return code
+        sys.exit(code if isinstance(code, int) else 0)
+
+
+def usage_message(error, arguments: list[str]) -> str:
+    """Returns a usage error as one line that names the option, the value given and what it takes."""
+    message = error.message.removeprefix("Value error, ")
+    param = getattr(error, "param", None)
+    if param is None or not getattr(param, "opts", None):
+        return message
+    flag = max(param.opts, key=len)
+    given = next((arguments[k + 1] for k, a in enumerate(arguments[:-1]) if a in param.opts), None)
+    low, high = getattr(param, "min", None), getattr(param, "max", None)
+    if given is not None and (low is not None or high is not None) and "than or equal" in message:
+        limits = (
+            f"use {low} to {high}"
+            if low is not None and high is not None
+            else f"use {low} or more"
+            if high is None
+            else f"use {high} or less"
+        )
+        return f"{flag} {given} is out of range: {limits}"
+    return f"{flag} {given}: {message}" if given is not None else f"{flag}: {message}"
+
+
+def flags(function) -> dict[str, str]:
+    """Returns {parameter name: the option the user types} of a command function, e.g. {"evaluations": "--evals"}."""
+    names = {}
+    for name, hint in typing.get_type_hints(function, include_extras=True).items():
+        for info in getattr(hint, "__metadata__", ()):
+            if isinstance(info, typer.models.OptionInfo):
+                declared = [info.default] if isinstance(info.default, str) and info.default.startswith("-") else []
+                declared += list(info.param_decls or ())
+                long = [flag for flag in declared if flag.startswith("--")]
+                names[name] = long[0] if long else "--" + name.replace("_", "-")
+    return names
+
+
+def command(app: typer.Typer, function=None, *, name: str | None = None, interrupted: str = "nothing was written"):
+    """Registers a command: fixable errors become one `error:` line (exit 2), Ctrl-C one `interrupted:` line (exit 130).
+
+    An error about one value (`MatfitError.field`) is reworded with the option the user typed.
+    `interrupted` says what an interruption leaves behind.
+    """
+    if function is None:
+        return functools.partial(command, app, name=name, interrupted=interrupted)
+    options = flags(function)
+
+    @functools.wraps(function)
+    def wrapper(*args, **kwargs):
+        signal.signal(signal.SIGTERM, signal.default_int_handler)  # `kill` stops as cleanly as Ctrl-C
+        try:
+            return function(*args, **kwargs)
+        except errors.MatfitError as error:
+            typer.echo(f"error: {with_flag(str(error), error.field, options)}", err=True)
+            raise typer.Exit(2) from None
+        except KeyboardInterrupt:
+            typer.echo(f"interrupted: {interrupted}", err=True)
+            raise typer.Exit(130) from None
+
+    return app.command(name=name)(wrapper)
+
+
+def with_flag(message: str, field: str | None, options: dict[str, str]) -> str:
+    """Returns a library message with its leading field name ("evaluations 5 ...") replaced by the option ("--evals 5 ...")."""
+    if field is None or field not in options:
+        return message
+    words = field.replace("_", " ")
+    return options[field] + message[len(words) :] if message.startswith(words) else message
+
+
+def echo_lines(lines) -> None:
+    """Prints notices to standard error, one per line."""
+    for line in lines:
+        typer.echo(line, err=True)

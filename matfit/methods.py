@@ -1,0 +1,67 @@
+"""The fitting methods and their settings: plain data without JAX, so the command line offers them at start-up.
+
+`Settings` holds what is compiled into a fit (the method, the budget, the box handling); what
+varies per call (the target, the mask, the random start's seed) is passed to `fit.fit` as data,
+so one compilation serves every target and seed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import StrEnum
+
+from matfit import params
+from matfit.errors import FitError
+
+
+class Method(StrEnum):
+    """How a fit searches: the paper's three methods."""
+
+    hybrid = "hybrid"  # best-of-n, then Nelder-Mead from the winner
+    nn = "nn"  # best-of-n only
+    optimize = "optimize"  # Nelder-Mead from a random start (the paper's baseline)
+
+
+class Box(StrEnum):
+    """How Nelder-Mead is kept inside the parameter box."""
+
+    clip = "clip"  # evaluate at the clipped point, plus a penalty growing with the distance outside
+    barrier = "barrier"  # the paper's: a large constant outside
+
+
+MAX_EVALUATIONS = 1_000_000
+MIN_EVALUATIONS = params.COUNT + 2  # Nelder-Mead's initial simplex in 19 dimensions, plus one step
+MAX_POLISH = 100_000
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How to fit: method, budget in objective evaluations, box handling, gradient polish steps."""
+
+    method: Method = Method.hybrid
+    evaluations: int = 1500
+    box: Box = Box.clip
+    adaptive: bool = True
+    initial_step: float = 0.1
+    polish_steps: int = 0
+    polish_rate: float = 3e-3
+
+    def __post_init__(self):
+        try:  # accept the plain strings too ("hybrid"), as the library's callers write them
+            object.__setattr__(self, "method", Method(self.method))
+        except ValueError:
+            raise FitError(f"method {self.method!r} is unknown: use one of {', '.join(m.value for m in Method)}", field="method") from None
+        try:
+            object.__setattr__(self, "box", Box(self.box))
+        except ValueError:
+            raise FitError(f"box {self.box!r} is unknown: use clip or barrier", field="box") from None
+
+    def check(self) -> None:
+        """Raises FitError for settings that cannot run."""
+        if self.method != Method.nn and not MIN_EVALUATIONS <= self.evaluations <= MAX_EVALUATIONS:
+            raise FitError(
+                f"evaluations {self.evaluations} is out of range: Nelder-Mead in 19 dimensions needs {MIN_EVALUATIONS} to {MAX_EVALUATIONS}",
+                field="evaluations",
+            )
+        if not 0 <= self.polish_steps <= MAX_POLISH:
+            raise FitError(f"polish steps {self.polish_steps} is out of range: use 0 to {MAX_POLISH}", field="polish_steps")
