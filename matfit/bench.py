@@ -1,4 +1,4 @@
-"""Benchmarks of fitting: speed and quality of the methods on reachable targets.
+"""Every benchmark: rendering and model speed, the fitting methods on reachable targets, the paper's tables.
 
 A reachable target is a Mitsuba render (default 256 spp) of parameters sampled from the
 training distribution with a seed the training set did not use, so some parameters reproduce
