@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import edits, files, fit, images, models, params, presets
+from matfit import edits, files, fit, images, models, params, presets, verify
 from matfit.errors import OutputError
 
 TARGET_SEED = 1
@@ -50,6 +50,9 @@ def default_configurations(evaluations: int) -> dict[str, fit.Settings]:
         f"hybrid {evaluations}, paper's barrier": fit.Settings(evaluations=evaluations, box="barrier"),
         f"hybrid {evaluations}, fixed coefficients": fit.Settings(evaluations=evaluations, adaptive=False),
         f"hybrid {evaluations} + polish 200": fit.Settings(evaluations=evaluations, polish_steps=200),
+        "lbfgsb, 1 start": fit.Settings(method=fit.Method.lbfgsb, starts=1),
+        "lbfgsb, 4 starts": fit.Settings(method=fit.Method.lbfgsb, starts=4),
+        "hybrid-lbfgsb 300, 4 starts": fit.Settings(method=fit.Method.hybrid_lbfgsb, evaluations=300, starts=4),
     }
 
 
@@ -172,12 +175,32 @@ def random_guess_rmse(model: models.Model, target: np.ndarray, seeds: int) -> fl
     return float(np.mean(images.rmse(model.decode(starts), target)))
 
 
-def main_table(model: models.Model, cases, budgets=BUDGETS, seeds: int = 5) -> list[dict]:
-    """Returns the paper's main table: random guess, best-of-9, then optimiser (mean over seeds) vs hybrid per budget."""
+def default_fit(model: models.Model, renderer, target: np.ndarray) -> dict:
+    """Returns matfit's default fit of a target (`fit.Settings()` and Mitsuba verification): neural figures, time, values."""
+    settings = fit.Settings()
+    fit.fit(model, target, settings)  # compile outside the timing
+    started = time.perf_counter()
+    result = fit.fit(model, target, settings)
+    checked = verify.verify(renderer, result, target)
+    return {
+        "default": float(images.rmse(model.decode(checked.unit)[0], target)),
+        "default_seconds": time.perf_counter() - started,
+        "default_evaluations": result.evaluations,
+        "default_kept": checked.chosen,
+        "default_values": params.from_unit(checked.unit).tolist(),
+        "start_values": params.from_unit(result.start).tolist(),
+    }
+
+
+def main_table(model: models.Model, cases, budgets=BUDGETS, seeds: int = 5, renderer=None) -> list[dict]:
+    """Returns the paper's main table: random guess, best-of-9, then optimiser (mean over seeds) vs hybrid per budget,
+    and matfit's default (gradient stage and Mitsuba verification, with `renderer`)."""
     rows = []
     for name, description, target in cases:
         row = {"case": name, "description": description, "random": random_guess_rmse(model, target, seeds)}
         row["best_of_n"] = fit.fit(model, target, fit.Settings(method=fit.Method.nn)).rmse
+        if renderer is not None:
+            row.update(default_fit(model, renderer, target))
         for budget in budgets:
             for method in (fit.Method.optimize, fit.Method.hybrid):  # compile outside the timing
                 fit.fit(model, target, fit.Settings(method=method, evaluations=budget))
@@ -206,73 +229,92 @@ def optimiser_table(model: models.Model, cases, evaluations: int = 1500, basin_s
 
 
 def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int, basin_seconds: float) -> dict:
-    """Returns RMSE and seconds of every optimiser from both starts on one target."""
-    import warnings
+    """Returns RMSE, seconds and evaluations spent of every optimiser from both starts on one target.
 
+    Every budget counts objective evaluations, a value-and-gradient as `fit.GRADIENT_COST` of them:
+    scipy's L-BFGS-B stops at `evaluations / GRADIENT_COST` calls (`maxfun`), SLSQP and CG at as
+    many iterations (they may call more often; the table says how many they spent). "L-BFGS-B
+    (ours)" is matfit's gradient stage (jaxopt's native LBFGSB, compiled) with the same budget.
+    """
     import jax
     import jax.numpy as jnp
     import scipy.optimize
 
-    with warnings.catch_warnings():  # jaxopt warns on import that it is no longer maintained; the design card names it
-        warnings.simplefilter("ignore", DeprecationWarning)
-        import jaxopt
+    from matfit import gradient
 
     decoder, variables = model.decoder.module, model.decoder.variables
     weights = jnp.ones(target.shape[:2], jnp.float32)
     target_j = jnp.asarray(target)
+    args = (decoder, variables, target_j, weights)
+    bounded_grad = jax.jit(jax.value_and_grad(lambda x: fit.decoded_rmse(x, args)))
+    penalised_grad = jax.jit(jax.value_and_grad(lambda x: fit.objective(x, (*args, fit.Box.clip))))
 
-    def bounded(x):
-        return images.rmse(decoder.apply(variables, jnp.clip(x, 0.0, 1.0)), target_j, weights)
+    def host(function):
+        def evaluate(x):
+            value, grad = function(jnp.asarray(x, jnp.float32))
+            return float(value), np.asarray(grad, np.float64)
 
-    def penalised(x):
-        return fit.objective(x, (decoder, variables, target_j, weights, fit.Box.clip))
+        return evaluate
 
-    value_and_grad = jax.jit(jax.value_and_grad(bounded))
+    calls = max(1, int(evaluations // fit.GRADIENT_COST))
+    box = [(0.0, 1.0)] * params.COUNT
+    iterations = max(1, calls // 2)  # jaxopt's zoom line search calls about twice per iteration
 
-    def objective64(x):
-        value, grad = value_and_grad(jnp.asarray(x, jnp.float32))
-        return float(value), np.asarray(grad, np.float64)
+    @jax.jit
+    def ours(x0):
+        ends, _, counts = gradient.minimise(lambda y, data: fit.decoded_rmse(y, (decoder, *data)), x0[None], args[1:], iterations)
+        return ends[0], counts[0]
 
-    box = (jnp.zeros(params.COUNT), jnp.ones(params.COUNT))
     solvers = {
-        "L-BFGS-B": lambda x0: jaxopt.ScipyBoundedMinimize(fun=bounded, method="L-BFGS-B", maxiter=evaluations).run(x0, bounds=box).params,
-        "SLSQP": lambda x0: jaxopt.ScipyBoundedMinimize(fun=bounded, method="SLSQP", maxiter=evaluations).run(x0, bounds=box).params,
-        "CG": lambda x0: jaxopt.ScipyMinimize(fun=penalised, method="CG", maxiter=evaluations).run(x0).params,
+        "L-BFGS-B": lambda x0: scipy.optimize.minimize(
+            host(bounded_grad), x0, jac=True, method="L-BFGS-B", bounds=box, options={"maxfun": calls, "maxiter": calls}
+        ),
+        "SLSQP": lambda x0: scipy.optimize.minimize(
+            host(bounded_grad), x0, jac=True, method="SLSQP", bounds=box, options={"maxiter": calls}
+        ),
+        "CG": lambda x0: scipy.optimize.minimize(host(penalised_grad), x0, jac=True, method="CG", options={"maxiter": calls}),
     }
     best = fit.fit(model, target, fit.Settings(method=fit.Method.nn))
     starts = {"random": np.random.default_rng(0).uniform(0.0, 1.0, params.COUNT).astype(np.float32), "best-of-9": best.start}
     row = {}
+
+    def record(name: str, x: np.ndarray, seconds: float, spent: float) -> None:
+        row[name] = float(fit.decoded_rmse(jnp.asarray(np.clip(x, 0.0, 1.0), jnp.float32), args))
+        row[f"{name} seconds"] = seconds
+        row[f"{name} evaluations"] = int(spent)
+
     for start_name, x0 in starts.items():
         for solver_name, solve in solvers.items():
-            solve(jnp.asarray(x0))  # compile outside the timing
+            solve(np.asarray(x0, np.float64))  # compile outside the timing
             started = time.perf_counter()
-            x = np.clip(np.asarray(solve(jnp.asarray(x0))), 0.0, 1.0)
-            row[f"{solver_name} ({start_name})"] = float(bounded(jnp.asarray(x)))
-            row[f"{solver_name} ({start_name}) seconds"] = time.perf_counter() - started
+            solution = solve(np.asarray(x0, np.float64))
+            record(f"{solver_name} ({start_name})", solution.x, time.perf_counter() - started, solution.nfev * fit.GRADIENT_COST)
+        ours(jnp.asarray(x0))
+        started = time.perf_counter()
+        end, count = jax.device_get(ours(jnp.asarray(x0)))
+        record(f"L-BFGS-B, ours ({start_name})", np.asarray(end), time.perf_counter() - started, count * fit.GRADIENT_COST)
         started = time.perf_counter()
         method = fit.Method.hybrid if start_name == "best-of-9" else fit.Method.optimize
         result = fit.fit(model, target, fit.Settings(method=method, evaluations=evaluations))
-        row[f"Nelder-Mead ({start_name})"] = result.rmse
-        row[f"Nelder-Mead ({start_name}) seconds"] = time.perf_counter() - started
+        record(f"Nelder-Mead ({start_name})", result.unit, time.perf_counter() - started, result.evaluations)
         deadline = time.perf_counter() + basin_seconds
         started = time.perf_counter()
         hopped = scipy.optimize.basinhopping(
-            objective64,
+            host(bounded_grad),
             np.asarray(x0, np.float64),
             niter=100_000,
             stepsize=0.1,
             seed=0,
-            minimizer_kwargs={"method": "L-BFGS-B", "jac": True, "bounds": [(0.0, 1.0)] * params.COUNT},
+            minimizer_kwargs={"method": "L-BFGS-B", "jac": True, "bounds": box},
             callback=lambda x, f, accept, deadline=deadline: time.perf_counter() > deadline,
         )
-        row[f"basin-hopping ({start_name})"] = float(hopped.fun)
-        row[f"basin-hopping ({start_name}) seconds"] = time.perf_counter() - started
+        record(f"basin-hopping ({start_name})", hopped.x, time.perf_counter() - started, hopped.nfev * fit.GRADIENT_COST)
     return row
 
 
 def case_picture(model: models.Model, renderer, target: np.ndarray, row: dict, budget: int, spp: int = 256) -> np.ndarray:
-    """Returns target | best-of-9 | optimiser | hybrid | Mitsuba render of hybrid, and stores in `row` the RMSE of
-    Mitsuba renders of the best-of-9, optimiser (seed 0) and hybrid results against the target."""
+    """Returns target | best-of-9 | optimiser | hybrid | Mitsuba render of hybrid (| of the default, if `row` has it),
+    and stores in `row` the RMSE of Mitsuba renders of the best-of-9, optimiser (seed 0), hybrid and default results."""
     from matfit import report
 
     best = fit.fit(model, target, fit.Settings(method=fit.Method.nn))
@@ -288,12 +330,20 @@ def case_picture(model: models.Model, renderer, target: np.ndarray, row: dict, b
     row[f"mitsuba_hybrid_{budget}"] = hybrid_render_rmse
     row["mitsuba_best_of_n"] = float(images.rmse(rendered_best, target))
     row[f"mitsuba_optimize_{budget}"] = float(images.rmse(rendered_optimiser, target))
+    extra_panels = []
+    for key in ("start", "default"):  # independent of verification's seed: the honest comparison
+        if f"{key}_values" in row:
+            rendered_key = images.srgb_encode(renderer.render(np.asarray(row[f"{key}_values"]), seed=11, spp=spp))
+            row[f"mitsuba_{key}"] = float(images.rmse(rendered_key, target))
+            if key == "default":
+                extra_panels.append((rendered_key, f"default, Mitsuba {row['mitsuba_default']:.2f}"))
     panels = [
         (target, f"{row['case']}"),
         (best.image, f"best-of-9 {best.rmse:.2f}"),
         (decode(row[f"optimize_{budget}_values"]), f"optimiser {row[f'optimize_{budget}']:.2f}"),
         (decode(hybrid_values), f"hybrid {row[f'hybrid_{budget}']:.2f}"),
         (rendered, f"Mitsuba {hybrid_render_rmse:.2f}"),
+        *extra_panels,
     ]
     return report.compose(panels, size=128, caption=14)
 
@@ -326,13 +376,25 @@ def suite_report(main: list[dict], optimisers: list[dict], sequence: str, budget
         "Hybrid = Nelder-Mead from the best-of-9 guess; bold where it is at least as good as the optimiser. The Mitsuba columns render the result",
         f"(best-of-9, optimiser seed 0 and hybrid at {budgets[-1]}) at 256 spp and compare it with the target: the neural renderer's own error shows there.",
         "",
-        "## 2. Optimisers from a random and from the best-of-9 start (RMSE; seconds in brackets)",
+        f"## 1b. matfit's default ({fit.Settings().method.value}, Mitsuba-verified) against its start and the paper's hybrid",
+        "",
+        "Mitsuba RMSE of a fresh 256-spp render (seed independent of verification's) against the target.",
+        "",
+        f"| case | neural: default | evaluations | time (s) | kept | Mitsuba: start (best-of-9) | Mitsuba: hybrid {budgets[-1]} "
+        "| Mitsuba: default | default <= start |",
+        "|---|---|---|---|---|---|---|---|---|",
+        *default_rows(main, budgets[-1]),
+        "",
+        "## 2. Optimisers from a random and from the best-of-9 start (RMSE; seconds and evaluations spent in brackets)",
+        "",
+        f"Budget {1500} objective evaluations each, a value-and-gradient counted as {fit.GRADIENT_COST:g}; basin-hopping is time-boxed.",
         "",
     ]
-    names = [key for key in optimisers[0] if key != "case" and not key.endswith("seconds")]
+    names = [key for key in optimisers[0] if key != "case" and not key.endswith(("seconds", "evaluations"))]
     lines += ["| case | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
     for row in optimisers:
-        lines.append(f"| {row['case']} | " + " | ".join(f"{row[n]:.2f} ({row[n + ' seconds']:.1f})" for n in names) + " |")
+        cells = [f"{row[n]:.2f} ({row[n + ' seconds']:.1f} s, {row[n + ' evaluations']})" for n in names]
+        lines.append(f"| {row['case']} | " + " | ".join(cells) + " |")
     lines += [
         "",
         "## 3. Sequence: rising black level, per-frame fitting against reinitialisation",
@@ -356,9 +418,27 @@ def suite_report(main: list[dict], optimisers: list[dict], sequence: str, budget
         "![RMSE against evaluations](rmse-vs-evaluations.png)",
         "",
     ]
-    lines += ["target | best-of-9 | optimiser | hybrid | Mitsuba render of the hybrid result, per case:", ""]
+    lines += ["target | best-of-9 | optimiser | hybrid | Mitsuba renders of the hybrid and of the default result, per case:", ""]
     lines += [f"![{row['case']}](cases/{slug(row['case'])}.png)" for row in main]
     return "\n".join(lines) + "\n"
+
+
+def default_rows(main: list[dict], budget: int) -> list[str]:
+    """Returns the rows of table 1b, and a row of means."""
+    rows = [row for row in main if "mitsuba_default" in row]
+    lines = [
+        f"| {row['case']} | {row['default']:.2f} | {row['default_evaluations']} | {row['default_seconds']:.2f} | {row['default_kept']} "
+        f"| {row['mitsuba_start']:.2f} | {row[f'mitsuba_hybrid_{budget}']:.2f} | **{row['mitsuba_default']:.2f}** "
+        f"| {'yes' if row['mitsuba_default'] <= row['mitsuba_start'] + 1e-9 else 'NO'} |"
+        for row in rows
+    ]
+    if rows:
+        mean = {key: np.mean([row[key] for row in rows]) for key in ("mitsuba_start", f"mitsuba_hybrid_{budget}", "mitsuba_default")}
+        lines.append(
+            f"| mean | | | | | {mean['mitsuba_start']:.2f} | {mean[f'mitsuba_hybrid_{budget}']:.2f} | **{mean['mitsuba_default']:.2f}** "
+            f"| {sum(row['mitsuba_default'] <= row['mitsuba_start'] + 1e-9 for row in rows)}/{len(rows)} |"
+        )
+    return lines
 
 
 def slug(name: str) -> str:
@@ -443,7 +523,8 @@ def fit_comparison(model: models.Model, count: int, evaluations: int, log=print)
     targets = reachable_targets(renderer, count)
     table = compare(model, targets, default_configurations(evaluations))
     reference = f"hybrid {evaluations}"
-    mitsuba = {label: mitsuba_rmse(renderer, table[label]["results"], targets) for label in ("nn (best-of-n)", reference)}
+    shown = ("nn (best-of-n)", reference, "lbfgsb, 4 starts", "hybrid-lbfgsb 300, 4 starts")
+    mitsuba = {label: mitsuba_rmse(renderer, table[label]["results"], targets) for label in shown}
     return markdown(table, reference, mitsuba)
 
 
@@ -487,7 +568,7 @@ def run_suite(model: models.Model, model_label: str, out: str, full: bool = Fals
     started = time.perf_counter()
     cases = suite_targets(renderer)
     log(f"main table: {len(cases)} cases x (best-of-9, optimiser over {seeds} seeds, hybrid) at {BUDGETS} evaluations")
-    main = main_table(model, cases, seeds=seeds)
+    main = main_table(model, cases, seeds=seeds, renderer=renderer)
     for (name, _, target), row in zip(cases, main, strict=True):
         picture = case_picture(model, renderer, target, row, BUDGETS[-1])
         images.write(os.path.join(out, "cases", f"{slug(name)}.png"), images.srgb_decode(picture))

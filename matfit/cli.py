@@ -17,7 +17,7 @@ from typing import Annotated
 import typer
 
 from matfit import console, dataset, params, presets
-from matfit.methods import MAX_EVALUATIONS, MAX_POLISH, MIN_EVALUATIONS, Box, Method, Settings
+from matfit.methods import MAX_EVALUATIONS, MAX_ITERATIONS, MAX_POLISH, MAX_STARTS, MIN_EVALUATIONS, Box, Method, Settings
 from matfit.render import VARIANTS
 
 Variant = StrEnum("Variant", {name: name for name in VARIANTS})  # the Mitsuba variants matfit renders with
@@ -38,7 +38,14 @@ SizeOption = Annotated[int, typer.Option(min=dataset.MIN_RESOLUTION, max=MAX_SIZ
 EvaluationsOption = Annotated[
     int, typer.Option("--evals", min=MIN_EVALUATIONS, max=MAX_EVALUATIONS, help="Nelder-Mead budget in objective evaluations.")
 ]
-MethodOption = Annotated[Method, typer.Option(help="hybrid (best-of-n, then Nelder-Mead), nn (best-of-n) or optimize (random start).")]
+InitOption = Annotated[Path | None, typer.Option(help="params.json of the source material: joins the candidates.")]
+MethodOption = Annotated[
+    Method,
+    typer.Option(
+        help="lbfgsb: best-of-n, then L-BFGS-B from the best --starts candidates; hybrid-lbfgsb: Nelder-Mead (--evals) between them; "
+        "the paper's hybrid (best-of-n, then Nelder-Mead), nn (best-of-n) and optimize (Nelder-Mead from a random start)."
+    ),
+]
 
 
 app = typer.Typer(
@@ -137,6 +144,10 @@ def fit_command(
     spp: SppOption = 256,
     mitsuba_xml: Annotated[Path | None, typer.Option("--mitsuba-xml", help="Write the BSDF and medium as Mitsuba 3 XML.")] = None,
     blender: Annotated[Path | None, typer.Option(help="Write a Blender 4.x script that builds the material.")] = None,
+    init: InitOption = None,
+    starts: Annotated[int, typer.Option(min=1, max=MAX_STARTS, help="L-BFGS-B starts (the best best-of-n candidates).")] = 4,
+    iterations: Annotated[int, typer.Option(min=1, max=MAX_ITERATIONS, help="L-BFGS-B iterations per start.")] = 100,
+    verified: Annotated[bool, typer.Option("--verify/--no-verify", help="Let Mitsuba choose among the final candidates.")] = True,
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
     from matfit import fitfile
@@ -145,8 +156,8 @@ def fit_command(
         return None if path is None else str(path)
 
     outputs = fitfile.Outputs(str(output), name(report), name(render), size, spp, name(mitsuba_xml), name(blender))
-    settings = Settings(method=method, evaluations=evaluations, box=box, polish_steps=polish_steps)
-    outcome = fitfile.run(str(target), str(model_path), settings, outputs, name(mask), seed)
+    settings = Settings(method, evaluations, box, polish_steps=polish_steps, starts=starts, iterations=iterations)
+    outcome = fitfile.run(str(target), str(model_path), settings, outputs, name(mask), seed, name(init), verified)
     echo_lines(outcome.notices)
     typer.echo(outcome.summary(str(output)), err=True)
 
@@ -166,6 +177,7 @@ def sequence(
     render: Annotated[bool, typer.Option("--render", help="Also render every fitted frame with Mitsuba (<frame>-render.png).")] = False,
     size: SizeOption = 256,
     spp: SppOption = 64,
+    init: InitOption = None,
 ) -> None:
     """Fit every frame of an edited sequence, reusing each optimum for the next frame; resumable."""
     from matfit import fitfile
@@ -175,8 +187,9 @@ def sequence(
     model = fitfile.load_model(str(model_path))
     settings = Settings(method=method, evaluations=evaluations)
     with Progress("fitting frames") as progress:
+        rendered = (size, spp) if render else None
         results = sequence_module.run(
-            model, str(frames), str(out), settings, reinit, (size, spp) if render else None, progress.counter("frames/s")
+            model, str(frames), str(out), settings, reinit, rendered, progress.counter("frames/s"), init and str(init)
         )
     typer.echo(sequence_module.summary_table(results))
     typer.echo(f"{out}: {len(results)} frames, RMSE sum {sum(f.rmse for f in results):.2f}", err=True)

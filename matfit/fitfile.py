@@ -1,9 +1,9 @@
-"""Fitting an image file end to end: read the target and mask, fit, render the result, write every output together.
+"""Fitting an image file end to end: read the target and mask, fit, verify in Mitsuba, write every output together.
 
 This is what `matfit fit` does, as a library function: `run(target, model, settings, outputs)`
-reads and checks the inputs, fits (`fit.fit`), renders the result with Mitsuba where an output
-needs it, and writes params.json, the report, the render and the exports under temporary names,
-renaming them into place only once all of them were written.
+reads and checks the inputs, fits (`fit.fit`), lets Mitsuba choose among the fit's final
+candidates (`verify.verify`, on by default), and writes params.json, the report, the render and
+the exports under temporary names, renaming them into place only once all of them were written.
 """
 
 from __future__ import annotations
@@ -16,12 +16,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from matfit import files, fit, images, models, params
+from matfit import files, fit, images, models, params, verify
 from matfit.errors import ImageError, OutputError
 
 PROJECT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEFAULT_MODEL = os.path.join(PROJECT, "data", "models", "default")  # shipped in the repository
-VERIFY_SPP = 256  # the Mitsuba render of the result at the model's resolution, for its RMSE and the report
 MAX_RENDER_SIZE = 4096
 
 
@@ -67,20 +66,33 @@ class Outputs:
 
 @dataclass
 class Outcome:
-    """A finished fit of an image file: the result, the target as fitted, the params.json document, notices."""
+    """A finished fit of an image file: the answer, how it was found, the target as fitted, the params.json document."""
 
     result: fit.Result
     target: np.ndarray  # sRGB (R, R, 3) at the model's resolution
-    document: dict
-    rendered: np.ndarray | None = None  # sRGB Mitsuba render of the result at the model's resolution
+    unit: np.ndarray  # the answer (unit cube): the fit's best, or what Mitsuba verification preferred
+    image: np.ndarray  # phi(answer), sRGB
+    neural_rmse: float
+    verified: verify.Verified | None = None
+    rendered: np.ndarray | None = None  # sRGB Mitsuba render of the answer at the model's resolution
+    document: dict = field(default_factory=dict)
     notices: list[str] = field(default_factory=list)
+
+    @property
+    def values(self) -> np.ndarray:
+        """Returns the answer's physical parameters (19,)."""
+        return params.from_unit(self.unit)
 
     def summary(self, output: str) -> str:
         """Returns one line on what was found and how well."""
         result, document = self.result, self.document
-        mitsuba = f", Mitsuba RMSE {document['mitsuba_rmse']:.2f}" if "mitsuba_rmse" in document else ""
+        mitsuba = ""
+        if self.verified is not None:
+            mitsuba = f", Mitsuba RMSE {self.verified.rmse:.2f} (start {self.verified.start_rmse:.2f}; kept {self.verified.chosen})"
+        elif "mitsuba_rmse" in document:
+            mitsuba = f", Mitsuba RMSE {document['mitsuba_rmse']:.2f}"
         return (
-            f"{output}: {document['method']}, {result.evaluations} evaluations, neural RMSE {result.rmse:.2f} "
+            f"{output}: {document['method']}, {result.evaluations} evaluations, neural RMSE {self.neural_rmse:.2f} "
             f"(start {result.chosen} {result.start_rmse:.2f}){mitsuba}, {document['wall_time_s']:.1f} s"
         )
 
@@ -117,11 +129,15 @@ def run(
     outputs: Outputs,
     mask: str | None = None,
     seed: int = 0,
+    init: str | None = None,
+    verified: bool = True,
 ) -> Outcome:
     """Fits the image file `target` with a model (or a model directory) and writes `outputs`; returns what was found.
 
-    Every input is read and every output path checked before the fit; the outputs are written
-    together at the end (`files.together`), so a failure leaves none of them.
+    `init`: a params.json of the source material, whose parameters join best-of-n's candidates.
+    `verified`: let Mitsuba choose among the fit's final candidates (`verify.verify`). Every input
+    is read and every output path checked before the fit; the outputs are written together at the
+    end (`files.together`), so a failure leaves none of them.
     """
     started = time.perf_counter()
     settings.check()
@@ -129,43 +145,67 @@ def run(
     for path, name in ((target, "target"), (mask, "mask")):
         if path is not None and not os.path.isfile(path):
             raise ImageError(f"{name} {path} is not a file: give the picture's path", field=name)
+    extra = params.to_unit(params.read_file(init))[None] if init is not None else None
     model_path = model if isinstance(model, str) else model.path
     model = load_model(model) if isinstance(model, str) else model
     target_srgb, weights, notices = read_target(target, model.resolution, mask)
-    result = fit.fit(model, target_srgb, settings, weights, seed=seed)
-    outcome = Outcome(result, target_srgb, {}, notices=notices)
+    result = fit.fit(model, target_srgb, settings, weights, extra=extra, seed=seed)
+    outcome = Outcome(result, target_srgb, result.unit, result.image, result.rmse, notices=notices)
     renderer = None
-    extra = {}
-    if outputs.needs_render:
+    if verified or outputs.needs_render:
         from matfit.render import Renderer
 
-        renderer = Renderer(model.resolution, VERIFY_SPP)
-        if renderer.notice:
-            notices.append(renderer.notice)
-        outcome.rendered = images.srgb_encode(renderer.render(result.values))
-        extra["mitsuba_rmse"] = round(float(images.rmse(outcome.rendered, target_srgb)), 3)
-    outcome.document = params.params_document(
-        result.values,
+        renderer = Renderer(model.resolution, verify.SPP)
+        notices.extend([renderer.notice] if renderer.notice else [])
+    if verified:
+        outcome.verified = verify.verify(renderer, result, target_srgb, weights)
+        outcome.unit, outcome.rendered = outcome.verified.unit, outcome.verified.rendered
+        outcome.image = model.decode(outcome.unit)[0]
+        outcome.neural_rmse = float(images.rmse(outcome.image, target_srgb, weights))
+    elif renderer is not None:
+        outcome.rendered = images.srgb_encode(renderer.render(result.values, seed=verify.SEED))
+    outcome.document = document(outcome, settings, model_path, target, mask, init)
+    with files.together() as batch:
+        write_outputs(outcome, outputs, batch, renderer)
+        outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
+        files.write_text(batch.path(outputs.params), json.dumps(outcome.document, indent=2) + "\n")
+    return outcome
+
+
+def document(outcome: Outcome, settings: fit.Settings, model_path: str, target: str, mask: str | None, init: str | None) -> dict:
+    """Returns the params.json document of a fit: the 19 values with units, and how they were found."""
+    result, checked = outcome.result, outcome.verified
+    mitsuba = {}
+    if checked is not None:
+        mitsuba = {
+            "mitsuba_rmse": round(checked.rmse, 3),
+            "verification": {
+                "kept": checked.chosen,
+                "mitsuba_rmse": {name: round(value, 3) for name, value in checked.figures.items()},
+                "spp": verify.SPP,
+                "seconds": round(checked.seconds, 3),
+            },
+        }
+    elif outcome.rendered is not None:
+        mitsuba = {"mitsuba_rmse": round(float(images.rmse(outcome.rendered, outcome.target)), 3)}
+    return params.params_document(
+        outcome.values,
         method=settings.method.value,
         evaluations=result.evaluations,
-        neural_rmse=round(result.rmse, 3),
+        neural_rmse=round(outcome.neural_rmse, 3),
         start=result.chosen,
         start_rmse=round(result.start_rmse, 3),
-        **extra,
+        **mitsuba,
         box=settings.box.value,
         polish_steps=settings.polish_steps,
         model=display_path(model_path),
         target=target,
         target_sha256=sha256(target),
         mask=mask,
+        init=init,
         fit_seconds=round(result.seconds, 3),
         wall_time_s=0.0,
     )
-    with files.together() as batch:
-        write_outputs(outcome, outputs, batch, renderer)
-        outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
-        files.write_text(batch.path(outputs.params), json.dumps(outcome.document, indent=2) + "\n")
-    return outcome
 
 
 def report_picture(outcome: Outcome) -> np.ndarray:
@@ -176,7 +216,7 @@ def report_picture(outcome: Outcome) -> np.ndarray:
     panels = [
         (outcome.target, "target"),
         (result.start_image, f"best-of-n {result.start_rmse:.2f}"),
-        (result.image, f"fit (neural) {result.rmse:.2f}"),
+        (outcome.image, f"fit (neural) {outcome.neural_rmse:.2f}"),
         (outcome.rendered, f"fit (Mitsuba) {outcome.document['mitsuba_rmse']:.2f}"),
         (report.difference(outcome.rendered, outcome.target), "|Mitsuba - target| x4"),
     ]
@@ -185,7 +225,7 @@ def report_picture(outcome: Outcome) -> np.ndarray:
 
 def write_outputs(outcome: Outcome, outputs: Outputs, batch: files.Batch, renderer=None) -> None:
     """Writes the report, the large render and the exports of a fit into `batch` (params.json is the caller's)."""
-    values = outcome.result.values
+    values = outcome.values
     if outputs.report is not None:
         images.write(batch.path(outputs.report), images.srgb_decode(report_picture(outcome)))
     if outputs.render is not None:

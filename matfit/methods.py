@@ -15,11 +15,23 @@ from matfit.errors import FitError
 
 
 class Method(StrEnum):
-    """How a fit searches: the paper's three methods."""
+    """How a fit searches: the paper's three methods and the gradient methods built on the exact decoder gradient."""
 
-    hybrid = "hybrid"  # best-of-n, then Nelder-Mead from the winner
-    nn = "nn"  # best-of-n only
+    hybrid = "hybrid"  # best-of-n, then Nelder-Mead from the winner (the paper's)
+    nn = "nn"  # best-of-n only (the paper's)
     optimize = "optimize"  # Nelder-Mead from a random start (the paper's baseline)
+    lbfgsb = "lbfgsb"  # best-of-n, then L-BFGS-B from the best `starts` candidates at once
+    hybrid_lbfgsb = "hybrid-lbfgsb"  # best-of-n, Nelder-Mead, then L-BFGS-B from its result and the best candidates
+
+    @property
+    def uses_simplex(self) -> bool:
+        """Returns whether the method runs Nelder-Mead."""
+        return self in (Method.hybrid, Method.optimize, Method.hybrid_lbfgsb)
+
+    @property
+    def uses_gradient(self) -> bool:
+        """Returns whether the method ends with L-BFGS-B."""
+        return self in (Method.lbfgsb, Method.hybrid_lbfgsb)
 
 
 class Box(StrEnum):
@@ -32,6 +44,8 @@ class Box(StrEnum):
 MAX_EVALUATIONS = 1_000_000
 MIN_EVALUATIONS = params.COUNT + 2  # Nelder-Mead's initial simplex in 19 dimensions, plus one step
 MAX_POLISH = 100_000
+MAX_STARTS = 64
+MAX_ITERATIONS = 100_000
 
 
 @dataclass(frozen=True)
@@ -45,6 +59,8 @@ class Settings:
     initial_step: float = 0.1
     polish_steps: int = 0
     polish_rate: float = 3e-3
+    starts: int = 4  # L-BFGS-B starts: the best candidates of best-of-n (and Nelder-Mead's result)
+    iterations: int = 100  # L-BFGS-B iterations per start
 
     def __post_init__(self):
         try:  # accept the plain strings too ("hybrid"), as the library's callers write them
@@ -58,10 +74,14 @@ class Settings:
 
     def check(self) -> None:
         """Raises FitError for settings that cannot run."""
-        if self.method != Method.nn and not MIN_EVALUATIONS <= self.evaluations <= MAX_EVALUATIONS:
+        if self.method.uses_simplex and not MIN_EVALUATIONS <= self.evaluations <= MAX_EVALUATIONS:
             raise FitError(
                 f"evaluations {self.evaluations} is out of range: Nelder-Mead in 19 dimensions needs {MIN_EVALUATIONS} to {MAX_EVALUATIONS}",
                 field="evaluations",
             )
         if not 0 <= self.polish_steps <= MAX_POLISH:
             raise FitError(f"polish steps {self.polish_steps} is out of range: use 0 to {MAX_POLISH}", field="polish_steps")
+        if not 1 <= self.starts <= MAX_STARTS:
+            raise FitError(f"starts {self.starts} is out of range: use 1 to {MAX_STARTS}", field="starts")
+        if not 1 <= self.iterations <= MAX_ITERATIONS:
+            raise FitError(f"iterations {self.iterations} is out of range: use 1 to {MAX_ITERATIONS}", field="iterations")

@@ -25,6 +25,7 @@ from matfit.errors import SequenceError
 
 FRAME_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr")
 PREVIOUS = "previous frame"
+INIT = "--init"
 
 
 def natural_key(name: str) -> list:
@@ -68,6 +69,8 @@ def run_settings(settings: fit.Settings, reinit: bool, model: models.Model) -> d
         "method": settings.method,
         "evaluations": settings.evaluations,
         "box": settings.box,
+        "starts": settings.starts,
+        "iterations": settings.iterations,
         "reinit": reinit,
         "model": os.path.abspath(model.path),
     }
@@ -113,8 +116,12 @@ def fit_sequence(
     settings: fit.Settings,
     reinit: bool = True,
     progress: Callable[[int, int, Frame], None] | None = None,
+    init: np.ndarray | None = None,
 ) -> list[Frame]:
-    """Fits every frame in order, writing each result at once; returns all frames' results."""
+    """Fits every frame in order, writing each result at once; returns all frames' results.
+
+    `init` (unit cube, (19,)): the source material's parameters, a candidate of the first frame.
+    """
     settings.check()
     check_sizes(frames)
     os.makedirs(out, exist_ok=True)
@@ -129,8 +136,10 @@ def fit_sequence(
             results.append(finished)
         else:
             previous = results[-1].unit[None] if reinit and results else None
+            if not results and init is not None:
+                previous = np.asarray(init, np.float32)[None]
             result = fit.fit(model, target, settings, extra=previous)
-            start = PREVIOUS if result.chosen == "extra-1" else result.chosen
+            start = (INIT if index == 0 else PREVIOUS) if result.chosen == "extra-1" else result.chosen
             frame = Frame(
                 path, result.unit, result.rmse, start, result.start_rmse, result.evaluations, result.seconds, result.image, target
             )
@@ -189,14 +198,17 @@ def run(
     reinit: bool = True,
     render: tuple[int, int] | None = None,
     progress: Callable[[int, int, float], None] | None = None,
+    init: str | None = None,
 ) -> list[Frame]:
     """Fits a folder of frames into `out`: a JSON per frame, summary.md and preview.png; returns the frames' results.
 
     `render` = (size, spp) also renders every fitted frame with Mitsuba (`<frame>-render.png`).
-    `progress(done, total, frames per second)` follows the fits. Finished frames are read back, so
-    running it again after an interruption resumes.
+    `progress(done, total, frames per second)` follows the fits; `init` is a params.json of the
+    source material, a candidate of the first frame. Finished frames are read back, so running it
+    again after an interruption resumes.
     """
     frames = list_frames(frames_path)
+    start = params.to_unit(params.read_file(init)) if init is not None else None
     if os.path.exists(out) and not os.path.isdir(out):
         raise SequenceError(f"output folder {out} is a file: give a folder for the results", field="out")
     parent = os.path.dirname(os.path.abspath(out))
@@ -208,7 +220,7 @@ def run(
         if progress is not None:
             progress(done, total, done / max(time.perf_counter() - started, 1e-9))
 
-    results = fit_sequence(model, frames, out, settings, reinit, report)
+    results = fit_sequence(model, frames, out, settings, reinit, report, start)
     if render is not None:
         from matfit.render import Renderer
 

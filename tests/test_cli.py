@@ -298,3 +298,24 @@ def test_bench_model_times_the_trained_networks(trained):
     assert result.exit_code == 0, result.output
     networks, load, forward = (cell.strip() for cell in result.stdout.splitlines()[2].split("|")[1:-1])
     assert networks == "2" and 0.0 < float(load) < 60.0 and 0.0 < float(forward) < 1000.0
+
+
+def test_fit_with_the_gradient_method_an_init_and_verification(trained, target, tmp_path, tiny_dataset):
+    from matfit import dataset
+
+    source = tmp_path / "source.json"
+    source.write_text(json.dumps(params.params_document(dataset.open_dataset(tiny_dataset).params[-1])))
+    out = tmp_path / "params.json"
+    result = run("fit", target, "-o", out, "--model", trained, "--method", "lbfgsb", "--starts", 2, "--iterations", 10, "--init", source)
+    assert result.exit_code == 0, result.output
+    document = json.loads(out.read_text())
+    assert document["method"] == "lbfgsb" and document["init"] == str(source)
+    figures = document["verification"]["mitsuba_rmse"]
+    assert "start" in figures and document["mitsuba_rmse"] == min(figures.values()) <= figures["start"]
+    assert "Mitsuba RMSE" in result.output and f"kept {document['verification']['kept']}" in result.output
+    assert_one_line_error(run("fit", target, "-o", out, "--model", trained, "--starts", 0), "--starts 0 is out of range")
+    (tmp_path / "bad.json").write_text('{"roughness": 3}')
+    assert_one_line_error(
+        run("fit", target, "-o", tmp_path / "p2.json", "--model", trained, "--init", tmp_path / "bad.json"), "out of range"
+    )
+    assert not (tmp_path / "p2.json").exists()

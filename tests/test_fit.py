@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from helpers import R, decode, random_model, true_point
 
-from matfit import fit, models, params
+from matfit import fit, images, models, params
 from matfit.fit import FitError, Settings
 
 
@@ -119,3 +119,29 @@ def test_prepare_target_warns_about_aspect():
     np.testing.assert_allclose(square, 0.4845292, rtol=1e-4)  # sRGB of linear 0.2
     _, notices = fit.prepare_target(np.full((40, 50, 3), 0.2, np.float32), R, "t.png")
     assert len(notices) == 1 and "50x40" in notices[0] and "1.250" in notices[0] and "1.000" in notices[0]
+
+
+@pytest.mark.parametrize("method", ["lbfgsb", "hybrid-lbfgsb"])
+def test_gradient_methods_reach_a_reachable_target_and_count_their_budget(model, method):
+    truth = true_point(11)
+    target = decode(model, truth)
+    settings = Settings(method=method, evaluations=60, starts=2, iterations=60)
+    best_of_n = fit.fit(model, target, Settings(method="nn"))
+    result = fit.fit(model, target, settings)
+    assert result.rmse <= best_of_n.rmse and result.rmse == pytest.approx(result.end_rmse[0])
+    assert np.all(np.diff(result.end_rmse) >= 0)  # end points best first
+    assert len(result.ends) == (3 if method == "hybrid-lbfgsb" else 2)
+    simplex_part = 60 if method == "hybrid-lbfgsb" else 0
+    assert result.evaluations > simplex_part and (result.evaluations - simplex_part) % fit.GRADIENT_COST == 0
+    before = fit._fit._cache_size()
+    fit.fit(model, decode(model, true_point(12)), settings)
+    assert fit._fit._cache_size() == before
+
+
+def test_optimize_reports_its_random_start(model):
+    target = decode(model, true_point(13))
+    result = fit.fit(model, target, Settings(method="optimize", evaluations=40), seed=3)
+    expected = np.random.default_rng(3).uniform(0.0, 1.0, params.COUNT).astype(np.float32)
+    assert result.chosen == "random"
+    np.testing.assert_array_equal(result.start, expected)
+    assert result.start_rmse == pytest.approx(float(np.asarray(images.rmse(decode(model, expected), target))), rel=1e-5)

@@ -1,0 +1,42 @@
+import numpy as np
+import pytest
+from helpers import R, random_model
+
+from matfit import fit, images, presets, verify
+from matfit.params import to_unit
+from matfit.render import Renderer
+
+
+@pytest.fixture(scope="module")
+def model():
+    return random_model()
+
+
+@pytest.fixture(scope="module")
+def renderer32():
+    return Renderer(R, 8)
+
+
+def test_candidates_start_first_then_distinct_ends(model):
+    target = model.decode(np.full((1, 19), 0.3))[0]
+    result = fit.fit(model, target, fit.Settings(method="lbfgsb", starts=2, iterations=5))
+    pool = verify.candidates(result)
+    names = list(pool)
+    assert names[0] == "start" and 2 <= len(names) <= verify.CANDIDATES
+    np.testing.assert_array_equal(pool["start"], result.start)
+    assert all(name.startswith("end-") for name in names[1:])
+    points = np.stack(list(pool.values()))
+    assert len({tuple(np.round(p, 6)) for p in points}) == len(points)
+
+
+def test_a_fooled_decoder_never_makes_the_answer_physically_worse_than_the_start(model, renderer32):
+    # A random decoder knows nothing of the scene: its optimum for a jade render is physically arbitrary.
+    target = images.srgb_encode(renderer32.render(presets.preset("jade"), seed=5))
+    result = fit.fit(model, target, fit.Settings(method="lbfgsb", starts=3, iterations=30), extra=to_unit(presets.preset("jade"))[None])
+    assert result.chosen == "extra-1" or result.start_rmse <= result.candidate_rmse["extra-1"]
+    checked = verify.verify(renderer32, result, target)
+    assert checked.rmse == min(checked.figures.values())
+    assert checked.rmse <= checked.start_rmse
+    again = images.srgb_encode(renderer32.render(fit.params.from_unit(checked.unit), seed=verify.SEED))
+    np.testing.assert_allclose(again, checked.rendered)  # the kept render is the chosen candidate's
+    assert len(checked.figures) >= 2
