@@ -494,7 +494,7 @@ def render_speed(count: int, variant: str | None = None) -> str:
             renderer.render_current(seed=i)
             bare_seconds += time.perf_counter() - started
         bare = count / bare_seconds
-        lines.append(f"| {resolution} | {spp} | {ours:.1f} | {bare:.1f} | {ours / bare:.2f} |")
+        lines.append(f"| {resolution} | {spp} | {ours:.3g} | {bare:.3g} | {ours / bare:.2f} |")
     return "\n".join(lines)
 
 
