@@ -9,6 +9,7 @@ Mitsuba render of the result against the target: the honest figure.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import time
@@ -468,9 +469,10 @@ def budget_plot(main: list[dict], path: str, budgets=BUDGETS) -> None:
     axes.grid(True, which="major", alpha=0.3)
     axes.legend()
     figure.tight_layout()
-    with files.atomic_path(path) as temporary:
-        figure.savefig(temporary, format="png")
+    encoded = io.BytesIO()
+    figure.savefig(encoded, format="png")
     pyplot.close(figure)
+    files.write_bytes(path, encoded.getvalue())
 
 
 def render_speed(count: int, variant: str | None = None) -> str:

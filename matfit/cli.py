@@ -299,8 +299,3 @@ def bench(
     model = fitfile.load_model(str(model_path))
     label = fitfile.display_path(str(model_path))
     typer.echo(bench_module.run_suite(model, label, str(out), full, log=lambda line: typer.echo(line, err=True)))
-
-
-def main() -> None:
-    """Console-script entry point."""
-    app()
