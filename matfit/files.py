@@ -9,6 +9,7 @@ are registered with `interrupt`, which removes them when an interruption ends th
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import tempfile
 from collections.abc import Iterator
@@ -23,6 +24,15 @@ _finals: dict[str, str] = {}  # a Batch's temporary path -> the output it stands
 def final_name(path: str) -> str:
     """Returns the output a temporary path of a Batch stands for (messages name that), else the path itself."""
     return _finals.get(path, path)
+
+
+def sha256(path: str) -> str:
+    """Returns the SHA-256 of a file's bytes (what a result records of the picture it was computed from)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def check_writable(path: str) -> None:
