@@ -532,11 +532,13 @@ def fit_comparison(model: models.Model, count: int, evaluations: int, log=print)
 
 def check_output_folder(path: str, field: str) -> None:
     """Raises OutputError unless `path` is a folder or can become one."""
+    name = field.replace("_", " ")
     if os.path.exists(path) and not os.path.isdir(path):
-        raise OutputError(f"{field} {path} is a file: give a folder", field=field)
+        raise OutputError(f"{name} {path} is a file: give a folder", field=field)
     parent = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(parent):
-        raise OutputError(f"{field} {path} cannot be created: {parent} does not exist (create it first)", field=field)
+        reason = "is a file" if os.path.exists(parent) else "does not exist (create it first)"
+        raise OutputError(f"{name} {path} cannot be created: {parent} {reason}", field=field)
 
 
 def sequence_benchmark(model: models.Model, frames: int, frames_out: str | None = None) -> str:
