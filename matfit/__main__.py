@@ -1,5 +1,22 @@
-"""`python -m matfit` runs the command line."""
+"""The `matfit` process: Ctrl-C handling first, then the command line (`python -m matfit` and the console script)."""
 
-from matfit.cli import main
+from matfit import interrupt
 
-main()
+
+def main() -> None:
+    """Console-script entry point: installs the interruption watchdog before any heavy import, then runs the command."""
+    interrupt.install()
+    try:
+        from matfit.cli import app
+
+        app()
+    except KeyboardInterrupt:  # during start-up, before a command took over
+        interrupt.exit_now()
+    except SystemExit as exit:
+        if exit.code == interrupt.EXIT_CODE:
+            interrupt.exit_now()
+        raise
+
+
+if __name__ == "__main__":
+    main()

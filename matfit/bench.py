@@ -9,6 +9,7 @@ Mitsuba render of the result against the target: the honest figure.
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import time
@@ -468,9 +469,10 @@ def budget_plot(main: list[dict], path: str, budgets=BUDGETS) -> None:
     axes.grid(True, which="major", alpha=0.3)
     axes.legend()
     figure.tight_layout()
-    with files.atomic_path(path) as temporary:
-        figure.savefig(temporary, format="png")
+    encoded = io.BytesIO()
+    figure.savefig(encoded, format="png")
     pyplot.close(figure)
+    files.write_bytes(path, encoded.getvalue())
 
 
 def render_speed(count: int, variant: str | None = None) -> str:
@@ -530,11 +532,13 @@ def fit_comparison(model: models.Model, count: int, evaluations: int, log=print)
 
 def check_output_folder(path: str, field: str) -> None:
     """Raises OutputError unless `path` is a folder or can become one."""
+    name = field.replace("_", " ")
     if os.path.exists(path) and not os.path.isdir(path):
-        raise OutputError(f"{field} {path} is a file: give a folder", field=field)
+        raise OutputError(f"{name} {path} is a file: give a folder", field=field)
     parent = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(parent):
-        raise OutputError(f"{field} {path} cannot be created: {parent} does not exist (create it first)", field=field)
+        reason = "is a file" if os.path.exists(parent) else "does not exist (create it first)"
+        raise OutputError(f"{name} {path} cannot be created: {parent} {reason}", field=field)
 
 
 def sequence_benchmark(model: models.Model, frames: int, frames_out: str | None = None) -> str:

@@ -191,6 +191,7 @@ def sequence(
         results = sequence_module.run(
             model, str(frames), str(out), settings, reinit, rendered, progress.counter("frames/s"), init and str(init)
         )
+    echo_lines(f"{os.path.basename(frame.path)}: {frame.note}" for frame in results if frame.note)
     typer.echo(sequence_module.summary_table(results))
     typer.echo(f"{out}: {len(results)} frames, RMSE sum {sum(f.rmse for f in results):.2f}", err=True)
 
@@ -299,8 +300,3 @@ def bench(
     model = fitfile.load_model(str(model_path))
     label = fitfile.display_path(str(model_path))
     typer.echo(bench_module.run_suite(model, label, str(out), full, log=lambda line: typer.echo(line, err=True)))
-
-
-def main() -> None:
-    """Console-script entry point."""
-    app()

@@ -1,21 +1,25 @@
 """The command line's conventions, shared by every command: one-line errors, interruptions, option names in messages.
 
 A command's fixable error (`errors.MatfitError`) and Typer's own usage errors become one `error:`
-line and exit code 2; Ctrl-C or `kill` one `interrupted:` line and exit code 130. An error about
-one value (`MatfitError.field`, in the library's words) is reworded with the option the user typed.
+line and exit code 2; Ctrl-C or `kill` one `interrupted:` line and exit code 130 (`interrupt`
+enforces it when the work is stuck in compiled code); an operating-system failure such as a full
+disk one `error:` line and exit code 1. An error about one value (`MatfitError.field`, in the
+library's words) is reworded with the option the user typed.
 """
 
 from __future__ import annotations
 
+import errno
 import functools
-import signal
 import sys
 import typing
 
 import typer
 from typer.core import TyperGroup
 
-from matfit import errors
+from matfit import errors, interrupt
+
+FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # the disk is full, or a quota or a size limit is reached
 
 
 class OneLineErrors(TyperGroup):
@@ -31,8 +35,9 @@ class OneLineErrors(TyperGroup):
         except typer._click.exceptions.UsageError as error:
             typer.echo(f"error: {usage_message(error, arguments)}", err=True)
             code = 2
-        except typer.Abort:
-            code = 130
+        except typer.Abort:  # a Ctrl-C outside a command's own work (while parsing, say)
+            interrupt.announce()
+            code = interrupt.EXIT_CODE
         if not standalone_mode:
             return code
         sys.exit(code if isinstance(code, int) else 0)
@@ -75,7 +80,8 @@ def flags(function) -> dict[str, str]:
 def command(app: typer.Typer, function=None, *, name: str | None = None, interrupted: str = "nothing was written"):
     """Registers a command: fixable errors become one `error:` line (exit 2), Ctrl-C one `interrupted:` line (exit 130).
 
-    An error about one value (`MatfitError.field`) is reworded with the option the user typed.
+    An error about one value (`MatfitError.field`) is reworded with the option the user typed; a
+    failure of the system (OSError: a full disk, a vanished directory) is one `error:` line, exit 1.
     `interrupted` says what an interruption leaves behind.
     """
     if function is None:
@@ -84,17 +90,28 @@ def command(app: typer.Typer, function=None, *, name: str | None = None, interru
 
     @functools.wraps(function)
     def wrapper(*args, **kwargs):
-        signal.signal(signal.SIGTERM, signal.default_int_handler)  # `kill` stops as cleanly as Ctrl-C
+        interrupt.set_message(interrupted)
         try:
             return function(*args, **kwargs)
         except errors.MatfitError as error:
             typer.echo(f"error: {with_flag(str(error), error.field, options)}", err=True)
             raise typer.Exit(2) from None
+        except OSError as error:
+            typer.echo(f"error: {system_message(error)}", err=True)
+            raise typer.Exit(1) from None
         except KeyboardInterrupt:
             typer.echo(f"interrupted: {interrupted}", err=True)
-            raise typer.Exit(130) from None
+            interrupt.announced()
+            raise typer.Exit(interrupt.EXIT_CODE) from None
 
     return app.command(name=name)(wrapper)
+
+
+def system_message(error: OSError) -> str:
+    """Returns an operating-system failure as one line: what failed, on which file."""
+    reason = error.strerror or str(error)
+    where = f" ({errors.printable(error.filename)})" if error.filename else ""
+    return f"{reason}{where}: free some space or choose another place" if error.errno in FULL else f"{reason}{where}"
 
 
 def with_flag(message: str, field: str | None, options: dict[str, str]) -> str:

@@ -243,8 +243,8 @@ def prepare(path: str, settings: Settings, count: int, versions: dict) -> Datase
             raise DatasetError(f"{path} already holds {old.count} samples: pass --count {old.count} or more")
         if count == old.count:
             return open_dataset(path, writable=True)
+    _check_disk(path, settings, count - (old.count if old else 0))  # before the folder is made: a refusal leaves nothing
     os.makedirs(path, exist_ok=True)
-    _check_disk(path, settings, count - (old.count if old else 0))
     _write_arrays(path, settings, count, old)
     _write_json(os.path.join(path, "meta.json"), _meta(settings, count, versions))
     return open_dataset(path, writable=True)

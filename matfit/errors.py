@@ -8,6 +8,8 @@ Mitsuba or OpenImageIO, so every module, and the command line's start-up, can im
 
 from __future__ import annotations
 
+import os
+
 
 class MatfitError(ValueError):
     """A failure the user can fix; the command line prints it as one `error:` line and exits with 2."""
@@ -57,3 +59,8 @@ def check_range(field: str, value: int | float, low: int | float, high: int | fl
     """Raises `error` (naming `field`) unless low <= value <= high."""
     if not low <= value <= high:
         raise error(f"{field} {value} is out of range: use {low} to {high}", field=field)
+
+
+def printable(path: object) -> str:
+    """Returns a path as text that can always be printed: bytes of a name that are not UTF-8 become \\x escapes."""
+    return os.fsencode(path).decode("utf-8", "backslashreplace") if isinstance(path, str | bytes) else str(path)

@@ -8,7 +8,6 @@ the exports under temporary names, renaming them into place only once all of the
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import time
@@ -113,15 +112,6 @@ def read_target(path: str, resolution: int, mask: str | None = None) -> tuple[np
     return target, weights, [*loaded.notices, *notices]
 
 
-def sha256(path: str) -> str:
-    """Returns the SHA-256 of a file's bytes (what params.json records of its target)."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as file:
-        for block in iter(lambda: file.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def run(
     target: str,
     model: models.Model | str,
@@ -200,7 +190,7 @@ def document(outcome: Outcome, settings: fit.Settings, model_path: str, target: 
         polish_steps=settings.polish_steps,
         model=display_path(model_path),
         target=target,
-        target_sha256=sha256(target),
+        target_sha256=files.sha256(target),
         mask=mask,
         init=init,
         fit_seconds=round(result.seconds, 3),

@@ -7,14 +7,17 @@ HDR as linear float.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import tempfile
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
 import OpenImageIO as oiio
 
-from matfit.errors import ImageError
-from matfit.files import atomic_path, check_writable
+from matfit.errors import ImageError, printable
+from matfit.files import check_writable, final_name, write_bytes
 
 LINEAR_EXTENSIONS = (".exr", ".hdr")
 DISPLAY_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
@@ -86,26 +89,54 @@ def check_output(path: str) -> None:
 
 
 def write(path: str, linear: np.ndarray) -> None:
-    """Writes a linear (H, W, 3) image atomically: sRGB 8-bit for PNG/JPEG/TIFF, float for EXR/HDR."""
+    """Writes a linear (H, W, 3) image atomically: sRGB 8-bit for PNG/JPEG/TIFF, float for EXR/HDR.
+
+    The file is encoded in memory first and then written, flushed and size-checked by
+    `files.write_bytes`: OpenImageIO's writers report a full disk badly (the PNG writer not at
+    all, leaving a truncated file; the JPEG writer by aborting the interpreter), so they never
+    write to the disk themselves.
+    """
     extension = check_extension(path)
+    check_writable(path)
+    write_bytes(path, encode(linear, extension, final_name(path)))
+
+
+def encode(linear: np.ndarray, extension: str, path: str = "the image") -> bytes:
+    """Returns the bytes of an image file of type `extension` (".png", ".exr", ...) holding a linear (H, W, 3) image."""
     linear = np.asarray(linear, dtype=np.float32)
     if extension in LINEAR_EXTENSIONS:
         pixels, pixel_type = np.ascontiguousarray(linear), "float"
     else:
         pixels, pixel_type = np.round(srgb_encode(linear) * 255.0).astype(np.uint8), "uint8"
     height, width, channels = pixels.shape
-    with atomic_path(path) as temporary:
-        output = oiio.ImageOutput.create(temporary)
+    with memory_file(extension) as (name, handle):
+        output = oiio.ImageOutput.create(extension.lstrip("."))
         if output is None:
             raise ImageError(f"cannot write {path}: {oiio.geterror()}")
         spec = oiio.ImageSpec(width, height, channels, pixel_type)
         if extension in DISPLAY_EXTENSIONS:
             spec.attribute("oiio:ColorSpace", "sRGB")
-        ok = output.open(temporary, spec) and output.write_image(pixels)
+        ok = output.open(name, spec) and output.write_image(pixels)
         error = output.geterror()
         output.close()
         if not ok:
             raise ImageError(f"cannot write {path}: {error}")
+        size = os.fstat(handle).st_size
+        return os.pread(handle, size, 0)
+
+
+@contextlib.contextmanager
+def memory_file(extension: str) -> Iterator[tuple[str, int]]:
+    """Yields (a path OpenImageIO can open, its descriptor) of an anonymous file in memory (a file in /tmp without memfd)."""
+    if hasattr(os, "memfd_create"):
+        handle = os.memfd_create("matfit-image")
+        try:
+            yield f"/proc/self/fd/{handle}", handle
+        finally:
+            os.close(handle)
+    else:
+        with tempfile.NamedTemporaryFile(suffix=extension) as file:
+            yield file.name, file.fileno()
 
 
 def first_line(text: str | None, default: str) -> str:
@@ -119,17 +150,48 @@ MAX_PIXELS = 50_000_000  # larger inputs are refused before their pixels are dec
 
 def header(path: str) -> tuple[int, int, int, int]:
     """Returns (width, height, channels, alpha channel index or -1) from an image file's header only."""
-    if not os.path.isfile(path):
-        raise ImageError(f"{path} does not exist: check the path")
-    if os.path.getsize(path) == 0:
-        raise ImageError(f"{path} is empty: export the image again")
-    reader = oiio.ImageInput.open(path)
+    check_readable(path)
+    with quiet_stderr():
+        reader = oiio.ImageInput.open(path)
     if reader is None:
         reason = first_line(oiio.geterror(), "unknown format")
         raise ImageError(f"{path} is not an image OpenImageIO can read ({reason}): export it as PNG, TIFF, JPEG or EXR")
     spec = reader.spec()
     reader.close()
     return spec.width, spec.height, spec.nchannels, spec.alpha_channel
+
+
+def check_readable(path: str) -> None:
+    """Raises ImageError unless `path` names a non-empty regular file that OpenImageIO can open by that name."""
+    if os.path.isdir(path):
+        raise ImageError(f"{printable(path)} is a directory, not a picture: give the image file's path")
+    if not os.path.exists(path):
+        raise ImageError(f"{printable(path)} does not exist: check the path")
+    if not os.path.isfile(path):
+        raise ImageError(f"{printable(path)} is not a regular file (a device or a pipe): give the image file's path")
+    if os.path.getsize(path) == 0:
+        raise ImageError(f"{printable(path)} is empty: export the image again")
+    try:
+        path.encode()
+    except UnicodeEncodeError:
+        raise ImageError(f"the file name {printable(path)} is not valid UTF-8, which OpenImageIO cannot open: rename the file") from None
+
+
+@contextlib.contextmanager
+def quiet_stderr() -> Iterator[None]:
+    """Sends what C libraries print to standard error (libpng's own warnings) to /dev/null inside the block.
+
+    OpenImageIO reports a damaged file through its error message, which matfit words as one
+    line; libpng also prints its own message, twice, straight to file descriptor 2.
+    """
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 @dataclass
@@ -153,8 +215,9 @@ def load(path: str, max_pixels: int = MAX_PIXELS) -> Loaded:
         )
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # the colour as painted, not multiplied by alpha
-    buffer = oiio.ImageBuf(path, 0, 0, config)
-    pixels = buffer.get_pixels(oiio.FLOAT)
+    with quiet_stderr():
+        buffer = oiio.ImageBuf(path, 0, 0, config)
+        pixels = buffer.get_pixels(oiio.FLOAT)
     if buffer.has_error or pixels is None or pixels.size == 0:
         message = first_line(buffer.geterror() if buffer.has_error else "", "no pixels")
         raise ImageError(f"{path} is damaged or truncated ({message}): export it again")

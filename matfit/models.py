@@ -19,6 +19,7 @@ small: the first FC layer's size is (32 / 2^blocks)^2 x filters x neurons.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -246,11 +247,21 @@ class Network:
     module: nn.Module
     variables: dict
     info: dict
+    digest: str | None = None  # SHA-256 of the weights file it was loaded from
 
     @property
     def resolution(self) -> int:
         """Returns the image side of the training data (the decoder's output size)."""
         return int(self.description["resolution"])
+
+    def identity(self) -> str:
+        """Returns the SHA-256 of the weights: of the file it was loaded from, else of the weights themselves."""
+        if self.digest is not None:
+            return self.digest
+        digest = hashlib.sha256()
+        for leaf in jax.tree_util.tree_leaves(self.variables):
+            digest.update(np.asarray(leaf).tobytes())
+        return digest.hexdigest()
 
 
 def save(path: str, network: Network, dtype: np.dtype = np.float16) -> None:
@@ -269,10 +280,11 @@ def save(path: str, network: Network, dtype: np.dtype = np.float16) -> None:
 
 
 def restore_document(path: str, expected_format: str, what: str) -> dict:
-    """Returns a msgpack document of `expected_format`, checking its parameter table."""
+    """Returns a msgpack document of `expected_format`, checking its parameter table; "sha256" holds the file's hash."""
     try:
         with open(path, "rb") as file:
-            document = serialization.msgpack_restore(file.read())
+            data = file.read()
+        document = serialization.msgpack_restore(data)
     except FileNotFoundError:
         raise WeightsError(f"{path} does not exist: train it with `matfit train` or check the path") from None
     except Exception as error:  # msgpack raises many types on damaged bytes
@@ -284,7 +296,7 @@ def restore_document(path: str, expected_format: str, what: str) -> dict:
     difference = params.describe_table_difference(document.get("parameter_table", {}))
     if difference is not None:
         raise WeightsError(f"{path} was trained for another parameter table ({difference}): train again on a new dataset")
-    return document
+    return {**document, "sha256": hashlib.sha256(data).hexdigest()}
 
 
 def restore_variables(path: str, description: dict, stored: dict) -> tuple[nn.Module, dict]:
@@ -305,18 +317,28 @@ def restore_variables(path: str, description: dict, stored: dict) -> tuple[nn.Mo
     return module, jax.tree_util.tree_map(lambda leaf: jnp.asarray(leaf, jnp.float32), variables)
 
 
-def load(path: str, resolution: int | None = None) -> Network:
-    """Returns the network saved at `path`, checking the parameter table and, if given, the resolution."""
+def load(path: str, resolution: int | None = None, name: str | None = None) -> Network:
+    """Returns the network saved at `path`, checking the parameter table and, if given, the resolution and the network's name."""
     document = restore_document(path, WEIGHTS_FORMAT, "weights file")
     description = document.get("architecture")
     if not isinstance(description, dict) or "resolution" not in description:
         raise WeightsError(f"{path} has no architecture description: train again")
+    stored_name = describe_network(description)
+    if name is not None and stored_name != name:
+        raise WeightsError(f"{path} holds the weights of the {stored_name}, not of the {name}: copy the right file there or train it again")
     if resolution is not None and int(description["resolution"]) != resolution:
         raise WeightsError(
             f"{path} was trained on {description['resolution']} px images, not {resolution} px: use a model of that resolution"
         )
     module, variables = restore_variables(path, description, document.get("variables"))
-    return Network(str(document.get("name")), description, module, variables, document.get("info") or {})
+    return Network(str(document.get("name")), description, module, variables, document.get("info") or {}, document["sha256"])
+
+
+def describe_network(description: dict) -> str:
+    """Returns which network an architecture description is of: "decoder" or "encoder-N"."""
+    if description.get("kind") == DECODER:
+        return DECODER
+    return f"encoder-{description.get('arch')}"
 
 
 @dataclass(frozen=True)
@@ -332,6 +354,13 @@ class Model:
         """Returns the decoder's image side."""
         return self.decoder.resolution
 
+    def identity(self) -> str:
+        """Returns the SHA-256 of all the model's weights: the same model wherever its directory lies."""
+        digest = hashlib.sha256(self.decoder.identity().encode())
+        for arch, network in sorted(self.encoders.items()):
+            digest.update(f"{arch}:{network.identity()}".encode())
+        return digest.hexdigest()
+
     def decode(self, unit: np.ndarray) -> np.ndarray:
         """Returns phi(x) of unit-cube parameters (N, 19): sRGB images (N, R, R, 3), float32, decoded in batches."""
         return apply_in_batches(self.decoder.module, self.decoder.variables, np.asarray(unit, np.float32).reshape(-1, params.COUNT))
@@ -346,12 +375,12 @@ def load_model(directory: str) -> Model:
     """Returns the decoder and every encoder found in a model directory (at least one encoder)."""
     if not os.path.isdir(directory):
         raise WeightsError(f"model directory {directory} does not exist: train one with `matfit train` or use data/models/default")
-    decoder = load(weights_path(directory, DECODER))
+    decoder = load(weights_path(directory, DECODER), name=DECODER)
     encoders = {}
     for arch, name in zip(ENCODERS, ENCODER_NAMES, strict=True):
         path = weights_path(directory, name)
         if os.path.exists(path):
-            encoders[arch] = load(path, resolution=decoder.resolution)
+            encoders[arch] = load(path, resolution=decoder.resolution, name=name)
     if not encoders:
         raise WeightsError(f"{directory} has a decoder but no encoders: train them with `matfit train --arch 1..9 --out {directory}`")
     return Model(directory, decoder, encoders)

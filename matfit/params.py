@@ -186,8 +186,11 @@ def check_value(name: str, value: object) -> float:
         raise ParameterError(f"unknown parameter {name!r}: {hint}")
     if isinstance(value, bool) or not isinstance(value, int | float):
         raise ParameterError(f"parameter {name!r} must be a number, got {value!r}")
-    value = float(value)
     p = PARAMETERS[INDEX[name]]
+    try:
+        value = float(value)
+    except OverflowError:  # an int too large for a float
+        raise ParameterError(f"parameter {name!r} is out of range: use a value in [{p.low}, {p.high}]") from None
     if math.isnan(value) or math.isinf(value):
         raise ParameterError(f"parameter {name!r} is {value}: give a number in [{p.low}, {p.high}]")
     if not p.low <= value <= p.high:
@@ -216,20 +219,37 @@ def parse_params_json(text: str, source: str = "params.json") -> np.ndarray:
     """Returns the physical vector described by a params.json text.
 
     The file is a JSON object, either {"params": {name: value, ...}, ...other fields} (what matfit
-    writes) or a flat {name: value, ...}. Names left out take their defaults.
+    writes) or a flat {name: value, ...}, not both at once. Names left out take their defaults; a
+    name given twice is refused (JSON would silently keep the last), and so is an integer too
+    long for a float.
     """
     try:
-        data = json.loads(text)
+        data = json.loads(text, object_pairs_hook=_unique_keys, parse_int=float)
     except json.JSONDecodeError as error:
         raise ParameterError(f"{source} is not valid JSON ({error.msg} at line {error.lineno}, column {error.colno})") from None
-    if isinstance(data, dict) and isinstance(data.get("params"), dict):
-        data = data["params"]
+    except ParameterError as error:
+        raise ParameterError(f"{source}: {error}") from None
     if not isinstance(data, dict):
         raise ParameterError(f'{source} must hold a JSON object of parameter names and values, like {{"roughness": 0.2}}')
+    if "params" in data:
+        if not isinstance(data["params"], dict):
+            raise ParameterError(f'{source}: "params" must be a JSON object of names and values, like {{"params": {{"roughness": 0.2}}}}')
+        outside = [name for name in data if name in INDEX]
+        if outside:
+            raise ParameterError(f'{source} names {", ".join(outside)} outside "params" as well: put every parameter inside "params"')
+        data = data["params"]
     try:
         return from_mapping(data)
     except ParameterError as error:
         raise ParameterError(f"{source}: {error}") from None
+
+
+def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
+    names = [name for name, _ in pairs]
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise ParameterError(f"{', '.join(map(repr, repeated))} given more than once: keep one value")
+    return dict(pairs)
 
 
 def read_file(path: str) -> np.ndarray:

@@ -7,6 +7,11 @@ refines the winner within the budget. `reinit=False` fits every frame alone, for
 Each finished frame is written at once to `<out>/<frame stem>.json` (params.json format, plus how
 it was found), so an interrupted run resumes after the last finished frame, reading that frame's
 optimum back as the next frame's candidate: a resumed run gives the same results as a whole one.
+Each result records what it was computed from: the settings, the model's identity (the hash of
+its weights, wherever the model lies), the frame's SHA-256 and, with reinitialisation, the
+previous frame's optimum. A result whose frame changed since (an edit made again, another folder
+with the same names) is fitted again, and so is every frame after it whose previous optimum thereby
+changed; each such frame says why (`Frame.note`).
 """
 
 from __future__ import annotations
@@ -56,6 +61,7 @@ class Frame:
     seconds: float
     image: np.ndarray | None = None  # phi(x), only for frames fitted in this run
     target: np.ndarray | None = None
+    note: str | None = None  # why a frame with a result on disk was fitted again
 
 
 def frame_json_path(out: str, frame: str) -> str:
@@ -72,12 +78,12 @@ def run_settings(settings: fit.Settings, reinit: bool, model: models.Model) -> d
         "starts": settings.starts,
         "iterations": settings.iterations,
         "reinit": reinit,
-        "model": os.path.abspath(model.path),
+        "model": model.identity(),
     }
 
 
-def read_finished(path: str, expected: dict) -> Frame | None:
-    """Returns a finished frame's result if its file exists and was made with the same settings."""
+def read_finished(path: str, expected: dict) -> tuple[Frame, dict] | None:
+    """Returns a finished frame's result and what it was computed from, if its file exists and was made with the same settings."""
     if not os.path.exists(path):
         return None
     try:
@@ -87,11 +93,28 @@ def read_finished(path: str, expected: dict) -> Frame | None:
         unit = np.asarray(stored["unit"], np.float64)  # exact, unlike the rounded physical values
         if unit.shape != (params.COUNT,):
             raise ValueError("unit vector of the wrong length")
+        frame = Frame(
+            stored["frame"], unit, stored["rmse"], stored["start"], stored["start_rmse"], stored["evaluations"], stored["seconds"]
+        )
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise SequenceError(f"{path} is damaged ({type(error).__name__}): delete it to fit that frame again") from None
     if stored.get("settings") != expected:
-        raise SequenceError(f"{path} was made with other settings ({stored.get('settings')}): use another --out folder or delete it")
-    return Frame(stored["frame"], unit, stored["rmse"], stored["start"], stored["start_rmse"], stored["evaluations"], stored["seconds"])
+        raise SequenceError(
+            f"{path} was made with other settings or another model ({stored.get('settings')}): use another --out folder or delete it"
+        )
+    return frame, {"frame_sha256": stored.get("frame_sha256"), "previous": stored.get("previous")}
+
+
+def stale(finished: tuple[Frame, dict] | None, computed_from: dict, first: bool = False) -> str | None:
+    """Returns why a finished frame's result must be fitted again (None: it can be reused)."""
+    if finished is None:
+        return None
+    recorded = finished[1]
+    if recorded["frame_sha256"] != computed_from["frame_sha256"]:
+        return "the picture is not the one its result on disk was fitted to: fitted again"
+    if recorded["previous"] != computed_from["previous"]:
+        return "the --init material changed: fitted again" if first else "the previous frame's result changed: fitted again"
+    return None
 
 
 def check_sizes(frames: list[str]) -> None:
@@ -124,24 +147,38 @@ def fit_sequence(
     """
     settings.check()
     check_sizes(frames)
+    created = not os.path.isdir(out)
     os.makedirs(out, exist_ok=True)
+    try:
+        return _fit_frames(model, frames, out, settings, reinit, progress, init)
+    except BaseException:
+        if created and not os.listdir(out):  # nothing finished: leave no empty folder behind
+            os.rmdir(out)
+        raise
+
+
+def _fit_frames(model, frames, out, settings, reinit, progress, init) -> list[Frame]:
     expected = run_settings(settings, reinit, model)
     results: list[Frame] = []
     for index, path in enumerate(frames):
         json_path = frame_json_path(out, path)
         finished = read_finished(json_path, expected)
+        previous = [float(u) for u in results[-1].unit] if reinit and results else None
+        if not results and init is not None:  # the source material joins the first frame's candidates
+            previous = [float(u) for u in np.asarray(init, np.float32)]
+        computed_from = {"frame_sha256": files.sha256(path), "previous": previous}
+        note = stale(finished, computed_from, first=not results)
         target = load_frame(path, model.resolution)
-        if finished is not None:
-            finished.target = target
-            results.append(finished)
+        if finished is not None and note is None:
+            frame = finished[0]
+            frame.target = target
+            results.append(frame)
         else:
-            previous = results[-1].unit[None] if reinit and results else None
-            if not results and init is not None:
-                previous = np.asarray(init, np.float32)[None]
-            result = fit.fit(model, target, settings, extra=previous)
+            extra = np.asarray(previous, np.float32)[None] if previous is not None else None
+            result = fit.fit(model, target, settings, extra=extra)
             start = (INIT if index == 0 else PREVIOUS) if result.chosen == "extra-1" else result.chosen
             frame = Frame(
-                path, result.unit, result.rmse, start, result.start_rmse, result.evaluations, result.seconds, result.image, target
+                path, result.unit, result.rmse, start, result.start_rmse, result.evaluations, result.seconds, result.image, target, note
             )
             document = params.params_document(
                 result.values,
@@ -154,6 +191,7 @@ def fit_sequence(
                     "evaluations": result.evaluations,
                     "seconds": result.seconds,
                     "settings": expected,
+                    **computed_from,
                     "unit": [float(u) for u in result.unit],
                 },
             )
@@ -227,7 +265,7 @@ def run(
         renderer = Renderer(*render)
         for frame in results:
             path = os.path.join(out, os.path.splitext(os.path.basename(frame.path))[0] + "-render.png")
-            if not os.path.exists(path):
+            if frame.image is not None or not os.path.exists(path):  # fitted in this run, or not rendered yet
                 images.write(path, renderer.render(params.from_unit(frame.unit)))
     files.write_text(os.path.join(out, "summary.md"), summary_table(results))
     images.write(os.path.join(out, "preview.png"), images.srgb_decode(preview(model, results)))

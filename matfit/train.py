@@ -369,6 +369,8 @@ def train_networks(names: list[str], data: Dataset, out: str, config: Config, re
     """Trains the named networks one after another into model directory `out`; yields (name, metrics) as each finishes."""
     if os.path.exists(out) and not os.path.isdir(out):
         raise files.OutputError(f"model directory {out} is a file: give a directory for the model", field="out")
+    for name in names:  # every setting checked before the model directory is made
+        config.for_network(name).check(data.count)
     os.makedirs(out, exist_ok=True)
     for name in names:
         yield name, train_network(name, data, out, config.for_network(name), reporter)

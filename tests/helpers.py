@@ -8,10 +8,10 @@ from matfit import models, params
 R = 32
 
 
-def random_model() -> models.Model:
+def random_model(seed: int = 0) -> models.Model:
     """A random 32 px decoder and two random encoders: enough to test the machinery, not quality."""
     decoder = models.Decoder(resolution=R, hidden=64, base_channels=32, stage_channels=(32,))
-    variables = models.initialise(decoder, jax.random.key(0), (19,))
+    variables = models.initialise(decoder, jax.random.key(seed), (19,))
     networks = {}
     for arch in (3, 8):
         module = models.encoder(arch)

@@ -144,6 +144,12 @@ def test_unknown_architectures(tiny_dataset, tmp_path, arch, fragment):
     assert_one_line_error(run("train", "--arch", arch, "--dataset", tiny_dataset, "--out", tmp_path), fragment)
 
 
+def test_zero_epochs_is_refused_not_replaced_by_the_default(tiny_dataset, tmp_path):
+    result = run("train", "--arch", "decoder", "--dataset", tiny_dataset, "--epochs", 0, "--out", tmp_path / "m")
+    assert_one_line_error(result, "--epochs 0 is out of range")
+    assert not (tmp_path / "m").exists()
+
+
 def test_missing_and_corrupt_datasets(tmp_path, tiny_dataset):
     assert_one_line_error(run("train", "--arch", "1", "--dataset", tmp_path / "none", "--out", tmp_path), "no meta.json", "render-dataset")
     broken = tmp_path / "broken"
@@ -267,6 +273,11 @@ def test_sequence_through_the_cli(trained, tiny_dataset, tmp_path):
     assert json.loads((out / "frame_10.json").read_text())["sequence"]["index"] == 2
     again = run("sequence", frames, "-o", out, "--model", trained, "--evals", 30)
     assert again.exit_code == 0 and again.stdout == result.stdout  # resumed: every frame read back
+    images.write(str(frames / "frame_9.png"), np.asarray(data.images[5], np.float32))  # frame 9 edited again
+    edited = run("sequence", frames, "-o", out, "--model", trained, "--evals", 30)
+    assert edited.exit_code == 0, edited.output
+    assert "frame_9.png: the picture is not the one its result on disk was fitted to: fitted again" in edited.stderr
+    assert "frame_10.png: the previous frame's result changed: fitted again" in edited.stderr
     empty = tmp_path / "empty"
     empty.mkdir()
     assert_one_line_error(run("sequence", empty, "-o", out, "--model", trained), "holds no frames")

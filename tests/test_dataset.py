@@ -172,6 +172,12 @@ def test_bad_directories_are_refused(tmp_path, settings):
         dataset.prepare("/proc/matfit-data", settings, 10, VERSIONS)
 
 
+def test_a_dataset_too_large_for_the_disk_is_refused_before_its_folder_is_made(tmp_path, settings):
+    with pytest.raises(DatasetError, match="GiB are free: lower --count or --resolution"):
+        dataset.prepare(str(tmp_path / "huge"), Settings(1024, 1, 0, settings.variant), dataset.MAX_COUNT, VERSIONS)
+    assert not (tmp_path / "huge").exists()
+
+
 def test_corrupt_datasets_name_the_fix(tmp_path, reference):
     with pytest.raises(DatasetError, match=r"no meta\.json"):
         dataset.open_dataset(str(tmp_path))

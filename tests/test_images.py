@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from matfit import images
+from matfit.errors import ImageError
 from matfit.files import OutputError
 
 
@@ -85,3 +86,26 @@ def test_load_drops_alpha_and_replicates_grey_with_notices(tmp_path):
     loaded = images.load(str(tmp_path / "grey.tif"))
     np.testing.assert_allclose(loaded.pixels[0, 0], [images.srgb_decode(np.float32(0.5))] * 3, rtol=1e-3)
     assert "greyscale" in loaded.notices[0]
+
+
+def test_unreadable_targets_say_what_they_are(tmp_path):
+    with pytest.raises(ImageError, match="is a directory, not a picture"):
+        images.load(str(tmp_path))
+    with pytest.raises(ImageError, match="is not a regular file"):
+        images.load("/dev/zero")
+    with pytest.raises(ImageError, match="does not exist"):
+        images.load(str(tmp_path / "none.png"))
+    name = os.fsdecode(bytes(tmp_path) + b"/edit\xff.png")  # a name that is not UTF-8 (OpenImageIO raised TypeError)
+    images.write(str(tmp_path / "ok.png"), np.zeros((4, 4, 3), np.float32))
+    os.rename(tmp_path / "ok.png", name)
+    with pytest.raises(ImageError, match=r"edit\\xff\.png is not valid UTF-8.*rename the file"):
+        images.load(name)
+
+
+def test_a_truncated_png_is_one_error_and_nothing_on_stderr(tmp_path, capfd):
+    images.write(str(tmp_path / "whole.png"), np.random.default_rng(0).random((64, 64, 3)).astype(np.float32))
+    (tmp_path / "cut.png").write_bytes((tmp_path / "whole.png").read_bytes()[:3000])
+    capfd.readouterr()
+    with pytest.raises(ImageError, match=r"cut\.png is damaged or truncated"):
+        images.load(str(tmp_path / "cut.png"))
+    assert capfd.readouterr().err == ""  # libpng printed its own error twice

@@ -1,3 +1,5 @@
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -90,3 +92,28 @@ def test_upsample_pool_and_shuffle_match_their_definitions():
     assert shuffled.shape == (2, 8, 12, 2)
     # output pixel (2i + a, 2j + b) channel c comes from input (i, j) channel (2a + b) * 2 + c
     np.testing.assert_array_equal(shuffled[:, 3, 5, 1], x[:, 1, 2, (2 * 1 + 1) * 2 + 1])
+
+
+def test_a_weights_file_of_another_network_is_refused(tmp_path):
+    decoder = models.Decoder(resolution=32, hidden=64, base_channels=32, stage_channels=(32,))
+    network = models.Network(
+        "decoder", models.architecture("decoder", 32, decoder), decoder, models.initialise(decoder, jax.random.key(0), (19,)), {}
+    )
+    encoder = models.encoder(8)
+    variables = models.initialise(encoder, jax.random.key(1), (32, 32, 3))
+    models.save(
+        str(tmp_path / "decoder.msgpack"), models.Network("encoder-8", models.architecture("encoder-8", 32), encoder, variables, {})
+    )
+    with pytest.raises(models.WeightsError, match="holds the weights of the encoder-8, not of the decoder: copy the right file"):
+        models.load_model(str(tmp_path))
+    models.save(str(tmp_path / "decoder.msgpack"), network)
+    models.save(str(tmp_path / "encoder-3.msgpack"), network)
+    with pytest.raises(models.WeightsError, match=r"encoder-3\.msgpack holds the weights of the decoder, not of the encoder-3"):
+        models.load_model(str(tmp_path))
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    models.save(str(moved / "decoder.msgpack"), network)
+    models.save(str(moved / "encoder-8.msgpack"), models.Network("encoder-8", models.architecture("encoder-8", 32), encoder, variables, {}))
+    first = models.load_model(str(moved))
+    os.rename(moved, tmp_path / "elsewhere")
+    assert models.load_model(str(tmp_path / "elsewhere")).identity() == first.identity()  # the weights, not the place

@@ -80,6 +80,12 @@ def test_params_document_round_trips_through_json():
         ('{"roughness": NaN}', "is nan"),
         ('{"roughness": "high"}', "must be a number"),
         ('{"metallic": true}', "must be a number"),
+        ('{"metallic": ' + "9" * 400 + "}", "'metallic' is inf"),  # was an OverflowError
+        ('{"metallic": ' + "9" * 5000 + "}", "'metallic' is inf"),  # was a ValueError (Python's digit limit)
+        ('{"params": {"metallic": 0.5}, "metallic": 7}', 'names metallic outside "params" as well'),
+        ('{"metallic": 0.1, "roughness": 0.2, "metallic": 0.9}', "'metallic' given more than once"),
+        ('{"params": {"roughness": 0.1, "roughness": 0.2}}', "'roughness' given more than once"),
+        ('{"params": [1, 2]}', '"params" must be a JSON object of names and values'),
     ],
 )
 def test_bad_params_json_gives_one_line_errors(text, message):
@@ -117,3 +123,8 @@ def test_presets_are_valid_and_distinct():
     assert len({tuple(v) for v in vectors.values()}) == len(vectors)
     with pytest.raises(ParameterError, match="choose one of"):
         presets.preset("unobtainium")
+
+
+def test_huge_integers_passed_in_code_are_out_of_range():
+    with pytest.raises(ParameterError, match="'metallic' is out of range"):
+        params.from_mapping({"metallic": 10**400})

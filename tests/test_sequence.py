@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from helpers import decode, random_model, true_point
 
-from matfit import fit, images, sequence
+from matfit import files, fit, images, sequence
 from matfit.sequence import SequenceError
 
 
@@ -84,3 +84,48 @@ def test_summary_table_sums():
     table = sequence.summary_table(frames)
     assert "| f2.png | encoder-1 | 2.00 | 3.00 | 100 | 0.100 |" in table
     assert "| sum | | | 4.50 | 300 | 0.30 |" in table
+
+
+def test_a_changed_frame_and_the_frames_after_it_are_fitted_again(tmp_path, model, frames):
+    settings = fit.Settings(evaluations=40)
+    first = sequence.fit_sequence(model, frames, str(tmp_path / "out"), settings)
+    again = sequence.fit_sequence(model, frames, str(tmp_path / "out"), settings)
+    assert [frame.note for frame in again] == [None] * 4 and all(frame.image is None for frame in again)  # all reused
+    changed = images.srgb_decode(np.clip(decode(model, true_point(12)), 0, 1))
+    images.write(frames[2], changed)  # the artist edits frame 2 again
+    resumed = sequence.fit_sequence(model, frames, str(tmp_path / "out"), settings)
+    assert [frame.image is not None for frame in resumed] == [False, False, True, True]
+    assert "the picture is not the one" in resumed[2].note and "previous frame's result changed" in resumed[3].note
+    whole = sequence.fit_sequence(model, frames, str(tmp_path / "whole"), settings)
+    for a, b in zip(whole, resumed, strict=True):
+        np.testing.assert_allclose(a.unit, b.unit, atol=1e-6)
+    assert np.abs(resumed[2].unit - first[2].unit).max() > 1e-3  # the new result is the new picture's
+    document = json.loads((tmp_path / "out" / "f2.json").read_text())
+    assert document["sequence"]["frame_sha256"] == files.sha256(frames[2])
+    assert document["sequence"]["settings"]["model"] == model.identity()  # what the weights are, not where they lie
+
+
+def test_another_folder_with_the_same_names_is_fitted_again(tmp_path, model, frames):
+    settings = fit.Settings(evaluations=30)
+    sequence.fit_sequence(model, frames[:2], str(tmp_path / "out"), settings)
+    other = tmp_path / "other"
+    other.mkdir()
+    for k, name in enumerate(("f0.png", "f1.png")):
+        images.write(str(other / name), images.srgb_decode(np.clip(decode(model, true_point(20 + k)), 0, 1)))
+    results = sequence.fit_sequence(model, sequence.list_frames(str(other)), str(tmp_path / "out"), settings)
+    assert all(frame.image is not None and frame.note for frame in results)
+
+
+def test_another_model_is_refused_and_a_failed_first_frame_leaves_no_folder(tmp_path, model, frames, monkeypatch):
+    settings = fit.Settings(evaluations=30)
+    sequence.fit_sequence(model, frames[:1], str(tmp_path / "out"), settings)
+    with pytest.raises(SequenceError, match="another model"):
+        sequence.fit_sequence(random_model(seed=1), frames[:1], str(tmp_path / "out"), settings)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fit, "fit", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        sequence.fit_sequence(model, frames, str(tmp_path / "new"), settings)
+    assert not (tmp_path / "new").exists()

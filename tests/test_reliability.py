@@ -1,0 +1,186 @@
+"""What matfit promises under faults, tested with the real faults: SIGINT through a subprocess, a full disk on a tiny tmpfs.
+
+The full disk is a 16 KiB tmpfs mounted inside a private mount namespace (`unshare --map-root-user
+--mount`), so the tests need neither root nor a cleanup; where user namespaces are not allowed
+they skip and say so.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from helpers import R, decode, random_model, true_point
+
+from matfit import images, models
+
+PROMPT = 10.0  # seconds: the promise is about a second; a hang (the bug) lasted minutes
+
+
+@pytest.fixture(scope="module")
+def model_dir(tmp_path_factory):
+    """A random 32 px model saved as a model directory: a subprocess fits with it in milliseconds per step."""
+    model = random_model()
+    directory = tmp_path_factory.mktemp("model")
+    models.save(str(directory / "decoder.msgpack"), model.decoder)
+    for network in model.encoders.values():  # described at the decoder's resolution, as training would
+        network = dataclasses.replace(network, description=models.architecture(network.name, R))
+        models.save(str(directory / f"{network.name}.msgpack"), network)
+    images.write(str(directory / "target.png"), images.srgb_decode(decode(model, true_point(3))))
+    return directory
+
+
+def interrupt_after(command: list[str], ready, cwd) -> tuple[int, str, float]:
+    """Starts `command`, waits until `ready(process)` is true, sends SIGINT; returns (exit code, stderr, seconds to stop)."""
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd)
+    deadline = time.monotonic() + 120
+    while not ready(process) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    sent = time.monotonic()
+    process.send_signal(signal.SIGINT)
+    try:
+        _, error = process.communicate(timeout=60)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        _, error = process.communicate()
+    return process.returncode, error, time.monotonic() - sent
+
+
+def assert_interrupted(code: int, error: str, seconds: float, directory) -> None:
+    assert code == 130, error
+    assert error.splitlines() == ["interrupted: nothing was written"], error
+    assert seconds < PROMPT, f"took {seconds:.1f} s to stop"
+    assert sorted(os.listdir(directory)) == [], "an interrupted command left files behind"
+
+
+FIT_FOREVER = """
+import sys
+from matfit import fit, images, interrupt, models
+interrupt.install()
+model = models.load_model(sys.argv[1])
+target = images.srgb_encode(images.read(sys.argv[1] + "/target.png"))
+print("fitting", flush=True)
+try:
+    fit.fit(model, target, fit.Settings(evaluations=1_000_000))
+except KeyboardInterrupt:  # XLA's compiler checks for signals itself; the command line then leaves like this
+    interrupt.exit_now()
+"""
+
+
+def test_ctrl_c_inside_one_compiled_fit_ends_it_at_once(model_dir, tmp_path):
+    """The main thread is inside a single XLA call that would run for minutes: the watchdog ends the process."""
+    printed = []
+
+    def fitting(process):
+        printed.append(process.stdout.readline())
+        time.sleep(3.0)  # compiling, then running: either way inside compiled code, holding no Python frame
+        return True
+
+    code, error, seconds = interrupt_after([sys.executable, "-c", FIT_FOREVER, str(model_dir)], fitting, tmp_path)
+    assert printed == ["fitting\n"]
+    assert_interrupted(code, error, seconds, tmp_path)
+
+
+@pytest.mark.parametrize("after", [0.3, 6.0])
+def test_ctrl_c_during_start_up_or_a_long_fit(model_dir, tmp_path, after):
+    """At 0.3 s the command is importing; at 6 s it is loading, compiling or fitting 1,000,000 evaluations."""
+    out = tmp_path / "out"
+    out.mkdir()
+    command = [sys.executable, "-m", "matfit", "fit", str(model_dir / "target.png"), "--model", str(model_dir)]
+    command += ["--evals", "1000000", "-o", str(out / "p.json"), "--report", str(out / "r.png")]
+    started = time.monotonic()
+    code, error, seconds = interrupt_after(command, lambda _: time.monotonic() - started > after, tmp_path)
+    assert_interrupted(code, error, seconds, out)
+
+
+def test_ctrl_c_during_a_long_render(tmp_path):
+    """Mitsuba takes SIGINT inside a render for itself; the command still ends at once, without the image."""
+    out = tmp_path / "out"
+    out.mkdir()
+    command = [sys.executable, "-m", "matfit", "render", "--preset", "gold", "--size", "256", "--spp", "65536", "-o", str(out / "r.png")]
+    started = time.monotonic()
+    code, error, seconds = interrupt_after(command, lambda _: time.monotonic() - started > 5.0, tmp_path)
+    assert_interrupted(code, error, seconds, out)
+
+
+def run_on_full_disk(tmp_path, command: list[str], size: str = "16k") -> tuple[subprocess.CompletedProcess, list[str]]:
+    """Runs `command` with tmp_path/full a `size` tmpfs of its own; returns (the result, what the tmpfs holds afterwards)."""
+    if shutil.which("unshare") is None:
+        pytest.skip("unshare (util-linux) is not installed")
+    full = tmp_path / "full"
+    full.mkdir()
+    script = 'mount -t tmpfs -o size="$1" tmpfs "$2" || exit 99; d="$2"; shift 2; "$@"; c=$?; echo "#listing"; ls -A "$d"; exit $c'
+    wrapper = ["unshare", "--map-root-user", "--mount", "sh", "-c", script, "sh", size, str(full)]
+    result = subprocess.run(wrapper + command, capture_output=True, text=True, cwd=tmp_path, check=False)
+    if result.returncode == 99 or "unshare failed" in result.stderr:
+        pytest.skip(f"cannot mount a tmpfs in a user namespace here: {result.stderr.strip()}")
+    stdout, _, listing = result.stdout.partition("#listing\n")
+    return subprocess.CompletedProcess(result.args, result.returncode, stdout, result.stderr), listing.split()
+
+
+WRITE_EACH = """
+import sys
+import numpy as np
+from matfit import errors, files, images
+noise = np.random.default_rng(0).random((256, 256, 3)).astype(np.float32)
+for name in sys.argv[2:]:
+    path = sys.argv[1] + "/" + name
+    try:
+        files.write_text(path, "x" * 40000) if name.endswith(".json") else images.write(path, noise)
+        print("wrote", name)
+    except errors.OutputError as error:
+        print("error:", error)
+"""
+
+
+def test_a_full_disk_fails_every_kind_of_write_cleanly(tmp_path):
+    """PNG (OpenImageIO's writer says nothing), JPEG (it aborted the interpreter), EXR, text: one error each, no file."""
+    names = ["r.png", "r.jpg", "r.exr", "r.tif", "p.json"]
+    result, left = run_on_full_disk(tmp_path, [sys.executable, "-c", WRITE_EACH, str(tmp_path / "full"), *names])
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines() == [f"error: cannot write {tmp_path / 'full' / n}: No space left on device" for n in names]
+    assert left == []
+
+
+def test_a_full_disk_during_a_fit_leaves_no_output(model_dir, tmp_path):
+    """params.json fits on the disk, the report does not: neither is left, nor any temporary file."""
+    full = tmp_path / "full"
+    command = [sys.executable, "-m", "matfit", "fit", str(model_dir / "target.png"), "--model", str(model_dir), "--evals", "50"]
+    command += ["-o", str(full / "p.json"), "--report", str(full / "report.png")]
+    result, left = run_on_full_disk(tmp_path, command, size="8k")
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.splitlines() == [f"error: cannot write {full / 'report.png'}: No space left on device"]
+    assert left == []
+
+
+def test_written_files_are_complete(tmp_path):
+    """The other side of the promise: what is written reads back as written."""
+    noise = np.random.default_rng(1).random((40, 40, 3)).astype(np.float32)
+    for name in ("a.png", "a.exr", "a.jpg"):
+        images.write(str(tmp_path / name), noise)
+    np.testing.assert_allclose(images.read(str(tmp_path / "a.exr")), noise)
+    png = images.srgb_encode(images.read(str(tmp_path / "a.png")))
+    assert np.abs(png - images.srgb_encode(noise)).max() <= 0.5 / 255 + 1e-6
+    assert sorted(os.listdir(tmp_path)) == ["a.exr", "a.jpg", "a.png"]
+
+
+STRAY = """
+import sys
+from matfit import files, interrupt
+batch = files.Batch()
+open(batch.path(sys.argv[1] + "/out.png"), "w").write("half")
+interrupt.exit_now()  # what the watchdog does when the main thread cannot stop by itself
+"""
+
+
+def test_an_interruption_that_cannot_wait_removes_the_temporary_files(tmp_path):
+    result = subprocess.run([sys.executable, "-c", STRAY, str(tmp_path)], capture_output=True, text=True, check=False)
+    assert result.returncode == 130 and result.stderr == "interrupted: nothing was written\n"
+    assert os.listdir(tmp_path) == []
