@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import files, params
+from matfit import files, interrupt, params
 from matfit.errors import DatasetError
 
 FORMAT = "matfit-dataset"
@@ -326,6 +326,7 @@ def render_missing(
         for task in tasks:
             store(*_render_chunk(task))
         return rendered
+    interrupt.raise_on_signal()  # the pool is stopped by this process's KeyboardInterrupt, below
     context = multiprocessing.get_context("spawn")  # Dr.Jit's threads do not survive fork
     pool = context.Pool(workers, _init_worker, (settings.resolution, settings.spp, settings.variant))
     try:

@@ -12,8 +12,9 @@ has not ended within GRACE seconds (it is inside a compiled call), the watchdog 
 removes the temporary files that `files` registered, and ends the process with `os._exit`, which
 runs no more Python code and no teardown. A second Ctrl-C ends it at once. Every output is written
 under a registered temporary name and renamed only when complete, and a dataset's done flag is set
-only after its image row, so ending the process at any bytecode loses nothing finished. Library
-code called in-process (tests, `CliRunner`) keeps Python's own KeyboardInterrupt.
+only after its image row, so ending the process at any bytecode loses nothing finished. Work that
+stops child processes itself (a dataset's rendering pool) asks for KeyboardInterrupt back
+(`raise_on_signal`). Library code called in-process (tests, `CliRunner`) keeps Python's own.
 
 Only the standard library is imported here: `install` runs before the command line's own imports,
 so that a Ctrl-C during start-up is as quiet as one during the work.
@@ -93,6 +94,17 @@ def install() -> None:
         signal.signal(number, lambda *_: exit_now())
     sys.unraisablehook = _unraisable
     threading.Thread(target=_watch, args=(read,), name="matfit-interrupt", daemon=True).start()
+
+
+def raise_on_signal() -> None:
+    """Makes Ctrl-C and `kill` raise KeyboardInterrupt in the main thread again, for work that must stop children itself.
+
+    A dataset's rendering processes are stopped by the parent's KeyboardInterrupt (`pool.terminate`);
+    ended abruptly instead, they print tracebacks from their broken pipes.
+    """
+    if threading.current_thread() is threading.main_thread():
+        for number in STOPPING:
+            signal.signal(number, signal.default_int_handler)
 
 
 def _unraisable(unraisable, default=sys.unraisablehook) -> None:
