@@ -121,6 +121,7 @@ class Comparison:
     exposure: float  # the factor Cycles' images were multiplied by
     rmse: list[float]  # whole image, 0-255 sRGB
     rmse_sphere: list[float]  # sphere's silhouette only
+    noise: list[float]  # Mitsuba against Mitsuba with another seed, whole image: the noise floor
     resolution: int
     spp: int
 
@@ -130,13 +131,15 @@ def compare(names: list[str], materials: list[np.ndarray], resolution: int = 64,
     cycles = render_scripts([export.blender_script(values) for values in materials], resolution, spp, blender=blender)
     renderer = Renderer(resolution, spp, variant)
     mitsuba = np.stack([renderer.render(values, seed=0) for values in materials])
+    again = np.stack([renderer.render(values, seed=1) for values in materials])
     mask = sphere_mask(resolution)
     exposure = float(mitsuba[:, ~mask].mean() / max(cycles[:, ~mask].mean(), 1e-12))
     cycles = cycles * exposure
     encoded_m, encoded_c = images.srgb_encode(mitsuba), images.srgb_encode(cycles)
     rmse = [images.rmse(a, b) for a, b in zip(encoded_m, encoded_c, strict=True)]
     rmse_sphere = [images.rmse(a[mask], b[mask]) for a, b in zip(encoded_m, encoded_c, strict=True)]
-    return Comparison(list(names), mitsuba, cycles, exposure, rmse, rmse_sphere, resolution, spp)
+    noise = [images.rmse(a, images.srgb_encode(b)) for a, b in zip(encoded_m, again, strict=True)]
+    return Comparison(list(names), mitsuba, cycles, exposure, rmse, rmse_sphere, noise, resolution, spp)
 
 
 def table(comparison: Comparison, targets: dict[str, float] | None = None) -> str:
@@ -146,13 +149,13 @@ def table(comparison: Comparison, targets: dict[str, float] | None = None) -> st
         f"Cycles (Blender {comparison.resolution} px, {comparison.spp} spp) against Mitsuba ({comparison.spp} spp), "
         f"exposure factor {comparison.exposure:.4f} for every material (matched on the floor and backdrop).",
         "",
-        "| material | RMSE, whole image | RMSE, sphere only | target |",
-        "|---|---|---|---|",
+        "| material | RMSE, whole image | RMSE, sphere only | noise floor (Mitsuba, two seeds) | target |",
+        "|---|---|---|---|---|",
     ]
-    for name, whole, sphere in zip(comparison.names, comparison.rmse, comparison.rmse_sphere, strict=True):
+    for name, whole, sphere, noise in zip(comparison.names, comparison.rmse, comparison.rmse_sphere, comparison.noise, strict=True):
         target = targets.get(name)
         verdict = "" if target is None else f"<= {target:g} ({'met' if whole <= target else 'missed'})"
-        lines.append(f"| {name} | {whole:.2f} | {sphere:.2f} | {verdict} |")
+        lines.append(f"| {name} | {whole:.2f} | {sphere:.2f} | {noise:.2f} | {verdict} |")
     return "\n".join(lines) + "\n"
 
 

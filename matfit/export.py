@@ -72,27 +72,56 @@ def mitsuba_xml(values: np.ndarray) -> str:
     return ElementTree.tostring(root, encoding="unicode") + "\n"
 
 
+# Rec. 709 luminance, as Mitsuba's `luminance` of an RGB colour: the Disney tints divide by it.
+LUMINANCE = np.array([0.212671, 0.715160, 0.072169])
+# Measured mapping constants (Cycles against Mitsuba on calibration materials that are not presets;
+# see the module docstring).
+SHEEN_WEIGHT_SCALE = 0.1
+SHEEN_ROUGHNESS = 0.5
+COAT_WEIGHT_SCALE = 0.5
+
+
+def eta_from_specular(specular: float) -> float:
+    """Returns Mitsuba's index of refraction for `specular`: F0 = 0.08 specular = ((eta - 1) / (eta + 1))^2."""
+    return float(2.0 / (1.0 - np.sqrt(0.08 * max(specular, 1e-3))) - 1.0)
+
+
+def disney_tint(base: np.ndarray, amount: float) -> np.ndarray:
+    """Returns 1 + amount x (base / luminance(base) - 1): the Disney tint of Mitsuba's spec_tint and sheen_tint."""
+    luminance = float(LUMINANCE @ base)
+    hue = base / luminance if luminance > 0 else np.ones(3)
+    return 1.0 + amount * (hue - 1.0)
+
+
 def blender_inputs(values: np.ndarray) -> tuple[dict, dict]:
     """Returns (Principled BSDF inputs, volume settings) for Blender 4.x, as plain data."""
     v = dict(zip(params.NAMES, (float(x) for x in values), strict=True))
     base = np.array([v["base_color_r"], v["base_color_g"], v["base_color_b"]])
+    metallic = v["metallic"]
 
-    def tint(amount: float) -> list[float]:
-        return [*map(float, 1.0 + amount * (base - 1.0)), 1.0]
+    def colour(rgb: np.ndarray) -> list[float]:
+        return [*map(float, rgb), 1.0]
 
+    # One Specular Tint serves Blender's dielectric F0 and its metal edge (F82) tint; Mitsuba's
+    # metal is plain Schlick on the base colour (edge tint white).
+    specular_tint = disney_tint(base, v["spec_tint"]) * (1.0 - metallic) + metallic
+    # Mitsuba's sheen belongs to its diffuse lobe: weighted by 1 - metallic, absent once spec_trans is 1.
+    sheen = v["sheen"] * (1.0 - metallic) if v["spec_trans"] < 1.0 else 0.0
     principled = {
-        "Base Color": [*map(float, base), 1.0],
-        "Metallic": v["metallic"],
+        "Base Color": colour(base),
+        "Metallic": metallic,
         "Roughness": v["roughness"],
         "Anisotropic": v["anisotropic"],
-        "Specular IOR Level": v["specular"],
-        "Specular Tint": tint(v["spec_tint"]),
-        "Sheen Weight": v["sheen"],
-        "Sheen Tint": tint(v["sheen_tint"]),
-        "Coat Weight": v["clearcoat"],
-        "Coat Roughness": 0.1 + (0.001 - 0.1) * v["clearcoat_gloss"],
+        "IOR": eta_from_specular(v["specular"]),
+        "Specular IOR Level": 0.5,
+        "Specular Tint": colour(specular_tint),
+        "Sheen Weight": SHEEN_WEIGHT_SCALE * sheen,
+        "Sheen Roughness": SHEEN_ROUGHNESS,
+        "Sheen Tint": colour(disney_tint(base, v["sheen_tint"])),
+        "Coat Weight": COAT_WEIGHT_SCALE * v["clearcoat"],
+        "Coat Roughness": float(np.sqrt(0.1 + (0.001 - 0.1) * v["clearcoat_gloss"])),
+        "Coat IOR": 1.5,
         "Transmission Weight": v["spec_trans"],
-        "IOR": 1.5,
     }
     sigma_t, albedo = params.medium_coefficients(values)
     sigma_s, sigma_a = albedo * sigma_t, (1.0 - albedo) * sigma_t
@@ -107,45 +136,108 @@ def blender_inputs(values: np.ndarray) -> tuple[dict, dict]:
     return principled, volume
 
 
-BLENDER_TEMPLATE = '''"""Builds the matfit material in Blender 4.x: run in Blender's Text Editor or `blender -P this.py`.
+BLENDER_TEMPLATE = '''"""The matfit material "__NAME__" for Blender 4.x (made for 4.5): a Principled BSDF, and Volume
+Absorption + Volume Scatter for the interior medium.
 
-Creates (or replaces) the material "{name}" and assigns it to the selected objects.
+Run it from Blender's Text Editor (Text > Run Script) with the meshes to shade selected, or from a
+shell: `blender scene.blend --background --python this.py` (the objects selected in scene.blend).
+It creates (or rebuilds) the material "__NAME__" and puts it in every material slot of the selected
+meshes, linked to the object (slot link "Object"), so that other objects sharing a mesh keep their
+materials; a selected mesh without slots gets one. Nothing else is changed.
+
+How matfit's parameters (Mitsuba 3's Disney-style `principled` BSDF) were mapped:
+- base colour, metallic, roughness, anisotropic, spec_trans: the same values (roughness squared is
+  the GGX alpha in both); distribution GGX, since Mitsuba's is single-scattering GGX.
+- IOR: Mitsuba's index of refraction from `specular` (F0 = 0.08 specular, 0.5 -> 1.5), for the
+  reflection and the refraction alike; Specular IOR Level stays at 0.5.
+- Specular Tint, Sheen Tint: Disney's tints, white mixed towards base colour / luminance.
+- Sheen Weight = __SHEEN_SCALE__ x sheen x (1 - metallic) (Mitsuba's sheen belongs to its diffuse
+  lobe), Sheen Roughness __SHEEN_ROUGHNESS__; Coat Weight = __COAT_SCALE__ x clearcoat, Coat Roughness =
+  the square root of Disney's clearcoat alpha (0.1 at gloss 0 to 0.001 at gloss 1), Coat IOR 1.5.
+- Medium: absorption and scattering coefficients as in Mitsuba, per unit of matfit's sphere radius;
+  set OBJECT_RADIUS to your object's radius (scene units) to keep the look on a larger object.
+
+Where Blender's Principled BSDF differs by design (no mapping can fix it):
+- diffuse: Blender's is Lambertian; Disney's brightens rough surfaces at grazing angles
+  (retro-reflection) and darkens smooth ones;
+- sheen: Blender's is a microfibre layer, Disney's a Schlick-weighted term added to the diffuse;
+- coat: Blender's is a dielectric layer that also dims the base beneath it, Disney's an added
+  GTR1 lobe with longer tails;
+- Specular Tint also tints a metal's edges (F82) in Blender: Mitsuba's metals are plain Schlick, so
+  metals get white; a partly metallic material gets a mixture;
+- anisotropic highlights follow the tangent: Blender's default runs around the object's local Z
+  axis, matfit's sphere's around the axis pointing at the camera.
+How close it comes: `matfit blender-check` renders both (see matfit's README).
 """
 
 import bpy
 
-PRINCIPLED = {principled}
-VOLUME = {volume}
+NAME = "__NAME__"
+PRINCIPLED = __PRINCIPLED__
+VOLUME = __VOLUME__
+OBJECT_RADIUS = 1.0  # the medium's densities are per unit of matfit's sphere radius
 
-material = bpy.data.materials.get("{name}") or bpy.data.materials.new("{name}")
-material.use_nodes = True
-nodes, links = material.node_tree.nodes, material.node_tree.links
-nodes.clear()
-output = nodes.new("ShaderNodeOutputMaterial")
-bsdf = nodes.new("ShaderNodeBsdfPrincipled")
-for key, value in PRINCIPLED.items():
-    bsdf.inputs[key].default_value = value
-links.new(bsdf.outputs["BSDF"], output.inputs["Surface"])
-if PRINCIPLED["Transmission Weight"] > 0 and (VOLUME["absorption_density"] > 1e-6 or VOLUME["scatter_density"] > 1e-6):
-    absorption = nodes.new("ShaderNodeVolumeAbsorption")
-    absorption.inputs["Color"].default_value = VOLUME["absorption_color"]
-    absorption.inputs["Density"].default_value = VOLUME["absorption_density"]
-    scatter = nodes.new("ShaderNodeVolumeScatter")
-    scatter.inputs["Color"].default_value = VOLUME["scatter_color"]
-    scatter.inputs["Density"].default_value = VOLUME["scatter_density"]
-    scatter.inputs["Anisotropy"].default_value = VOLUME["anisotropy"]
-    mix = nodes.new("ShaderNodeAddShader")
-    links.new(absorption.outputs["Volume"], mix.inputs[0])
-    links.new(scatter.outputs["Volume"], mix.inputs[1])
-    links.new(mix.outputs["Shader"], output.inputs["Volume"])
-for obj in bpy.context.selected_objects:
-    if obj.type == "MESH":
-        obj.data.materials.clear()
-        obj.data.materials.append(material)
+
+def build_material():
+    """Returns the material NAME with its node tree rebuilt."""
+    material = bpy.data.materials.get(NAME) or bpy.data.materials.new(NAME)
+    material.use_nodes = True
+    nodes, links = material.node_tree.nodes, material.node_tree.links
+    nodes.clear()
+    output = nodes.new("ShaderNodeOutputMaterial")
+    bsdf = nodes.new("ShaderNodeBsdfPrincipled")
+    bsdf.distribution = "GGX"
+    for key, value in PRINCIPLED.items():
+        bsdf.inputs[key].default_value = value
+    links.new(bsdf.outputs["BSDF"], output.inputs["Surface"])
+    if PRINCIPLED["Transmission Weight"] > 0 and max(VOLUME["absorption_density"], VOLUME["scatter_density"]) > 1e-6:
+        absorption = nodes.new("ShaderNodeVolumeAbsorption")
+        absorption.inputs["Color"].default_value = VOLUME["absorption_color"]
+        absorption.inputs["Density"].default_value = VOLUME["absorption_density"] / OBJECT_RADIUS
+        scatter = nodes.new("ShaderNodeVolumeScatter")
+        scatter.inputs["Color"].default_value = VOLUME["scatter_color"]
+        scatter.inputs["Density"].default_value = VOLUME["scatter_density"] / OBJECT_RADIUS
+        scatter.inputs["Anisotropy"].default_value = VOLUME["anisotropy"]
+        both = nodes.new("ShaderNodeAddShader")
+        links.new(absorption.outputs["Volume"], both.inputs[0])
+        links.new(scatter.outputs["Volume"], both.inputs[1])
+        links.new(both.outputs["Shader"], output.inputs["Volume"])
+        material.cycles.homogeneous_volume = True
+    return material
+
+
+def assign(material):
+    """Puts `material` in every slot of the selected meshes, linked to the object; returns them."""
+    meshes = [obj for obj in bpy.context.selected_objects if obj.type == "MESH"]
+    for obj in meshes:
+        if not obj.material_slots:
+            obj.data.materials.append(None)
+        for slot in obj.material_slots:
+            slot.link = "OBJECT"
+            slot.material = material
+    return meshes
+
+
+if __name__ == "__main__":
+    meshes = assign(build_material())
+    print(f"matfit: material {NAME!r} on {len(meshes)} selected mesh(es)" + ("" if meshes else "; select meshes and run again to assign it"))
 '''
 
 
 def blender_script(values: np.ndarray, name: str = "matfit") -> str:
     """Returns a Python script that builds the material in Blender 4.x."""
     principled, volume = blender_inputs(values)
-    return BLENDER_TEMPLATE.format(name=name, principled=repr(principled), volume=repr(volume))
+    if not name.isprintable() or '"' in name or "\\" in name:
+        raise ValueError(f"material name {name!r} must be printable, without quotes or backslashes")
+    replacements = {
+        "__NAME__": name,
+        "__PRINCIPLED__": repr(principled),
+        "__VOLUME__": repr(volume),
+        "__SHEEN_SCALE__": f"{SHEEN_WEIGHT_SCALE:g}",
+        "__SHEEN_ROUGHNESS__": f"{SHEEN_ROUGHNESS:g}",
+        "__COAT_SCALE__": f"{COAT_WEIGHT_SCALE:g}",
+    }
+    script = BLENDER_TEMPLATE
+    for marker, text in replacements.items():
+        script = script.replace(marker, text)
+    return script
