@@ -17,23 +17,25 @@ over the sphere's silhouette alone.
 
 from __future__ import annotations
 
+import collections
 import json
 import os
 import subprocess
-import sys
 import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import export, images, presets, scene
-from matfit.render import RenderError, Renderer
+from matfit import export, files, images, params, presets, scene
+from matfit.render import Renderer, RenderError
 
 ENVIRONMENT_VARIABLE = "MATFIT_BLENDER_PYTHON"
 DEFAULT_PYTHON = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".venv-blender", "bin", "python")
+TABLE_FILE, PICTURE_FILE = "blender-check.md", "blender-check.png"
 OPAQUE_PRESETS = ("gold", "silver", "copper", "red-plastic", "blue-rubber", "velvet")
 OPAQUE_TARGET = 8.0  # RMSE the opaque presets must stay under (issue 15)
-TIMEOUT_PER_IMAGE = 600.0
+PROGRESS_PREFIX = "matfit-blender:"  # the line blender_scene prints after each image
 
 
 class BlenderError(RenderError):
@@ -58,8 +60,18 @@ def _command(blender: str, job: str) -> list[str]:
     return [blender, "--background", "--factory-startup", "--python", worker, "--", job]
 
 
-def render_scripts(scripts: list[str], resolution: int = 64, spp: int = 64, seed: int = 0, blender: str | None = None) -> np.ndarray:
-    """Returns Cycles renders (N, H, W, 3), linear float32, of the test scene with each material script applied."""
+def render_scripts(
+    scripts: list[str],
+    resolution: int = 64,
+    spp: int = 64,
+    seed: int = 0,
+    blender: str | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> np.ndarray:
+    """Returns Cycles renders (N, H, W, 3), linear float32, of the test scene with each material script applied.
+
+    `progress` receives Blender's one line per finished image; Ctrl-C stops Blender too.
+    """
     executable = find_blender(blender)
     with tempfile.TemporaryDirectory(prefix="matfit-blender-") as folder:
         paths = []
@@ -70,19 +82,24 @@ def render_scripts(scripts: list[str], resolution: int = 64, spp: int = 64, seed
         job = os.path.join(folder, "job.json")
         with open(job, "w") as file:
             json.dump({"resolution": resolution, "spp": spp, "seed": seed, "scripts": paths, "out": folder}, file)
+        tail: collections.deque[str] = collections.deque(maxlen=20)
         try:
-            result = subprocess.run(
+            with subprocess.Popen(
                 _command(executable, job),
-                capture_output=True,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
                 text=True,
-                timeout=TIMEOUT_PER_IMAGE * max(1, len(scripts)),
                 env={**os.environ, "PYTHONNOUSERSITE": "1"},
-            )
-        except (OSError, subprocess.TimeoutExpired) as error:
-            raise BlenderError(f"cannot run Blender ({executable}): {error}") from None
-        if result.returncode != 0:
-            lines = [line for line in (result.stderr + result.stdout).splitlines() if line.strip()]
-            raise BlenderError(f"Blender ({executable}) failed: {lines[-1] if lines else f'exit code {result.returncode}'}")
+            ) as process:
+                for line in process.stdout:
+                    tail.append(line.rstrip())
+                    if progress is not None and line.startswith(PROGRESS_PREFIX):
+                        progress(line.rstrip())
+        except OSError as error:
+            raise BlenderError(f"cannot run Blender ({executable}): {error.strerror or error}") from None
+        if process.returncode != 0:
+            errors = [line for line in tail if "Error" in line] or list(tail) or [f"exit code {process.returncode}"]
+            raise BlenderError(f"Blender ({executable}) failed: {errors[-1].strip()}")
         return np.stack([np.load(os.path.join(folder, f"{index}.npy")) for index in range(len(scripts))])
 
 
@@ -126,9 +143,18 @@ class Comparison:
     spp: int
 
 
-def compare(names: list[str], materials: list[np.ndarray], resolution: int = 64, spp: int = 256, blender: str | None = None, variant=None):
+def compare(
+    names: list[str],
+    materials: list[np.ndarray],
+    resolution: int = 64,
+    spp: int = 256,
+    blender: str | None = None,
+    variant: str | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> Comparison:
     """Returns the Comparison of Mitsuba and Cycles renders of `materials` (physical vectors (19,))."""
-    cycles = render_scripts([export.blender_script(values) for values in materials], resolution, spp, blender=blender)
+    scripts = [export.blender_script(values) for values in materials]
+    cycles = render_scripts(scripts, resolution, spp, blender=blender, progress=progress)
     renderer = Renderer(resolution, spp, variant)
     mitsuba = np.stack([renderer.render(values, seed=0) for values in materials])
     again = np.stack([renderer.render(values, seed=1) for values in materials])
@@ -178,27 +204,31 @@ def check(
     resolution: int = 64,
     spp: int = 256,
     blender: str | None = None,
-    variant=None,
+    variant: str | None = None,
+    progress: Callable[[str], None] | None = None,
 ) -> Comparison:
-    """Compares presets and params.json files in Cycles and Mitsuba; writes out/blender-check.md and .png."""
-    from matfit import params
+    """Compares presets and params.json files in Cycles and Mitsuba; writes out/blender-check.md and .png.
 
+    `names` None: every preset. Both files are written only at the end.
+    """
+    params_files = list(params_files or [])
     names = list(presets.PRESETS) if names is None else list(names)
     materials = [presets.preset(name) for name in names]
-    for path in params_files or []:
-        with open(path) as file:
-            materials.append(params.parse_params_json(file.read(), path))
+    for path in params_files:
+        try:
+            with open(path) as file:
+                text = file.read()
+        except (OSError, UnicodeDecodeError) as error:
+            raise params.ParameterError(f"cannot read {path}: {getattr(error, 'strerror', None) or error}") from None
+        materials.append(params.parse_params_json(text, path))
         names.append(os.path.splitext(os.path.basename(path))[0])
     if not materials:
-        raise BlenderError("nothing to compare: give presets or params.json files")
+        raise BlenderError("nothing to compare: give --preset NAME or --params FILE")
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise files.OutputError(f"--out {out} is a file: give a folder for the table and the picture")
     os.makedirs(out, exist_ok=True)
-    comparison = compare(names, materials, resolution, spp, blender, variant)
-    images.write(os.path.join(out, "blender-check.png"), picture(comparison))
-    from matfit import files
-
-    files.write_text(os.path.join(out, "blender-check.md"), table(comparison))
+    files.check_writable(os.path.join(out, TABLE_FILE))
+    comparison = compare(names, materials, resolution, spp, blender, variant, progress)
+    images.write(os.path.join(out, PICTURE_FILE), picture(comparison))
+    files.write_text(os.path.join(out, TABLE_FILE), table(comparison))
     return comparison
-
-
-if __name__ == "__main__":  # pragma: no cover - a quick look without the CLI
-    print(table(check(sys.argv[1] if len(sys.argv) > 1 else "blender-check")))

@@ -116,7 +116,8 @@ def _checker_material(name: str, description: dict):
     Color1 = color1 (measured: the other phase puts every cell in the wrong colour).
     """
     texture = description["reflectance"]
-    across, down, _ = dict(((op[0], op[1:]) for op in texture["to_uv"].operations))["scale"][0]
+    (operation, (across, down, _)) = texture["to_uv"].operations[0]  # scene.checker: one scale
+    assert operation == "scale", texture["to_uv"]
     material = bpy.data.materials.new(name)
     material.use_nodes = True
     nodes, links = material.node_tree.nodes, material.node_tree.links
@@ -240,7 +241,14 @@ def _render_settings(resolution: int, spp: int, seed: int) -> None:
     cycles.seed = seed
     cycles.use_adaptive_sampling = False
     cycles.use_denoising = False
-    for bounces in ("max_bounces", "diffuse_bounces", "glossy_bounces", "transmission_bounces", "volume_bounces", "transparent_max_bounces"):
+    for bounces in (
+        "max_bounces",
+        "diffuse_bounces",
+        "glossy_bounces",
+        "transmission_bounces",
+        "volume_bounces",
+        "transparent_max_bounces",
+    ):
         setattr(cycles, bounces, scene.MAX_DEPTH)
     cycles.caustics_reflective = cycles.caustics_refractive = True
     cycles.blur_glossy = 0.0
