@@ -156,8 +156,13 @@ def compare(
     scripts = [export.blender_script(values) for values in materials]
     cycles = render_scripts(scripts, resolution, spp, blender=blender, progress=progress)
     renderer = Renderer(resolution, spp, variant)
-    mitsuba = np.stack([renderer.render(values, seed=0) for values in materials])
-    again = np.stack([renderer.render(values, seed=1) for values in materials])
+    mitsuba, again = [], []
+    for index, values in enumerate(materials):
+        mitsuba.append(renderer.render(values, seed=0))
+        again.append(renderer.render(values, seed=1))
+        if progress is not None:
+            progress(f"matfit-mitsuba: rendered {index + 1}/{len(materials)} (twice, seeds 0 and 1)")
+    mitsuba, again = np.stack(mitsuba), np.stack(again)
     mask = sphere_mask(resolution)
     exposure = float(mitsuba[:, ~mask].mean() / max(cycles[:, ~mask].mean(), 1e-12))
     cycles = cycles * exposure

@@ -42,9 +42,13 @@ def main(script, report):
     for node in material.node_tree.nodes:
         inputs = {socket.name: value(socket) for socket in node.inputs if hasattr(socket, "default_value")}
         nodes[node.bl_idname] = {"inputs": inputs, "distribution": getattr(node, "distribution", None)}
-    links = sorted(f"{link.from_node.bl_idname}.{link.from_socket.name}->{link.to_node.bl_idname}.{link.to_socket.name}" for link in material.node_tree.links)
+    links = sorted(
+        f"{link.from_node.bl_idname}.{link.from_socket.name}->{link.to_node.bl_idname}.{link.to_socket.name}"
+        for link in material.node_tree.links
+    )
     slots = {
-        obj.name: [(slot.link, slot.material.name if slot.material else None) for slot in obj.material_slots] for obj in (bare, shared_a, shared_b)
+        obj.name: [(slot.link, slot.material.name if slot.material else None) for slot in obj.material_slots]
+        for obj in (bare, shared_a, shared_b)
     }
     mesh_materials = [m.name if m else None for m in shared_a.data.materials]
     with open(report, "w") as file:

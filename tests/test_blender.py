@@ -13,8 +13,8 @@ from matfit.cli import app
 
 try:
     BLENDER = blender.find_blender()
-except blender.BlenderError as error:
-    BLENDER, MISSING = None, str(error)
+except blender.BlenderError:
+    BLENDER = None
 needs_blender = pytest.mark.skipif(BLENDER is None, reason="bpy 4.5 is not installed: run `make blender` (.venv-blender)")
 INSPECT = os.path.join(os.path.dirname(__file__), "blender_inspect.py")
 
@@ -114,7 +114,9 @@ def test_exported_script_sets_every_input_on_selected_meshes_only(tmp_path, name
     principled, volume = export.blender_inputs(values)
     script, report = tmp_path / "mat.py", tmp_path / "report.json"
     script.write_text(export.blender_script(values))
-    subprocess.run([BLENDER, INSPECT, str(script), str(report)], check=True, capture_output=True, env={**os.environ, "PYTHONNOUSERSITE": "1"})
+    subprocess.run(
+        [BLENDER, INSPECT, str(script), str(report)], check=True, capture_output=True, env={**os.environ, "PYTHONNOUSERSITE": "1"}
+    )
     result = json.loads(report.read_text())
     assert result["version"].startswith("4.5")
     bsdf = result["nodes"]["ShaderNodeBsdfPrincipled"]
