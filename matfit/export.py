@@ -13,7 +13,7 @@ Blender (Principled BSDF of 4.x, made for 4.5; checked in Cycles by `matfit blen
 | matfit | Blender 4.x | how |
 |---|---|---|
 | base_color_r/g/b | Base Color | same linear RGB |
-| metallic, roughness, anisotropic | Metallic, Roughness, Anisotropic | same (alpha = roughness^2 and the same anisotropic aspect in both); distribution GGX, not Blender's default multiscatter GGX (rough gold: RMSE 2.9 against 25.7) |
+| metallic, roughness, anisotropic | Metallic, Roughness, Anisotropic (Diffuse Roughness 0) | same (alpha = roughness^2 and the same anisotropic aspect in both); distribution GGX, not Blender's default multiscatter GGX (rough gold: RMSE 2.9 against 25.7) |
 | specular | IOR | Mitsuba's eta from specular, F0 = 0.08 specular (0.5 -> 1.5), for reflection and refraction; Specular IOR Level 0.5 |
 | spec_tint | Specular Tint | Disney's tint: white + spec_tint x (base / luminance(base) - white), mixed to white by metallic (Blender also tints metal edges with it) |
 | sheen, sheen_tint | Sheen Weight, Sheen Tint, Sheen Roughness | SHEEN_WEIGHT_SCALE x sheen x (1 - metallic), none when spec_trans is 1; Disney's tint; roughness SHEEN_ROUGHNESS |
@@ -31,6 +31,10 @@ no sheen at all; weights 0.2-1 and roughness 0.1-0.8 were tried). For the coat, 
 clearcoat gives the smallest error (1.98 and 1.86, against 2.61 and 1.94 at 0.25 and 4.17 and 3.84
 at 1): Blender's coat at weight 1 adds as much light as Disney's, but in a sharper highlight, since
 Disney's GTR1 lobe has long tails.
+
+Blender's Diffuse Roughness (Oren-Nayar) does not stand in for Disney's rough diffuse: set to the
+roughness it made the sphere worse (RMSE 9.1 against 4.5 with Lambert on a grey of roughness
+0.9, 6.2 against 4.5 at 0.4), so it stays 0.
 
 What Blender's Principled BSDF does differently by design is listed in the script's own header
 (BLENDER_TEMPLATE): Lambertian diffuse, microfibre sheen, a layered coat, the metal edge tint, and
@@ -119,6 +123,7 @@ def blender_inputs(values: np.ndarray) -> tuple[dict, dict]:
         "Base Color": colour(base),
         "Metallic": metallic,
         "Roughness": v["roughness"],
+        "Diffuse Roughness": 0.0,
         "Anisotropic": v["anisotropic"],
         "IOR": eta_from_specular(v["specular"]),
         "Specular IOR Level": 0.5,
