@@ -27,8 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import export, files, images, params, presets, scene
-from matfit.render import Renderer, RenderError
+from matfit import export, files, images, presets, scene
+from matfit.errors import OutputError, RenderError
+from matfit.render import Renderer
 
 ENVIRONMENT_VARIABLE = "MATFIT_BLENDER_PYTHON"
 DEFAULT_PYTHON = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".venv-blender", "bin", "python")
@@ -48,7 +49,8 @@ def find_blender(explicit: str | None = None) -> str:
     if not (os.path.isfile(candidate) and os.access(candidate, os.X_OK)):
         raise BlenderError(
             f"no Blender at {candidate}: run `make blender` (bpy 4.5 in .venv-blender), "
-            f"or point --blender or ${ENVIRONMENT_VARIABLE} at a Python with bpy 4.5 or a Blender 4.5 executable"
+            f"or point --blender or ${ENVIRONMENT_VARIABLE} at a Python with bpy 4.5 or a Blender 4.5 executable",
+            field="blender",
         )
     return candidate
 
@@ -167,9 +169,9 @@ def compare(
     exposure = float(mitsuba[:, ~mask].mean() / max(cycles[:, ~mask].mean(), 1e-12))
     cycles = cycles * exposure
     encoded_m, encoded_c = images.srgb_encode(mitsuba), images.srgb_encode(cycles)
-    rmse = [images.rmse(a, b) for a, b in zip(encoded_m, encoded_c, strict=True)]
-    rmse_sphere = [images.rmse(a[mask], b[mask]) for a, b in zip(encoded_m, encoded_c, strict=True)]
-    noise = [images.rmse(a, images.srgb_encode(b)) for a, b in zip(encoded_m, again, strict=True)]
+    rmse = [float(x) for x in images.rmse(encoded_c, encoded_m)]
+    rmse_sphere = [float(x) for x in images.rmse(encoded_c, encoded_m, mask.astype(np.float64))]
+    noise = [float(x) for x in images.rmse(images.srgb_encode(again), encoded_m)]
     return Comparison(list(names), mitsuba, cycles, exposure, rmse, rmse_sphere, noise, resolution, spp)
 
 
@@ -220,20 +222,17 @@ def check(
     names = list(presets.PRESETS) if names is None else list(names)
     materials = [presets.preset(name) for name in names]
     for path in params_files:
-        try:
-            with open(path) as file:
-                text = file.read()
-        except (OSError, UnicodeDecodeError) as error:
-            raise params.ParameterError(f"cannot read {path}: {getattr(error, 'strerror', None) or error}") from None
-        materials.append(params.parse_params_json(text, path))
+        materials.append(presets.material(params_file=path))
         names.append(os.path.splitext(os.path.basename(path))[0])
     if not materials:
-        raise BlenderError("nothing to compare: give --preset NAME or --params FILE")
+        raise BlenderError("nothing to compare: give a preset or a params.json file", field="preset")
     if os.path.exists(out) and not os.path.isdir(out):
-        raise files.OutputError(f"--out {out} is a file: give a folder for the table and the picture")
-    os.makedirs(out, exist_ok=True)
-    files.check_writable(os.path.join(out, TABLE_FILE))
+        raise OutputError(f"out {out} is a file: give a folder for the table and the picture", field="out")
+    existing = out if os.path.isdir(out) else os.path.dirname(os.path.abspath(out))
+    files.check_writable(os.path.join(existing, TABLE_FILE))
+    find_blender(blender)
     comparison = compare(names, materials, resolution, spp, blender, variant, progress)
+    os.makedirs(out, exist_ok=True)
     images.write(os.path.join(out, PICTURE_FILE), picture(comparison))
     files.write_text(os.path.join(out, TABLE_FILE), table(comparison))
     return comparison

@@ -106,24 +106,21 @@ def blender_check(
     ),
     preset: Annotated[list[str] | None, typer.Option(help="A preset to compare (repeat it); default: every preset.")] = None,
     params_file: Annotated[list[Path] | None, typer.Option("--params", help="A params.json to compare too (repeat it).")] = None,
-    size: Annotated[int, typer.Option(help="Image side in pixels.")] = 64,
-    spp: Annotated[int, typer.Option(help="Samples per pixel, in both renderers.")] = 256,
+    size: Annotated[int, typer.Option(min=16, max=512, help="Image side in pixels.")] = 64,
+    spp: Annotated[int, typer.Option(min=1, max=dataset.MAX_SPP, help="Samples per pixel, in both renderers.")] = 256,
     blender: Annotated[
         str | None, typer.Option(help="A Python with bpy 4.5 or a Blender 4.5 executable (default: .venv-blender, `make blender`).")
     ] = None,
-    variant: Annotated[str | None, typer.Option(help="Force a Mitsuba variant: llvm_ad_rgb or scalar_rgb.")] = None,
+    variant: VariantOption = None,
 ) -> None:
-    """Render materials with the exported Blender script in Cycles and with Mitsuba, and compare them."""
-    check_range("--size", size, 16, 512)
-    check_range("--spp", spp, 1, dataset.MAX_SPP)
-    from matfit import blender as blender_round_trip
+    """Render materials through the exported Blender script in Cycles and with Mitsuba, and compare them."""
+    from matfit import blender as round_trip
 
     paths = [str(path) for path in params_file or []]
-    comparison = blender_round_trip.check(
-        str(out), preset or None, paths, size, spp, blender, variant, lambda line: typer.echo(line, err=True)
-    )
-    typer.echo(blender_round_trip.table(comparison), nl=False)
-    typer.echo(f"wrote {out / blender_round_trip.TABLE_FILE} and {out / blender_round_trip.PICTURE_FILE}", err=True)
+    progress = functools.partial(typer.echo, err=True)
+    comparison = round_trip.check(str(out), preset or None, paths, size, spp, blender, variant and variant.value, progress)
+    typer.echo(round_trip.table(comparison), nl=False)
+    typer.echo(f"wrote {out / round_trip.TABLE_FILE} and {out / round_trip.PICTURE_FILE}", err=True)
 
 
 @command(name="params")

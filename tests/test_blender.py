@@ -97,7 +97,7 @@ def test_cli_bad_inputs_are_one_line_and_write_nothing(tmp_path):
     out = tmp_path / "check"
     result = runner.invoke(app, ["blender-check", "--out", str(out), "--preset", "gold", "--blender", str(tmp_path / "no-python")])
     assert result.exit_code == 2 and result.output.count("\n") == 1 and "error: no Blender" in result.output
-    assert not (out / blender.TABLE_FILE).exists()
+    assert not out.exists()
     result = runner.invoke(app, ["blender-check", "--out", str(out), "--preset", "gld"])
     assert result.exit_code == 2 and "unknown preset 'gld'" in result.output
     (tmp_path / "file").write_text("x")
