@@ -3,7 +3,7 @@ VENV ?= .venv
 PYTHON ?= python3
 BIN := $(VENV)/bin
 
-.PHONY: install llvm test lint format bench presets examples model clean
+.PHONY: install llvm blender test lint format bench presets examples model clean
 
 install: $(BIN)/matfit llvm
 	@$(BIN)/matfit --help >/dev/null && echo "matfit installed in $(VENV): run '$(BIN)/matfit --help' or activate with '. $(BIN)/activate'"
@@ -25,6 +25,21 @@ llvm: $(BIN)/matfit
 	else \
 		echo "notice: no libLLVM >= 19 and not root: matfit will render with the slower scalar_rgb variant (install libllvm19 for llvm_ad_rgb)"; \
 	fi
+
+# Blender as a Python module (bpy 4.5, about 1 GB) for `matfit blender-check` and its tests, in an
+# environment of its own: bpy 4.5 requires numpy < 2 and Python 3.11, matfit numpy >= 2.4. The pin
+# is the `blender` dependency group of pyproject.toml. Optional: without it those tests are skipped.
+BLENDER_VENV ?= .venv-blender
+BLENDER_PYTHON ?= python3.11
+
+blender: $(BLENDER_VENV)/.installed
+
+$(BLENDER_VENV)/.installed: pyproject.toml
+	$(BLENDER_PYTHON) -m venv $(BLENDER_VENV)
+	$(BLENDER_VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(BLENDER_VENV)/bin/python -m pip install --quiet --group blender
+	@touch $@
+	@echo "bpy $$($(BLENDER_VENV)/bin/python -c 'import bpy; print(bpy.app.version_string)') installed in $(BLENDER_VENV): matfit blender-check can run"
 
 test: $(BIN)/matfit
 	$(BIN)/ruff check matfit tests
@@ -60,4 +75,4 @@ examples: $(BIN)/matfit
 	$(BIN)/python -m matfit.examples data/examples
 
 clean:
-	rm -rf $(VENV) *.egg-info .pytest_cache .ruff_cache
+	rm -rf $(VENV) $(BLENDER_VENV) *.egg-info .pytest_cache .ruff_cache

@@ -99,6 +99,30 @@ def presets_sheet(
     typer.echo(f"wrote {output} ({len(presets.PRESETS)} presets)", err=True)
 
 
+@command(name="blender-check")
+def blender_check(
+    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for blender-check.md (table) and blender-check.png.")] = Path(
+        "blender-check"
+    ),
+    preset: Annotated[list[str] | None, typer.Option(help="A preset to compare (repeat it); default: every preset.")] = None,
+    params_file: Annotated[list[Path] | None, typer.Option("--params", help="A params.json to compare too (repeat it).")] = None,
+    size: Annotated[int, typer.Option(min=16, max=512, help="Image side in pixels.")] = 64,
+    spp: Annotated[int, typer.Option(min=1, max=dataset.MAX_SPP, help="Samples per pixel, in both renderers.")] = 256,
+    blender: Annotated[
+        str | None, typer.Option(help="A Python with bpy 4.5 or a Blender 4.5 executable (default: .venv-blender, `make blender`).")
+    ] = None,
+    variant: VariantOption = None,
+) -> None:
+    """Render materials through the exported Blender script in Cycles and with Mitsuba, and compare them."""
+    from matfit import blender as round_trip
+
+    paths = [str(path) for path in params_file or []]
+    progress = functools.partial(typer.echo, err=True)
+    comparison = round_trip.check(str(out), preset or None, paths, size, spp, blender, variant and variant.value, progress)
+    typer.echo(round_trip.table(comparison), nl=False)
+    typer.echo(f"wrote {out / round_trip.TABLE_FILE} and {out / round_trip.PICTURE_FILE}", err=True)
+
+
 @command(name="params")
 def parameters() -> None:
     """List the 19 shader parameters: name, range, default, unit and meaning."""

@@ -8,25 +8,37 @@ is written, even at 0: Mitsuba switches a lobe on when its parameter is present,
 made with every lobe present. (`mi.parser.write_string` drops the ids of top-level objects, so
 the XML is written here from the same plain data.)
 
-Blender (Principled BSDF of 4.x, whose inputs differ from the Disney/Mitsuba names):
+Blender (Principled BSDF of 4.x, made for 4.5; checked in Cycles by `matfit blender-check`):
 
 | matfit | Blender 4.x | how |
 |---|---|---|
 | base_color_r/g/b | Base Color | same linear RGB |
-| metallic, roughness | Metallic, Roughness | same |
-| anisotropic | Anisotropic | same |
-| specular | Specular IOR Level | same value (0.5 = IOR 1.5, Blender's default) |
-| spec_tint | Specular Tint | colour white + spec_tint x (base colour - white) |
-| sheen | Sheen Weight | same |
-| sheen_tint | Sheen Tint | colour white + sheen_tint x (base colour - white) |
-| clearcoat | Coat Weight | same |
-| clearcoat_gloss | Coat Roughness | 0.1 + (0.001 - 0.1) x gloss, Disney's clearcoat roughness |
-| spec_trans | Transmission Weight | same, IOR 1.5 |
-| medium (6 values) | Volume Absorption + Volume Scatter | sigma_a = (1 - albedo) sigma_t, sigma_s = albedo sigma_t, densities per scene unit (the test sphere has radius 1) |
+| metallic, roughness, anisotropic | Metallic, Roughness, Anisotropic (Diffuse Roughness 0) | same (alpha = roughness^2 and the same anisotropic aspect in both); distribution GGX, not Blender's default multiscatter GGX (rough gold: RMSE 2.9 against 25.7) |
+| specular | IOR | Mitsuba's eta from specular, F0 = 0.08 specular (0.5 -> 1.5), for reflection and refraction; Specular IOR Level 0.5 |
+| spec_tint | Specular Tint | Disney's tint: white + spec_tint x (base / luminance(base) - white), mixed to white by metallic (Blender also tints metal edges with it) |
+| sheen, sheen_tint | Sheen Weight, Sheen Tint, Sheen Roughness | SHEEN_WEIGHT_SCALE x sheen x (1 - metallic), none when spec_trans is 1; Disney's tint; roughness SHEEN_ROUGHNESS |
+| clearcoat, clearcoat_gloss | Coat Weight, Coat Roughness | COAT_WEIGHT_SCALE x clearcoat; sqrt of Disney's alpha 0.1 + (0.001 - 0.1) x gloss; Coat IOR 1.5 |
+| spec_trans | Transmission Weight | same (both tint by sqrt(base colour) per crossing) |
+| medium (6 values) | Volume Absorption + Volume Scatter | sigma_a = (1 - albedo) sigma_t, sigma_s = albedo sigma_t per unit of the sphere's radius; the script's OBJECT_RADIUS rescales them |
 
-What does not map exactly: Blender's principled model is not Disney's (its sheen and coat lobes
-differ, its Specular Tint is a colour), Blender's anisotropy direction follows the tangent of
-the mesh, and a coloured extinction is approximated by one density and a colour per node.
+The sheen and coat constants were measured: the lobe's own contribution (image with the lobe
+minus image without, 64 px, 512 spp, over the sphere) in Cycles against Mitsuba, on calibration
+materials that are not presets (grey and blue diffuse with sheen; two coated diffuse materials,
+gloss 1 and 0.3). Mitsuba's Disney sheen is faint (0.4-0.6 of 255 on average over the sphere);
+Blender's microfibre sheen at weight 1 and roughness 0.5 gives 9 times as much light: weight 0.1
+at roughness 0.5 gives 0.9 times and the smallest error (0.47 and 0.35, against 0.86 and 0.55 with
+no sheen at all; weights 0.2-1 and roughness 0.1-0.8 were tried). For the coat, weight 0.5 x
+clearcoat gives the smallest error (1.98 and 1.86, against 2.61 and 1.94 at 0.25 and 4.17 and 3.84
+at 1): Blender's coat at weight 1 adds as much light as Disney's, but in a sharper highlight, since
+Disney's GTR1 lobe has long tails.
+
+Blender's Diffuse Roughness (Oren-Nayar) does not stand in for Disney's rough diffuse: set to the
+roughness it made the sphere worse (RMSE 9.1 against 4.5 with Lambert on a grey of roughness
+0.9, 6.2 against 4.5 at 0.4), so it stays 0.
+
+What Blender's Principled BSDF does differently by design is listed in the script's own header
+(BLENDER_TEMPLATE): Lambertian diffuse, microfibre sheen, a layered coat, the metal edge tint, and
+the tangent that anisotropy follows.
 """
 
 from __future__ import annotations
@@ -72,27 +84,57 @@ def mitsuba_xml(values: np.ndarray) -> str:
     return ElementTree.tostring(root, encoding="unicode") + "\n"
 
 
+# Rec. 709 luminance, as Mitsuba's `luminance` of an RGB colour: the Disney tints divide by it.
+LUMINANCE = np.array([0.212671, 0.715160, 0.072169])
+# Measured mapping constants (Cycles against Mitsuba on calibration materials that are not presets;
+# see the module docstring).
+SHEEN_WEIGHT_SCALE = 0.1
+SHEEN_ROUGHNESS = 0.5
+COAT_WEIGHT_SCALE = 0.5
+
+
+def eta_from_specular(specular: float) -> float:
+    """Returns Mitsuba's index of refraction for `specular`: F0 = 0.08 specular = ((eta - 1) / (eta + 1))^2."""
+    return float(2.0 / (1.0 - np.sqrt(0.08 * max(specular, 1e-3))) - 1.0)
+
+
+def disney_tint(base: np.ndarray, amount: float) -> np.ndarray:
+    """Returns 1 + amount x (base / luminance(base) - 1): the Disney tint of Mitsuba's spec_tint and sheen_tint."""
+    luminance = float(LUMINANCE @ base)
+    hue = base / luminance if luminance > 0 else np.ones(3)
+    return 1.0 + amount * (hue - 1.0)
+
+
 def blender_inputs(values: np.ndarray) -> tuple[dict, dict]:
     """Returns (Principled BSDF inputs, volume settings) for Blender 4.x, as plain data."""
     v = dict(zip(params.NAMES, (float(x) for x in values), strict=True))
     base = np.array([v["base_color_r"], v["base_color_g"], v["base_color_b"]])
+    metallic = v["metallic"]
 
-    def tint(amount: float) -> list[float]:
-        return [*map(float, 1.0 + amount * (base - 1.0)), 1.0]
+    def colour(rgb: np.ndarray) -> list[float]:
+        return [*map(float, rgb), 1.0]
 
+    # One Specular Tint serves Blender's dielectric F0 and its metal edge (F82) tint; Mitsuba's
+    # metal is plain Schlick on the base colour (edge tint white).
+    specular_tint = disney_tint(base, v["spec_tint"]) * (1.0 - metallic) + metallic
+    # Mitsuba's sheen belongs to its diffuse lobe: weighted by 1 - metallic, absent once spec_trans is 1.
+    sheen = v["sheen"] * (1.0 - metallic) if v["spec_trans"] < 1.0 else 0.0
     principled = {
-        "Base Color": [*map(float, base), 1.0],
-        "Metallic": v["metallic"],
+        "Base Color": colour(base),
+        "Metallic": metallic,
         "Roughness": v["roughness"],
+        "Diffuse Roughness": 0.0,
         "Anisotropic": v["anisotropic"],
-        "Specular IOR Level": v["specular"],
-        "Specular Tint": tint(v["spec_tint"]),
-        "Sheen Weight": v["sheen"],
-        "Sheen Tint": tint(v["sheen_tint"]),
-        "Coat Weight": v["clearcoat"],
-        "Coat Roughness": 0.1 + (0.001 - 0.1) * v["clearcoat_gloss"],
+        "IOR": eta_from_specular(v["specular"]),
+        "Specular IOR Level": 0.5,
+        "Specular Tint": colour(specular_tint),
+        "Sheen Weight": SHEEN_WEIGHT_SCALE * sheen,
+        "Sheen Roughness": SHEEN_ROUGHNESS,
+        "Sheen Tint": colour(disney_tint(base, v["sheen_tint"])),
+        "Coat Weight": COAT_WEIGHT_SCALE * v["clearcoat"],
+        "Coat Roughness": float(np.sqrt(0.1 + (0.001 - 0.1) * v["clearcoat_gloss"])),
+        "Coat IOR": 1.5,
         "Transmission Weight": v["spec_trans"],
-        "IOR": 1.5,
     }
     sigma_t, albedo = params.medium_coefficients(values)
     sigma_s, sigma_a = albedo * sigma_t, (1.0 - albedo) * sigma_t
@@ -107,45 +149,108 @@ def blender_inputs(values: np.ndarray) -> tuple[dict, dict]:
     return principled, volume
 
 
-BLENDER_TEMPLATE = '''"""Builds the matfit material in Blender 4.x: run in Blender's Text Editor or `blender -P this.py`.
+BLENDER_TEMPLATE = '''"""The matfit material "__NAME__" for Blender 4.x (made for 4.5): a Principled BSDF, and Volume
+Absorption + Volume Scatter for the interior medium.
 
-Creates (or replaces) the material "{name}" and assigns it to the selected objects.
+Run it from Blender's Text Editor (Text > Run Script) with the meshes to shade selected, or from a
+shell: `blender scene.blend --background --python this.py` (the objects selected in scene.blend).
+It creates (or rebuilds) the material "__NAME__" and puts it in every material slot of the selected
+meshes, linked to the object (slot link "Object"), so that other objects sharing a mesh keep their
+materials; a selected mesh without slots gets one. Nothing else is changed.
+
+How matfit's parameters (Mitsuba 3's Disney-style `principled` BSDF) were mapped:
+- base colour, metallic, roughness, anisotropic, spec_trans: the same values (roughness squared is
+  the GGX alpha in both); distribution GGX, since Mitsuba's is single-scattering GGX.
+- IOR: Mitsuba's index of refraction from `specular` (F0 = 0.08 specular, 0.5 -> 1.5), for the
+  reflection and the refraction alike; Specular IOR Level stays at 0.5.
+- Specular Tint, Sheen Tint: Disney's tints, white mixed towards base colour / luminance.
+- Sheen Weight = __SHEEN_SCALE__ x sheen x (1 - metallic) (Mitsuba's sheen belongs to its diffuse
+  lobe), Sheen Roughness __SHEEN_ROUGHNESS__; Coat Weight = __COAT_SCALE__ x clearcoat, Coat Roughness =
+  the square root of Disney's clearcoat alpha (0.1 at gloss 0 to 0.001 at gloss 1), Coat IOR 1.5.
+- Medium: absorption and scattering coefficients as in Mitsuba, per unit of matfit's sphere radius;
+  set OBJECT_RADIUS to your object's radius (scene units) to keep the look on a larger object.
+
+Where Blender's Principled BSDF differs by design (no mapping can fix it):
+- diffuse: Blender's is Lambertian; Disney's brightens rough surfaces at grazing angles
+  (retro-reflection) and darkens smooth ones;
+- sheen: Blender's is a microfibre layer, Disney's a Schlick-weighted term added to the diffuse;
+- coat: Blender's is a dielectric layer that also dims the base beneath it, Disney's an added
+  GTR1 lobe with longer tails;
+- Specular Tint also tints a metal's edges (F82) in Blender: Mitsuba's metals are plain Schlick, so
+  metals get white; a partly metallic material gets a mixture;
+- anisotropic highlights follow the tangent: Blender's default runs around the object's local Z
+  axis, matfit's sphere's around the axis pointing at the camera.
+How close it comes: `matfit blender-check` renders both (see matfit's README).
 """
 
 import bpy
 
-PRINCIPLED = {principled}
-VOLUME = {volume}
+NAME = "__NAME__"
+PRINCIPLED = __PRINCIPLED__
+VOLUME = __VOLUME__
+OBJECT_RADIUS = 1.0  # the medium's densities are per unit of matfit's sphere radius
 
-material = bpy.data.materials.get("{name}") or bpy.data.materials.new("{name}")
-material.use_nodes = True
-nodes, links = material.node_tree.nodes, material.node_tree.links
-nodes.clear()
-output = nodes.new("ShaderNodeOutputMaterial")
-bsdf = nodes.new("ShaderNodeBsdfPrincipled")
-for key, value in PRINCIPLED.items():
-    bsdf.inputs[key].default_value = value
-links.new(bsdf.outputs["BSDF"], output.inputs["Surface"])
-if PRINCIPLED["Transmission Weight"] > 0 and (VOLUME["absorption_density"] > 1e-6 or VOLUME["scatter_density"] > 1e-6):
-    absorption = nodes.new("ShaderNodeVolumeAbsorption")
-    absorption.inputs["Color"].default_value = VOLUME["absorption_color"]
-    absorption.inputs["Density"].default_value = VOLUME["absorption_density"]
-    scatter = nodes.new("ShaderNodeVolumeScatter")
-    scatter.inputs["Color"].default_value = VOLUME["scatter_color"]
-    scatter.inputs["Density"].default_value = VOLUME["scatter_density"]
-    scatter.inputs["Anisotropy"].default_value = VOLUME["anisotropy"]
-    mix = nodes.new("ShaderNodeAddShader")
-    links.new(absorption.outputs["Volume"], mix.inputs[0])
-    links.new(scatter.outputs["Volume"], mix.inputs[1])
-    links.new(mix.outputs["Shader"], output.inputs["Volume"])
-for obj in bpy.context.selected_objects:
-    if obj.type == "MESH":
-        obj.data.materials.clear()
-        obj.data.materials.append(material)
+
+def build_material():
+    """Returns the material NAME with its node tree rebuilt."""
+    material = bpy.data.materials.get(NAME) or bpy.data.materials.new(NAME)
+    material.use_nodes = True
+    nodes, links = material.node_tree.nodes, material.node_tree.links
+    nodes.clear()
+    output = nodes.new("ShaderNodeOutputMaterial")
+    bsdf = nodes.new("ShaderNodeBsdfPrincipled")
+    bsdf.distribution = "GGX"
+    for key, value in PRINCIPLED.items():
+        bsdf.inputs[key].default_value = value
+    links.new(bsdf.outputs["BSDF"], output.inputs["Surface"])
+    if PRINCIPLED["Transmission Weight"] > 0 and max(VOLUME["absorption_density"], VOLUME["scatter_density"]) > 1e-6:
+        absorption = nodes.new("ShaderNodeVolumeAbsorption")
+        absorption.inputs["Color"].default_value = VOLUME["absorption_color"]
+        absorption.inputs["Density"].default_value = VOLUME["absorption_density"] / OBJECT_RADIUS
+        scatter = nodes.new("ShaderNodeVolumeScatter")
+        scatter.inputs["Color"].default_value = VOLUME["scatter_color"]
+        scatter.inputs["Density"].default_value = VOLUME["scatter_density"] / OBJECT_RADIUS
+        scatter.inputs["Anisotropy"].default_value = VOLUME["anisotropy"]
+        both = nodes.new("ShaderNodeAddShader")
+        links.new(absorption.outputs["Volume"], both.inputs[0])
+        links.new(scatter.outputs["Volume"], both.inputs[1])
+        links.new(both.outputs["Shader"], output.inputs["Volume"])
+        material.cycles.homogeneous_volume = True
+    return material
+
+
+def assign(material):
+    """Puts `material` in every slot of the selected meshes, linked to the object; returns them."""
+    meshes = [obj for obj in bpy.context.selected_objects if obj.type == "MESH"]
+    for obj in meshes:
+        if not obj.material_slots:
+            obj.data.materials.append(None)
+        for slot in obj.material_slots:
+            slot.link = "OBJECT"
+            slot.material = material
+    return meshes
+
+
+if __name__ == "__main__":
+    meshes = assign(build_material())
+    print(f"matfit: material {NAME!r} on {len(meshes)} selected mesh(es)" + ("" if meshes else "; select meshes and run again to assign it"))
 '''
 
 
 def blender_script(values: np.ndarray, name: str = "matfit") -> str:
     """Returns a Python script that builds the material in Blender 4.x."""
     principled, volume = blender_inputs(values)
-    return BLENDER_TEMPLATE.format(name=name, principled=repr(principled), volume=repr(volume))
+    if not name.isprintable() or '"' in name or "\\" in name:
+        raise ValueError(f"material name {name!r} must be printable, without quotes or backslashes")
+    replacements = {
+        "__NAME__": name,
+        "__PRINCIPLED__": repr(principled),
+        "__VOLUME__": repr(volume),
+        "__SHEEN_SCALE__": f"{SHEEN_WEIGHT_SCALE:g}",
+        "__SHEEN_ROUGHNESS__": f"{SHEEN_ROUGHNESS:g}",
+        "__COAT_SCALE__": f"{COAT_WEIGHT_SCALE:g}",
+    }
+    script = BLENDER_TEMPLATE
+    for marker, text in replacements.items():
+        script = script.replace(marker, text)
+    return script

@@ -46,4 +46,5 @@ def test_blender_script_is_python_with_the_mapped_values():
     sigma_s = volume["scatter_density"] * np.array(volume["scatter_color"][:3])
     np.testing.assert_allclose(sigma_a, (1 - albedo) * sigma_t, rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(sigma_s, albedo * sigma_t, rtol=1e-6, atol=1e-9)
-    assert principled["Coat Roughness"] == pytest.approx(0.1 + (0.001 - 0.1) * values[params.INDEX["clearcoat_gloss"]])
+    assert principled["Coat Roughness"] ** 2 == pytest.approx(0.1 + (0.001 - 0.1) * values[params.INDEX["clearcoat_gloss"]])
+    assert principled["IOR"] == pytest.approx(export.eta_from_specular(values[params.INDEX["specular"]]))
