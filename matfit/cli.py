@@ -139,13 +139,19 @@ def render_dataset(
     seed: Annotated[int, seed_option("Seed of the parameter sampling and of the renders' noise.")] = 0,
     workers: Annotated[int, typer.Option(help="Rendering processes, one thread each (default: one per core).")] = os.cpu_count() or 1,
     variant: VariantOption = None,
+    ray: Annotated[
+        str | None,
+        typer.Option(
+            help="Render as Ray tasks: 'local' (a Ray of --workers CPUs started for the run), 'auto', HOST:PORT. Needs .[cluster]."
+        ),
+    ] = None,
 ) -> None:
     """Render a training set of sampled materials; run it again to resume or to grow it."""
     from matfit.progress import Progress
 
     with Progress(f"rendering {out}") as progress:
         data, rendered, notices = dataset.render_dataset(
-            str(out), count, resolution, spp, seed, workers, variant and variant.value, progress.counter()
+            str(out), count, resolution, spp, seed, workers, variant and variant.value, progress.counter(), ray_address=ray
         )
     echo_lines(notices)
     typer.echo(f"{out}: {count}/{count} samples ({rendered} rendered now, {resolution} px, {spp} spp, {data.meta['variant']})", err=True)

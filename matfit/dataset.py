@@ -20,6 +20,8 @@ Asking for a larger count grows the arrays; asking for different settings is ref
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import json
 import multiprocessing
 import os
@@ -255,17 +257,20 @@ def _chunks(indices: np.ndarray, size: int) -> Iterator[np.ndarray]:
         yield indices[start : start + size]
 
 
-# One renderer per worker process, made by `_init_worker`.
+# One renderer per worker process, made by `init_worker`.
 _worker_renderer = None
 
 
-def _init_worker(resolution: int, spp: int, variant: str, in_pool: bool = True) -> None:
+def init_worker(resolution: int, spp: int, variant: str, ignore_interrupts: bool = True, new_session: bool = True) -> None:
+    """Makes this process's renderer, with one Dr.Jit thread; a worker also ignores Ctrl-C."""
     global _worker_renderer
-    if in_pool:
-        # Mitsuba catches SIGINT during a render, cancels it and returns an incomplete image. A
-        # worker in its own session never sees the terminal's Ctrl-C: the parent catches it and
-        # stops the pool, so no cancelled image is ever stored.
+    # Mitsuba catches SIGINT during a render, cancels it and returns an incomplete image. A worker
+    # ignores SIGINT and runs in its own session (a Ray worker already runs in a process group of
+    # its own), so it never sees the terminal's Ctrl-C: the parent catches it and stops the
+    # workers, so no cancelled image is ever stored.
+    if ignore_interrupts:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if new_session:
         os.setsid()
     from matfit.render import Renderer, mitsuba
 
@@ -279,24 +284,54 @@ def _init_worker(resolution: int, spp: int, variant: str, in_pool: bool = True) 
     _worker_renderer = Renderer(resolution, spp, variant)
 
 
-def _render_chunk(task: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+def render_chunk(task: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (indices, float16 images) of one task (indices, parameter values, render seeds)."""
     indices, values, seeds = task
     images = np.stack([_worker_renderer.render(v, seed=int(s)) for v, s in zip(values, seeds, strict=True)])
     return indices, images.astype(IMAGE_DTYPE)
+
+
+Task = tuple[np.ndarray, np.ndarray, np.ndarray]
+Results = Iterator[tuple[np.ndarray, np.ndarray]]
+
+
+@contextlib.contextmanager
+def _in_this_process(settings: Settings, tasks: list[Task], workers: int) -> Iterator[Results]:
+    init_worker(settings.resolution, settings.spp, settings.variant, ignore_interrupts=False, new_session=False)
+    yield map(render_chunk, tasks)
+
+
+@contextlib.contextmanager
+def _in_a_process_pool(settings: Settings, tasks: list[Task], workers: int) -> Iterator[Results]:
+    context = multiprocessing.get_context("spawn")  # Dr.Jit's threads do not survive fork
+    pool = context.Pool(workers, init_worker, (settings.resolution, settings.spp, settings.variant))
+    try:
+        yield pool.imap_unordered(render_chunk, tasks)
+    except BaseException:
+        pool.terminate()
+        raise
+    else:
+        pool.close()
+    finally:
+        pool.join()
 
 
 def render_missing(
     dataset: Dataset,
     workers: int = 1,
     progress: Callable[[int, int, float], None] | None = None,
+    ray_address: str | None = None,
 ) -> int:
     """Renders every sample not yet done; returns how many were rendered in this call.
 
     `workers` rendering processes do the work while this process stores the results, so that an
     interruption (Ctrl-C, or KeyboardInterrupt from `progress`) keeps everything written so far;
     the same call later continues from there. `workers=0` renders in this process instead (no
-    start-up cost, but a Ctrl-C that lands inside a render is swallowed by Mitsuba).
-    `progress(done, total, images_per_second)` is called after each chunk.
+    start-up cost, but a Ctrl-C that lands inside a render is swallowed by Mitsuba). With
+    `ray_address` the chunks are Ray tasks on that cluster instead (`matfit.cluster`; "local"
+    starts a Ray of `workers` CPUs for this call); this process still stores every result, so the
+    protocol and the bytes are the same. `progress(done, total, images_per_second)` is called
+    after each chunk.
     """
     settings = Settings(dataset.resolution, int(dataset.meta["spp"]), int(dataset.meta["seed"]), dataset.meta["variant"])
     missing = np.flatnonzero(dataset.done == 0)
@@ -305,40 +340,28 @@ def render_missing(
         for chunk in _chunks(missing, CHUNK)
     ]
     total, finished, rendered, started = dataset.count, dataset.finished, 0, time.perf_counter()
-
-    def store(indices: np.ndarray, images: np.ndarray) -> None:
-        nonlocal finished, rendered
-        dataset.images[indices] = images
-        dataset.images.flush()
-        dataset.done[indices] = 1
-        dataset.done.flush()
-        finished += len(indices)
-        rendered += len(indices)
-        if progress is not None:
-            progress(finished, total, rendered / max(time.perf_counter() - started, 1e-9))
-
     if progress is not None:
         progress(finished, total, 0.0)
     if not tasks:
         return 0
-    if workers == 0:
-        _init_worker(settings.resolution, settings.spp, settings.variant, in_pool=False)
-        for task in tasks:
-            store(*_render_chunk(task))
-        return rendered
-    interrupt.raise_on_signal()  # the pool is stopped by this process's KeyboardInterrupt, below
-    context = multiprocessing.get_context("spawn")  # Dr.Jit's threads do not survive fork
-    pool = context.Pool(workers, _init_worker, (settings.resolution, settings.spp, settings.variant))
-    try:
-        for indices, images in pool.imap_unordered(_render_chunk, tasks):
-            store(indices, images)
-    except BaseException:
-        pool.terminate()
-        raise
+    if ray_address is not None:
+        from matfit import cluster
+
+        executor = functools.partial(cluster.ray_results, address=ray_address)
     else:
-        pool.close()
-    finally:
-        pool.join()
+        executor = _in_a_process_pool if workers > 0 else _in_this_process
+    with executor(settings, tasks, workers) as results:
+        for indices, images in results:
+            # The image rows reach the disk before their done flags: a flag never claims an
+            # image that a kill -9 could still lose.
+            dataset.images[indices] = images
+            dataset.images.flush()
+            dataset.done[indices] = 1
+            dataset.done.flush()
+            finished += len(indices)
+            rendered += len(indices)
+            if progress is not None:
+                progress(finished, total, rendered / max(time.perf_counter() - started, 1e-9))
     return rendered
 
 
@@ -351,20 +374,26 @@ def render_dataset(
     workers: int = 1,
     variant: str | None = None,
     progress: Callable[[int, int, float], None] | None = None,
+    ray_address: str | None = None,
 ) -> tuple[Dataset, int, list[str]]:
     """Creates, resumes or grows the dataset at `path` to `count` rendered samples.
 
     Returns (the dataset, how many were rendered in this call, notices such as the renderer's
-    fallback). Every argument is checked before anything is written.
+    fallback). Every argument is checked before anything is written. With `ray_address` the
+    images are rendered as Ray tasks (`render_missing`).
     """
     from matfit import render
 
     if not 1 <= workers <= MAX_WORKERS:
         raise DatasetError(f"workers {workers} is out of range: use 1 to {MAX_WORKERS}", field="workers")
+    if ray_address is not None:
+        from matfit import cluster
+
+        cluster.check(ray_address)
     chosen, notice = render.choose_variant(variant)
     settings = Settings(resolution, spp, seed, chosen)
     settings.check()
     check_count(count)
     render.mitsuba(chosen)
     data = prepare(path, settings, count, render.versions())
-    return data, render_missing(data, workers, progress), [notice] if notice else []
+    return data, render_missing(data, workers, progress, ray_address), [notice] if notice else []

@@ -122,6 +122,9 @@ def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool):
 
     @jax.jit
     def train_step(state, x, y, key):
+        # Batches arrive as stored (float16 images): casting here, on the accelerator, is exact
+        # and 10-17x cheaper for the host than NumPy's cast (README: data loading).
+        x, y = x.astype(jnp.float32), y.astype(jnp.float32)
         weights, opt_state = state
         loss, grads = jax.value_and_grad(loss_fn)(weights, x, y, key)
         with jax.numpy_dtype_promotion("standard"):  # optax mixes Python floats with its int32 step count
@@ -301,7 +304,7 @@ def train_epoch(run: Run, train_step, state: Checkpoint, reporter: Reporter) -> 
     training, losses = (state.weights, state.opt_state), []
     for step in range(run.steps):
         batch = order[step * batch_size : (step + 1) * batch_size]
-        x, y = np.asarray(run.inputs[batch], np.float32), np.asarray(run.targets[batch], np.float32)
+        x, y = run.inputs[batch], run.targets[batch]
         training, loss = train_step(training, x, y, jax.random.fold_in(epoch_key, step))
         losses.append(loss)
         if step % 10 == 9 or step == run.steps - 1:

@@ -1,5 +1,7 @@
+import importlib.util
 import json
 import shutil
+import sys
 
 import numpy as np
 import pytest
@@ -108,6 +110,30 @@ def test_dataset_with_other_settings_is_refused(tmp_path):
     assert run("render-dataset", tmp_path / "d", "--count", 4, "--resolution", 16, "--spp", 2).exit_code == 0
     result = run("render-dataset", tmp_path / "d", "--count", 4, "--resolution", 32, "--spp", 2)
     assert_one_line_error(result, "rendered with resolution 16, not 32")
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("ray") is None, reason="Ray is an optional extra: pip install -e '.[cluster]' to run the Ray tests"
+)
+def test_ray_run_with_other_settings_is_refused(tmp_path):
+    assert run("render-dataset", tmp_path / "d", "--count", 4, "--resolution", 16, "--spp", 2).exit_code == 0
+    before = {name: (tmp_path / "d" / name).read_bytes() for name in ("meta.json", "images.npy", "done.npy")}
+    for option, value, message in (
+        ("--resolution", 32, "resolution 16, not 32"),
+        ("--spp", 4, "spp 2, not 4"),
+        ("--seed", 4, "seed 0, not 4"),
+    ):
+        settings = {"--resolution": 16, "--spp": 2, "--seed": 0, option: value}
+        arguments = [str(item) for pair in settings.items() for item in pair]
+        assert_one_line_error(run("render-dataset", tmp_path / "d", "--count", 8, *arguments, "--ray", "local"), message)
+    assert {name: (tmp_path / "d" / name).read_bytes() for name in before} == before
+
+
+def test_ray_without_the_extra_is_one_line(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # what `import ray` meets when the extra is not installed
+    result = run("render-dataset", tmp_path / "d", "--count", 4, "--resolution", 16, "--spp", 2, "--ray", "local")
+    assert_one_line_error(result, "--ray needs Ray", ".[cluster]")
+    assert not (tmp_path / "d").exists()
 
 
 @pytest.fixture(scope="module")
@@ -330,3 +356,16 @@ def test_fit_with_the_gradient_method_an_init_and_verification(trained, target, 
         run("fit", target, "-o", tmp_path / "p2.json", "--model", trained, "--init", tmp_path / "bad.json"), "out of range"
     )
     assert not (tmp_path / "p2.json").exists()
+
+
+@pytest.mark.skipif(
+    importlib.util.find_spec("ray") is None, reason="Ray is an optional extra: pip install -e '.[cluster]' to run the Ray tests"
+)
+@pytest.mark.parametrize(
+    ("address", "fragment"),
+    [("127.0.0.1:1", "no Ray answers at 127.0.0.1:1"), ("nowhere", "is not a Ray address: use local, auto, HOST:PORT")],
+)
+def test_unreachable_ray_is_one_line(tmp_path, address, fragment):
+    result = run("render-dataset", tmp_path / "d", "--count", 4, "--resolution", 16, "--spp", 2, "--ray", address)
+    assert_one_line_error(result, fragment, "local")
+    assert not (tmp_path / "d").exists()

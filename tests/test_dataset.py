@@ -1,9 +1,12 @@
+import importlib.util
 import json
+import logging
 import os
 import signal
 import subprocess
 import sys
 import time
+import warnings
 
 import numpy as np
 import pytest
@@ -12,6 +15,10 @@ from matfit import dataset, params, render
 from matfit.dataset import DatasetError, Settings
 
 VERSIONS = {"mitsuba": "test", "drjit": "test"}
+# The Ray tests need the optional extra `.[cluster]`.
+needs_ray = pytest.mark.skipif(
+    importlib.util.find_spec("ray") is None, reason="Ray is an optional extra: pip install -e '.[cluster]' to run the Ray tests"
+)
 
 
 @pytest.fixture(scope="module")
@@ -19,9 +26,9 @@ def settings(renderer):
     return Settings(resolution=16, spp=2, seed=3, variant=renderer.variant)
 
 
-def make(path, settings, count, workers=0, progress=None):
+def make(path, settings, count, workers=0, progress=None, ray_address=None):
     data = dataset.prepare(str(path), settings, count, VERSIONS)
-    dataset.render_missing(data, workers, progress)
+    dataset.render_missing(data, workers, progress, ray_address)
     return dataset.open_dataset(str(path))
 
 
@@ -87,13 +94,23 @@ def long_reference(tmp_path_factory, settings):
     return path
 
 
-@pytest.mark.parametrize(("stop", "code"), [(signal.SIGKILL, -signal.SIGKILL), (signal.SIGINT, 130)])
-def test_stopped_command_resumes_to_identical_bytes(tmp_path, long_reference, stop, code):
+@pytest.mark.parametrize(
+    ("stop", "code", "first", "again"),
+    [
+        pytest.param(signal.SIGKILL, -signal.SIGKILL, [], [], id="SIGKILL"),
+        pytest.param(signal.SIGINT, 130, [], [], id="SIGINT"),
+        # The driver killed, and the local Ray it started with it; the same command resumes.
+        pytest.param(signal.SIGKILL, -signal.SIGKILL, ["--ray", "local"], ["--ray", "local"], marks=needs_ray, id="ray-SIGKILL"),
+        # Ctrl-C of a Ray run; the local pool may finish what Ray started.
+        pytest.param(signal.SIGINT, 130, ["--ray", "local"], [], marks=needs_ray, id="ray-SIGINT"),
+    ],
+)
+def test_stopped_command_resumes_to_identical_bytes(tmp_path, long_reference, stop, code, first, again):
     """kill -9 or Ctrl-C: nothing finished is lost, and the same command completes the dataset."""
     target = tmp_path / "data"
-    settings = ["--count", "300", "--resolution", "16", "--spp", "8", "--seed", "3"]
+    settings = ["--count", "300", "--resolution", "16", "--spp", "8", "--seed", "3", "--workers", "2"]
     command = [sys.executable, "-m", "matfit", "render-dataset", str(target), *settings]
-    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen([*command, *first], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         done = target / "done.npy"
@@ -107,7 +124,7 @@ def test_stopped_command_resumes_to_identical_bytes(tmp_path, long_reference, st
         assert "run the same command to resume" in error and "Traceback" not in error
     finished = int(np.load(target / "done.npy").sum())
     assert finished < 300, "the run finished before it could be stopped; the test needs a slower render"
-    result = subprocess.run(command, capture_output=True, text=True, check=False)
+    result = subprocess.run([*command, *again], capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stderr
     assert array_bytes(target) == array_bytes(long_reference)
 
@@ -189,3 +206,71 @@ def test_corrupt_datasets_name_the_fix(tmp_path, reference):
     os.truncate(tmp_path / "images.npy", 1000)
     with pytest.raises(DatasetError, match=r"images\.npy is missing or corrupt"):
         dataset.open_dataset(str(tmp_path))
+
+
+@pytest.fixture(scope="module")
+def local_ray():
+    """A Ray of 2 CPUs in this process, which `render_missing(ray_address=...)` then uses."""
+    import ray
+
+    with warnings.catch_warnings():
+        # Ray starts its processes with fork + exec; JAX, running in this test process, warns
+        # about any fork (the child here executes another program at once).
+        warnings.filterwarnings("ignore", "os.fork", RuntimeWarning)
+        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False, logging_level=logging.ERROR)
+    yield ray
+    ray.shutdown()
+
+
+def descendants(pid):
+    """Returns the ids of every process below `pid`, from /proc."""
+    parents = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                with open(f"/proc/{entry}/stat") as file:
+                    parents[int(entry)] = int(file.read().rsplit(")", 1)[1].split()[1])
+            except OSError:
+                continue
+    found, frontier = set(), {pid}
+    while frontier:
+        frontier = {child for child, parent in parents.items() if parent in frontier} - found
+        found |= frontier
+    return found
+
+
+def command_line(pid):
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as file:
+            return file.read()
+    except OSError:
+        return b""
+
+
+@needs_ray
+def test_ray_gives_the_same_bytes(tmp_path, reference, settings, local_ray):
+    make(tmp_path, settings, 40, ray_address="local")
+    assert array_bytes(tmp_path) == array_bytes(reference)
+
+
+@needs_ray
+def test_killed_ray_worker_loses_nothing(tmp_path, long_reference, settings, local_ray):
+    """kill -9 of a Ray worker in the middle of a chunk: Ray renders the chunk again, same bytes."""
+    killed = []
+
+    def kill_a_busy_worker(done, total, rate):
+        if done >= 32 and not killed:
+            busy = [pid for pid in descendants(os.getpid()) if command_line(pid).startswith(b"ray::_render_task")]
+            if busy:
+                os.kill(busy[0], signal.SIGKILL)
+                killed.append(busy[0])
+
+    long_settings = Settings(16, 8, 3, settings.variant)
+    data = dataset.prepare(str(tmp_path), long_settings, 300, VERSIONS)
+    try:
+        dataset.render_missing(data, 2, kill_a_busy_worker, ray_address="local")
+    except DatasetError as error:
+        assert "run the same command to resume" in str(error)
+    assert killed, "no Ray worker was busy rendering when the test looked for one"
+    dataset.render_missing(dataset.open_dataset(str(tmp_path), writable=True), 2, ray_address="local")
+    assert array_bytes(tmp_path) == array_bytes(long_reference)
