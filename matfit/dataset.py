@@ -350,6 +350,8 @@ def render_missing(
         executor = functools.partial(cluster.ray_results, address=ray_address)
     else:
         executor = _in_a_process_pool if workers > 0 else _in_this_process
+    if executor is not _in_this_process:
+        interrupt.raise_on_signal()  # the pool or Ray is stopped by this process's KeyboardInterrupt
     with executor(settings, tasks, workers) as results:
         for indices, images in results:
             # The image rows reach the disk before their done flags: a flag never claims an
