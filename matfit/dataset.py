@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import files, interrupt, params
+from matfit import files, interrupt, params, scene
 from matfit.errors import DatasetError
 
 FORMAT = "matfit-dataset"
@@ -116,6 +116,7 @@ def _meta(settings: Settings, count: int, versions: dict) -> dict:
         "spp": settings.spp,
         "seed": settings.seed,
         "variant": settings.variant,
+        "integrator": scene.INTEGRATOR["type"],
         "versions": versions,
         "image_dtype": np.dtype(IMAGE_DTYPE).name,
         "images": "linear RGB, (count, resolution, resolution, 3)",
@@ -239,6 +240,11 @@ def prepare(path: str, settings: Settings, count: int, versions: dict) -> Datase
                 raise DatasetError(
                     f"{path} was rendered with {field} {theirs}, not {ours}: pass {flag} to add to it, or choose a new directory"
                 )
+        if old.meta.get("integrator") != scene.INTEGRATOR["type"]:
+            raise DatasetError(
+                f"{path} was rendered with integrator {old.meta.get('integrator')}, this matfit renders with "
+                f"{scene.INTEGRATOR['type']}: choose a new directory"
+            )
         if count < old.count:
             raise DatasetError(f"{path} already holds {old.count} samples: pass --count {old.count} or more")
         if count == old.count:
