@@ -200,9 +200,15 @@ def apply_in_batches(module: nn.Module, variables: dict, inputs: np.ndarray, bat
 
 
 def encoder_input(linear: np.ndarray) -> np.ndarray:
-    """Returns what every encoder sees of linear images (..., R, R, 3): box-filtered to
-    ENCODER_RESOLUTION, then sRGB-encoded, float32. R must be a multiple of ENCODER_RESOLUTION."""
-    return images.srgb_encode(images.box_downsample(linear, ENCODER_RESOLUTION))
+    """Returns what every encoder sees of linear images (..., R, R, 3): clipped to [0, 1], box-filtered
+    to ENCODER_RESOLUTION, then sRGB-encoded, float32. R must be a multiple of ENCODER_RESOLUTION.
+
+    Clipping comes first because a target to fit is a picture, already clipped: a training render's
+    HDR highlight averaged before clipping would show the encoder up to 0.12 brighter pixels than
+    the same render saved as a picture. Training, evaluation and fitting all call this function.
+    """
+    clipped = np.clip(np.asarray(linear, np.float32), 0.0, 1.0)
+    return images.srgb_encode(images.box_downsample(clipped, ENCODER_RESOLUTION))
 
 
 def architecture(name: str, resolution: int, decoder: Decoder | None = None) -> dict:

@@ -5,7 +5,7 @@ import jax
 import numpy as np
 import pytest
 
-from matfit import dataset, models, params, pipeline, train
+from matfit import dataset, images, models, params, pipeline, train
 from matfit.errors import DatasetError
 from matfit.train import Config, TrainingError
 
@@ -173,3 +173,12 @@ def test_encoder_input_box_filters_then_encodes():
     assert out.shape == (32, 32, 3)
     np.testing.assert_allclose(out[0, 0], [1.0, 0.7353569, 0.0], rtol=1e-6)
     assert out[0, 1].max() == 0.0
+
+
+def test_encoder_input_clips_before_averaging_as_a_saved_picture_does():
+    linear = np.zeros((64, 64, 3), np.float32)
+    linear[:2, :2, 0] = [[4.0, 0.0], [0.0, 0.0]]  # an HDR highlight in one of four pixels
+    rendered = models.encoder_input(linear)
+    saved = models.encoder_input(images.srgb_decode(images.srgb_encode(linear)))
+    np.testing.assert_allclose(rendered, saved, atol=1e-6)
+    np.testing.assert_allclose(rendered[0, 0, 0], images.srgb_encode(np.float32(0.25)), rtol=1e-6)
