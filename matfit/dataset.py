@@ -43,6 +43,9 @@ MAX_COUNT = 10_000_000
 MAX_WORKERS = 64
 CHUNK = 16
 ARRAYS = ("params.npy", "images.npy", "done.npy")
+# The scene without its sphere, for the refracting decoder: rendered once, clean.
+SCENE_FILE = "scene.npy"
+SCENE_SPP = 4096
 
 
 @dataclass(frozen=True)
@@ -101,6 +104,11 @@ class Dataset:
     def finished(self) -> int:
         """Returns how many samples have been rendered."""
         return int(np.count_nonzero(self.done))
+
+    def scene_image(self) -> np.ndarray | None:
+        """Returns the linear float32 (R, R, 3) render of the scene without its sphere, or None if not rendered."""
+        path = os.path.join(self.path, SCENE_FILE)
+        return np.load(path).astype(np.float32) if os.path.isfile(path) else None
 
     def unit_params(self) -> np.ndarray:
         """Returns every sample's parameters on the unit cube, float32 (count, 19)."""
@@ -291,6 +299,20 @@ def _render_chunk(task: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.n
     return indices, images.astype(IMAGE_DTYPE)
 
 
+def render_scene_image(dataset: Dataset, settings: Settings) -> None:
+    """Writes the dataset's render of the scene without its sphere, unless it is there already."""
+    path = os.path.join(dataset.path, SCENE_FILE)
+    if os.path.isfile(path):
+        return
+    from matfit.render import render_without_sphere
+
+    image = render_without_sphere(
+        settings.resolution, SCENE_SPP, settings.variant, seed=image_seed(settings.seed, 2**32 - 1)
+    )  # an index no sample has
+    with files.atomic_path(path) as temporary, open(temporary, "wb") as file:
+        np.save(file, image)
+
+
 def render_missing(
     dataset: Dataset,
     workers: int = 1,
@@ -302,9 +324,11 @@ def render_missing(
     interruption (Ctrl-C, or KeyboardInterrupt from `progress`) keeps everything written so far;
     the same call later continues from there. `workers=0` renders in this process instead (no
     start-up cost, but a Ctrl-C that lands inside a render is swallowed by Mitsuba).
-    `progress(done, total, images_per_second)` is called after each chunk.
+    `progress(done, total, images_per_second)` is called after each chunk. The scene without its
+    sphere (`SCENE_FILE`, `SCENE_SPP` samples) is rendered first, in this process, if missing.
     """
     settings = Settings(dataset.resolution, int(dataset.meta["spp"]), int(dataset.meta["seed"]), dataset.meta["variant"])
+    render_scene_image(dataset, settings)
     missing = np.flatnonzero(dataset.done == 0)
     tasks = [
         (chunk, np.asarray(dataset.params[chunk], dtype=np.float64), np.array([image_seed(settings.seed, int(i)) for i in chunk]))

@@ -125,10 +125,10 @@ def all_lobes_values() -> np.ndarray:
     return params.from_unit(np.full(params.COUNT, 0.5))
 
 
-def scene(resolution: int, spp: int, values: np.ndarray | None = None) -> dict:
-    """Returns the whole test scene as a plain dictionary for `render.load`."""
+def scene(resolution: int, spp: int, values: np.ndarray | None = None, sphere: bool = True) -> dict:
+    """Returns the whole test scene as a plain dictionary for `render.load` (without the sphere: what lies behind it)."""
     values = all_lobes_values() if values is None else values
-    return {
+    whole = {
         "type": "scene",
         "integrator": dict(INTEGRATOR),
         "sensor": {
@@ -167,3 +167,6 @@ def scene(resolution: int, spp: int, values: np.ndarray | None = None) -> dict:
             "interior": medium(values),
         },
     }
+    if not sphere:
+        del whole["object"]
+    return whole
