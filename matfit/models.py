@@ -210,7 +210,7 @@ class Decoder(nn.Module):
             transmittance = nn.sigmoid(field[..., :3])
             side = jnp.arange(self.resolution, dtype=x.dtype)
             pixel = jnp.stack(jnp.meshgrid(side, side, indexing="xy"), axis=-1)
-            seen = bilinear(scene, pixel + self.max_offset * jnp.tanh(field[..., 3:5]))  # (N, R, R, L, 3)
+            seen = bilinear(scene, pixel[None] + self.max_offset * jnp.tanh(field[..., 3:5]))  # (N, R, R, L, 3)
             # An einsum, not sum(mix * seen): XLA's CPU fusion of the broadcast product and the
             # reduction made the whole forward pass four times slower.
             blurred = jnp.einsum("nhwl,nhwlc->nhwc", nn.softmax(field[..., 5:], axis=-1), seen)

@@ -163,7 +163,7 @@ def test_bilinear_sampling_is_differentiable_in_the_position():
     gradient = jax.grad(lambda p: models.bilinear(image, p).sum())(position)
     step = 1e-2
     for axis in range(2):
-        shift = jnp.zeros(2).at[axis].set(step)
+        shift = jnp.zeros((1, 1, 1, 2)).at[..., axis].set(step)
         finite = (models.bilinear(image, position + shift).sum() - models.bilinear(image, position - shift).sum()) / (2 * step)
         np.testing.assert_allclose(gradient[0, 0, 0, axis], finite, rtol=1e-3)
 
