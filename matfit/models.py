@@ -199,14 +199,16 @@ class Decoder(nn.Module):
             x = upsample(x)
             for _ in range(self.convs_per_stage):
                 x = nn.gelu(nn.Conv(channels[stage], (3, 3))(coordinate_channels(x) if self.coordinates else x))
-        levels = len(self.blur_levels)
-        fields = 3 + 2 + levels if levels else 0  # transmittance, offset, blur mix: smooth, made at half resolution
-        x = nn.Conv(4 * 3 + fields, (3, 3))(coordinate_channels(x) if self.coordinates else x)
+        features = coordinate_channels(x) if self.coordinates else x
         background = self.param("background", nn.initializers.zeros, (self.resolution, self.resolution, 3))
-        direct = nn.sigmoid(depth_to_space(x[..., :12]) + background[None])
+        direct = nn.sigmoid(depth_to_space(nn.Conv(4 * 3, (3, 3))(features)) + background[None])
+        levels = len(self.blur_levels)
         if levels:
             scene = self.variable("constants", "scene", jnp.zeros, (levels, self.resolution, self.resolution, 3)).value
-            field = upsample_bilinear(x[..., 12:])
+            # Transmittance, offset and blur mix are smooth: made at half resolution, upsampled. They
+            # start at zero (offset 0, transmittance 0.5, an even mix): the scene shows through
+            # unmoved, not scrambled by random offsets.
+            field = upsample_bilinear(nn.Conv(3 + 2 + levels, (3, 3), kernel_init=nn.initializers.zeros)(features))
             transmittance = nn.sigmoid(field[..., :3])
             side = jnp.arange(self.resolution, dtype=x.dtype)
             pixel = jnp.stack(jnp.meshgrid(side, side, indexing="xy"), axis=-1)
