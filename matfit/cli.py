@@ -259,13 +259,16 @@ def evaluate(
     card: Annotated[
         bool, typer.Option("--card/--no-card", help="Also write evaluation.json and MODEL.md into the model directory.")
     ] = False,
+    preset_spp: Annotated[
+        int, typer.Option(min=1, max=65536, help="Samples per pixel of the presets' clean renders (made once, kept beside the references).")
+    ] = 4096,
 ) -> None:
-    """Measure a model against clean references: decoder RMSE, each encoder's errors, best-of-n."""
+    """Measure a model against clean references: decoder RMSE (all, each third, each preset), each encoder's errors, best-of-n."""
     from matfit import evaluate as evaluate_module
     from matfit import models
 
     model = models.load_model(str(model_path))
-    evaluation = evaluate_module.evaluate(model, dataset.open_dataset(str(references)))
+    evaluation = evaluate_module.evaluate(model, dataset.open_dataset(str(references)), preset_spp)
     if card:
         echo_lines(f"wrote {path}" for path in evaluate_module.write_report(model, evaluation))
     typer.echo(evaluate_module.card(model, evaluation))

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import files, interrupt, params
+from matfit import files, interrupt, params, scene
 from matfit.errors import DatasetError
 
 FORMAT = "matfit-dataset"
@@ -45,6 +45,9 @@ MAX_COUNT = 10_000_000
 MAX_WORKERS = 64
 CHUNK = 16
 ARRAYS = ("params.npy", "images.npy", "done.npy")
+# The scene without its sphere, for the refracting decoder: rendered once, clean.
+SCENE_FILE = "scene.npy"
+SCENE_SPP = 4096
 
 
 @dataclass(frozen=True)
@@ -104,6 +107,11 @@ class Dataset:
         """Returns how many samples have been rendered."""
         return int(np.count_nonzero(self.done))
 
+    def scene_image(self) -> np.ndarray | None:
+        """Returns the linear float32 (R, R, 3) render of the scene without its sphere, or None if not rendered."""
+        path = os.path.join(self.path, SCENE_FILE)
+        return np.load(path).astype(np.float32) if os.path.isfile(path) else None
+
     def unit_params(self) -> np.ndarray:
         """Returns every sample's parameters on the unit cube, float32 (count, 19)."""
         return params.to_unit(self.params).astype(np.float32)
@@ -118,6 +126,7 @@ def _meta(settings: Settings, count: int, versions: dict) -> dict:
         "spp": settings.spp,
         "seed": settings.seed,
         "variant": settings.variant,
+        "integrator": scene.INTEGRATOR["type"],
         "versions": versions,
         "image_dtype": np.dtype(IMAGE_DTYPE).name,
         "images": "linear RGB, (count, resolution, resolution, 3)",
@@ -241,6 +250,11 @@ def prepare(path: str, settings: Settings, count: int, versions: dict) -> Datase
                 raise DatasetError(
                     f"{path} was rendered with {field} {theirs}, not {ours}: pass {flag} to add to it, or choose a new directory"
                 )
+        if old.meta.get("integrator") != scene.INTEGRATOR["type"]:
+            raise DatasetError(
+                f"{path} was rendered with integrator {old.meta.get('integrator')}, this matfit renders with "
+                f"{scene.INTEGRATOR['type']}: choose a new directory"
+            )
         if count < old.count:
             raise DatasetError(f"{path} already holds {old.count} samples: pass --count {old.count} or more")
         if count == old.count:
@@ -316,6 +330,20 @@ def _in_a_process_pool(settings: Settings, tasks: list[Task], workers: int) -> I
         pool.join()
 
 
+def render_scene_image(dataset: Dataset, settings: Settings) -> None:
+    """Writes the dataset's render of the scene without its sphere, unless it is there already."""
+    path = os.path.join(dataset.path, SCENE_FILE)
+    if os.path.isfile(path):
+        return
+    from matfit.render import render_without_sphere
+
+    image = render_without_sphere(
+        settings.resolution, SCENE_SPP, settings.variant, seed=image_seed(settings.seed, 2**32 - 1)
+    )  # an index no sample has
+    with files.atomic_path(path) as temporary, open(temporary, "wb") as file:
+        np.save(file, image)
+
+
 def render_missing(
     dataset: Dataset,
     workers: int = 1,
@@ -331,9 +359,11 @@ def render_missing(
     `ray_address` the chunks are Ray tasks on that cluster instead (`matfit.cluster`; "local"
     starts a Ray of `workers` CPUs for this call); this process still stores every result, so the
     protocol and the bytes are the same. `progress(done, total, images_per_second)` is called
-    after each chunk.
+    after each chunk. The scene without its sphere (`SCENE_FILE`, `SCENE_SPP` samples) is
+    rendered first, in this process, if missing.
     """
     settings = Settings(dataset.resolution, int(dataset.meta["spp"]), int(dataset.meta["seed"]), dataset.meta["variant"])
+    render_scene_image(dataset, settings)
     missing = np.flatnonzero(dataset.done == 0)
     tasks = [
         (chunk, np.asarray(dataset.params[chunk], dtype=np.float64), np.array([image_seed(settings.seed, int(i)) for i in chunk]))

@@ -62,10 +62,96 @@ def max_pool(x: jax.Array) -> jax.Array:
     return x.reshape(n, h // 2, 2, w // 2, 2, c).max(axis=(2, 4))
 
 
+def upsample_bilinear(x: jax.Array) -> jax.Array:
+    """Returns (N, H, W, C) maps doubled to (N, 2H, 2W, C) by bilinear interpolation (edges repeated).
+
+    Slices and sums only: cheap, and its gradient is as cheap.
+    """
+
+    def double(x: jax.Array, axis: int) -> jax.Array:
+        size = x.shape[axis]
+        padded = jnp.concatenate(
+            [jax.lax.slice_in_dim(x, 0, 1, axis=axis), x, jax.lax.slice_in_dim(x, size - 1, size, axis=axis)], axis=axis
+        )
+        before = jax.lax.slice_in_dim(padded, 0, size, axis=axis)
+        after = jax.lax.slice_in_dim(padded, 2, size + 2, axis=axis)
+        even, odd = 0.75 * x + 0.25 * before, 0.75 * x + 0.25 * after
+        return jnp.stack([even, odd], axis=axis + 1).reshape(*x.shape[:axis], 2 * size, *x.shape[axis + 1 :])
+
+    return double(double(x, 1), 2)
+
+
 def depth_to_space(x: jax.Array) -> jax.Array:
     """Returns (N, H, W, 4C) feature maps rearranged to (N, 2H, 2W, C) (a sub-pixel convolution's shuffle)."""
     n, h, w, c = x.shape
     return x.reshape(n, h, w, 2, 2, c // 4).transpose(0, 1, 3, 2, 4, 5).reshape(n, 2 * h, 2 * w, c // 4)
+
+
+def coordinate_channels(x: jax.Array) -> jax.Array:
+    """Returns (N, H, W, C) feature maps with two more channels: each pixel's x and y in [-1, 1]."""
+    n, h, w, _ = x.shape
+    ys = (jnp.arange(h, dtype=x.dtype) + 0.5) / h * 2.0 - 1.0
+    xs = (jnp.arange(w, dtype=x.dtype) + 0.5) / w * 2.0 - 1.0
+    grid = jnp.stack(jnp.meshgrid(xs, ys, indexing="xy"), axis=-1)
+    return jnp.concatenate([x, jnp.broadcast_to(grid, (n, h, w, 2))], axis=-1)
+
+
+def srgb_encode(linear: jax.Array) -> jax.Array:
+    """Returns sRGB-encoded values of linear ones, clipped to [0, 1], with finite gradients everywhere."""
+    x = jnp.clip(linear, 0.0, 1.0)
+    return jnp.where(x <= 0.0031308, 12.92 * x, 1.055 * jnp.maximum(x, 0.0031308) ** (1.0 / 2.4) - 0.055)
+
+
+def srgb_decode(encoded: jax.Array) -> jax.Array:
+    """Returns linear values of sRGB-encoded ones in [0, 1]."""
+    return jnp.where(encoded <= 0.04045, encoded / 12.92, ((jnp.maximum(encoded, 0.04045) + 0.055) / 1.055) ** 2.4)
+
+
+def bilinear(images: jax.Array, position: jax.Array) -> jax.Array:
+    """Returns images (L, H, W, C) sampled bilinearly at pixel positions (N, H', W', 2) as (N, H', W', L, C).
+
+    Positions are (x, y) in pixels (pixel centres at integers), clamped to the image; the result is
+    differentiable in the positions (the images are constants). One row gather per corner from the
+    images laid out as (H W, L C): on CPU, XLA gathers whole rows far faster than single values.
+    """
+    levels, height, width, channels = images.shape
+    table = jnp.moveaxis(images, 0, 2).reshape(height * width, levels * channels)
+    x = jnp.clip(position[..., 0], 0.0, width - 1.0)
+    y = jnp.clip(position[..., 1], 0.0, height - 1.0)
+    left = jnp.clip(jnp.floor(x), 0, width - 2)
+    top_row = jnp.clip(jnp.floor(y), 0, height - 2)
+    x0, y0 = left.astype(jnp.int32), top_row.astype(jnp.int32)
+    wx = (x - left)[..., None]
+    wy = (y - top_row)[..., None]
+
+    def at(row, column):
+        return jnp.take(table, row * width + column, axis=0)  # (N, H', W', L C)
+
+    top = at(y0, x0) * (1 - wx) + at(y0, x0 + 1) * wx
+    bottom = at(y0 + 1, x0) * (1 - wx) + at(y0 + 1, x0 + 1) * wx
+    return (top * (1 - wy) + bottom * wy).reshape(*position.shape[:-1], levels, channels)
+
+
+def blur_pyramid(linear: np.ndarray, sigmas: Sequence[float]) -> np.ndarray:
+    """Returns a linear image (H, W, C) blurred by Gaussians of each `sigmas` (pixels) as (L, H, W, C).
+
+    Sigma 0 is the image itself; edges repeat the border pixels.
+    """
+    linear = np.asarray(linear, np.float32)
+    levels = []
+    for sigma in sigmas:
+        if sigma <= 0:
+            levels.append(linear)
+            continue
+        radius = int(np.ceil(3 * sigma))
+        taps = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
+        taps /= taps.sum()
+        image = linear
+        for axis in (0, 1):
+            padded = np.pad(image, [(radius, radius) if a == axis else (0, 0) for a in range(3)], mode="edge")
+            image = sum(t * np.take(padded, np.arange(k, k + image.shape[axis]), axis=axis) for k, t in enumerate(taps))
+        levels.append(image.astype(np.float32))
+    return np.stack(levels)
 
 
 class Decoder(nn.Module):
@@ -73,11 +159,20 @@ class Decoder(nn.Module):
 
     Two dense layers to a 4 x 4 x `base_channels` map; then one stage per doubling up to half
     the resolution: nearest upsampling and `convs_per_stage` 3x3 convolutions with
-    `stage_channels[k]` filters (the last entry repeats for larger images); then a 3x3
-    convolution to 12 channels shuffled into the full-resolution RGB image (sub-pixel
-    convolution: no convolution runs at full resolution, where it would cost the most); plus a
-    learned per-pixel `background` logit image before the sigmoid: the scene around the object
-    hardly changes with the material, so the convolutions only learn what does.
+    `stage_channels[k]` filters (the last entry repeats for larger images; with `coordinates`,
+    each convolution also sees every pixel's x and y); then a 3x3 convolution shuffled into
+    full-resolution channels (sub-pixel convolution: no convolution runs at full resolution,
+    where it would cost the most), plus a learned per-pixel `background` logit image before the
+    sigmoid: the scene around the object hardly changes with the material, so the convolutions
+    only learn what does.
+
+    With `blur_levels` (Gaussian sigmas in pixels), the decoder draws refraction: the scene is
+    fixed, so what lies behind the sphere is known. The constant `scene` image (the test scene
+    rendered without the sphere, linear, blurred to each level; set it with `with_scene`) is
+    sampled per pixel at a predicted screen-space offset (up to `max_offset` pixels), blurred by a
+    predicted mix of levels (roughness), multiplied by a predicted transmittance (absorption) and
+    added in linear light to the direct layer (reflection, scattering, shadows):
+    image = sRGB(direct + transmittance x scene(pixel + offset)).
     """
 
     resolution: int = 64
@@ -85,6 +180,9 @@ class Decoder(nn.Module):
     base_channels: int = 128
     stage_channels: Sequence[int] = (64, 48, 32)
     convs_per_stage: int = 1
+    coordinates: bool = False
+    blur_levels: Sequence[float] = ()
+    max_offset: float = 32.0
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -100,11 +198,37 @@ class Decoder(nn.Module):
         for stage in range(stages):
             x = upsample(x)
             for _ in range(self.convs_per_stage):
-                x = nn.gelu(nn.Conv(channels[stage], (3, 3))(x))
-        x = depth_to_space(nn.Conv(4 * 3, (3, 3))(x))
+                x = nn.gelu(nn.Conv(channels[stage], (3, 3))(coordinate_channels(x) if self.coordinates else x))
+        features = coordinate_channels(x) if self.coordinates else x
         background = self.param("background", nn.initializers.zeros, (self.resolution, self.resolution, 3))
-        x = nn.sigmoid(x + background[None])
-        return x.reshape(*batch_shape, self.resolution, self.resolution, 3)
+        direct = nn.sigmoid(depth_to_space(nn.Conv(4 * 3, (3, 3))(features)) + background[None])
+        levels = len(self.blur_levels)
+        if levels:
+            scene = self.variable("constants", "scene", jnp.zeros, (levels, self.resolution, self.resolution, 3)).value
+            # Transmittance, offset and blur mix are smooth: made at half resolution, upsampled. They
+            # start at zero (offset 0, transmittance 0.5, an even mix): the scene shows through
+            # unmoved, not scrambled by random offsets.
+            field = upsample_bilinear(nn.Conv(3 + 2 + levels, (3, 3), kernel_init=nn.initializers.zeros)(features))
+            transmittance = nn.sigmoid(field[..., :3])
+            side = jnp.arange(self.resolution, dtype=x.dtype)
+            pixel = jnp.stack(jnp.meshgrid(side, side, indexing="xy"), axis=-1)
+            seen = bilinear(scene, pixel[None] + self.max_offset * jnp.tanh(field[..., 3:5]))  # (N, R, R, L, 3)
+            # An einsum, not sum(mix * seen): XLA's CPU fusion of the broadcast product and the
+            # reduction made the whole forward pass four times slower.
+            blurred = jnp.einsum("nhwl,nhwlc->nhwc", nn.softmax(field[..., 5:], axis=-1), seen)
+            direct = srgb_encode(srgb_decode(direct) + transmittance * blurred)
+        return direct.reshape(*batch_shape, self.resolution, self.resolution, 3)
+
+
+def with_scene(decoder: Decoder, variables: dict, scene_linear: np.ndarray) -> dict:
+    """Returns decoder variables holding the scene without the sphere (linear (R, R, 3)) blurred to its levels."""
+    if not decoder.blur_levels:
+        return variables
+    pyramid = blur_pyramid(scene_linear, decoder.blur_levels)
+    expected = (len(decoder.blur_levels), decoder.resolution, decoder.resolution, 3)
+    if pyramid.shape != expected:
+        raise ValueError(f"Shape mismatch: the scene image gives {pyramid.shape}, the decoder needs {expected}.")
+    return {**variables, "constants": {"scene": jnp.asarray(pyramid)}}
 
 
 @dataclass(frozen=True)
@@ -200,9 +324,15 @@ def apply_in_batches(module: nn.Module, variables: dict, inputs: np.ndarray, bat
 
 
 def encoder_input(linear: np.ndarray) -> np.ndarray:
-    """Returns what every encoder sees of linear images (..., R, R, 3): box-filtered to
-    ENCODER_RESOLUTION, then sRGB-encoded, float32. R must be a multiple of ENCODER_RESOLUTION."""
-    return images.srgb_encode(images.box_downsample(linear, ENCODER_RESOLUTION))
+    """Returns what every encoder sees of linear images (..., R, R, 3): clipped to [0, 1], box-filtered
+    to ENCODER_RESOLUTION, then sRGB-encoded, float32. R must be a multiple of ENCODER_RESOLUTION.
+
+    Clipping comes first because a target to fit is a picture, already clipped: a training render's
+    HDR highlight averaged before clipping would show the encoder up to 0.12 brighter pixels than
+    the same render saved as a picture. Training, evaluation and fitting all call this function.
+    """
+    clipped = np.clip(np.asarray(linear, np.float32), 0.0, 1.0)
+    return images.srgb_encode(images.box_downsample(clipped, ENCODER_RESOLUTION))
 
 
 def architecture(name: str, resolution: int, decoder: Decoder | None = None) -> dict:
@@ -215,6 +345,7 @@ def architecture(name: str, resolution: int, decoder: Decoder | None = None) -> 
         decoder = decoder or Decoder(resolution=resolution)
         fields = {field.name: getattr(decoder, field.name) for field in dataclasses.fields(Decoder) if field.name not in ("parent", "name")}
         fields["stage_channels"] = list(fields["stage_channels"])
+        fields["blur_levels"] = list(fields["blur_levels"])
         return {"kind": DECODER, **fields}
     if name not in ENCODER_NAMES:
         raise WeightsError(f"unknown network {name!r}: use decoder or encoder-1 to encoder-9")
@@ -227,6 +358,7 @@ def build(description: dict) -> nn.Module:
     kind = fields.pop("kind")
     if kind == DECODER:
         fields["stage_channels"] = tuple(fields["stage_channels"])
+        fields["blur_levels"] = tuple(fields.get("blur_levels", ()))
         return Decoder(**fields)
     return encoder(fields["arch"])
 

@@ -221,3 +221,14 @@ def render_file(values: np.ndarray, path: str, size: int, spp: int, seed: int = 
     renderer = Renderer(size, spp, variant)
     images.write(path, renderer.render(values, seed=seed))
     return Rendered(renderer.variant, [renderer.notice] if renderer.notice else [], time.perf_counter() - started)
+
+
+def render_without_sphere(resolution: int, spp: int, variant: str | None = None, seed: int = 0) -> np.ndarray:
+    """Returns the linear float32 (H, W, 3) image of the test scene without its sphere.
+
+    The refracting decoder looks this image up where a transmissive sphere shows what is behind it.
+    """
+    chosen, _ = choose_variant(variant)
+    mi = mitsuba(chosen)
+    empty = mi.load_dict(to_mitsuba(mi, scene.scene(resolution, spp, sphere=False)))
+    return np.array(mi.render(empty, seed=int(seed), spp=int(spp)), dtype=np.float32)

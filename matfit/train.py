@@ -111,22 +111,30 @@ def optimiser(config: Config, steps_per_epoch: int) -> optax.GradientTransformat
 
 
 def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool):
-    """Returns the jitted train_step(state, x, y, key) -> (state, loss) of a module; state = (weights, optimiser state)."""
+    """Returns the jitted train_step(state, constants, x, y, key) -> (state, loss) of a module.
 
-    def loss_fn(weights, x, y, key):
+    state = (weights, optimiser state); constants: the module's untrained variables (the refracting
+    decoder's scene image), passed in rather than captured so that they are not compiled in.
+    """
+
+    def loss_fn(weights, constants, x, y, key):
         if is_encoder:
             prediction = module.apply({"params": weights}, x, train=True, rngs={"dropout": key})
         else:
-            prediction = module.apply({"params": weights}, x)
+            prediction = module.apply({"params": weights, **constants}, x)
         return jnp.mean((prediction - y) ** 2)
 
     @jax.jit
+<<<<<<< HEAD
     def train_step(state, x, y, key):
         # Batches arrive as stored (float16 images): casting here, on the accelerator, is exact
         # and 10-17x cheaper for the host than NumPy's cast (README: data loading).
         x, y = x.astype(jnp.float32), y.astype(jnp.float32)
+=======
+    def train_step(state, constants, x, y, key):
+>>>>>>> glass
         weights, opt_state = state
-        loss, grads = jax.value_and_grad(loss_fn)(weights, x, y, key)
+        loss, grads = jax.value_and_grad(loss_fn)(weights, constants, x, y, key)
         with jax.numpy_dtype_promotion("standard"):  # optax mixes Python floats with its int32 step count
             updates, opt_state = tx.update(grads, opt_state, weights)
         return (optax.apply_updates(weights, updates), opt_state), loss
@@ -240,6 +248,11 @@ class Run:
     identity: dict
     checkpoint_file: str
     weights_file: str
+    constants: dict  # untrained variables: the refracting decoder's scene image, else none
+
+    def variables(self, weights: dict) -> dict:
+        """Returns the module's whole variables for trained `weights`."""
+        return {"params": weights, **self.constants}
 
     @property
     def network_index(self) -> int:
@@ -263,6 +276,15 @@ def create_run(name: str, data: Dataset, out: str, config: Config, decoder: mode
     steps = training_samples // config.batch_size
     root = jax.random.fold_in(jax.random.key(config.seed), NETWORKS.index(name))
     module = models.build(description)
+    constants = {}
+    if name == models.DECODER and module.blur_levels:
+        scene_image = data.scene_image()
+        if scene_image is None:
+            raise TrainingError(
+                f"{data.path} has no render of the scene without its sphere, which the refracting decoder needs: "
+                f"run the `matfit render-dataset {data.path}` command that made it once more to add it"
+            )
+        constants = models.with_scene(module, {}, scene_image)
     return Run(
         name,
         description,
@@ -277,6 +299,7 @@ def create_run(name: str, data: Dataset, out: str, config: Config, decoder: mode
         dataset_identity(data),
         checkpoint_file,
         weights_file,
+        constants,
     )
 
 
@@ -304,8 +327,13 @@ def train_epoch(run: Run, train_step, state: Checkpoint, reporter: Reporter) -> 
     training, losses = (state.weights, state.opt_state), []
     for step in range(run.steps):
         batch = order[step * batch_size : (step + 1) * batch_size]
+<<<<<<< HEAD
         x, y = run.inputs[batch], run.targets[batch]
         training, loss = train_step(training, x, y, jax.random.fold_in(epoch_key, step))
+=======
+        x, y = np.asarray(run.inputs[batch], np.float32), np.asarray(run.targets[batch], np.float32)
+        training, loss = train_step(training, run.constants, x, y, jax.random.fold_in(epoch_key, step))
+>>>>>>> glass
         losses.append(loss)
         if step % 10 == 9 or step == run.steps - 1:
             reporter.step(step + 1, float(loss), (step + 1) * batch_size / (time.perf_counter() - started))
@@ -321,7 +349,7 @@ def train_epoch(run: Run, train_step, state: Checkpoint, reporter: Reporter) -> 
 
 def validate(run: Run, weights: dict) -> dict:
     """Returns the validation figures of `weights` on the held-out samples."""
-    predictions = models.apply_in_batches(run.module, {"params": weights}, run.inputs[run.training_samples :])
+    predictions = models.apply_in_batches(run.module, run.variables(weights), run.inputs[run.training_samples :])
     return validation_metrics(run.name, predictions, run.targets[run.training_samples :])
 
 
@@ -341,7 +369,7 @@ def finish(run: Run, state: Checkpoint) -> dict:
         **validate(run, shipped),
         "history": state.history,
     }
-    network = models.Network(run.name, run.description, run.module, {"params": shipped}, {"metrics": metrics})
+    network = models.Network(run.name, run.description, run.module, run.variables(shipped), {"metrics": metrics})
     models.save(run.weights_file, network)
     files.write_text(os.path.splitext(run.weights_file)[0] + ".json", json.dumps(metrics, indent=2) + "\n")
     return metrics

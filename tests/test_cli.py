@@ -2,12 +2,13 @@ import importlib.util
 import json
 import shutil
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from matfit import images, models, params
+from matfit import images, models, params, presets
 from matfit.cli import app
 
 runner = CliRunner()
@@ -154,12 +155,17 @@ def test_train_writes_weights_metrics_and_checkpoints(trained):
 
 
 def test_evaluate_writes_the_model_card(trained, tiny_dataset):
-    result = run("evaluate", "--model", trained, "--references", tiny_dataset, "--card")
+    result = run("evaluate", "--model", trained, "--references", tiny_dataset, "--card", "--preset-spp", "4")
     assert result.exit_code == 0, result.output
     card = (trained / "MODEL.md").read_text()
     assert "| encoder-8 |" in card and "best-of-1" in card
+    assert "| jade | scattering |" in card and "| gold | opaque |" in card and "| glass | transmissive |" in card
     evaluation = json.loads((trained / "evaluation.json").read_text())
     assert evaluation["references"]["count"] == 48
+    thirds = evaluation["references"]
+    assert thirds["transmissive_count"] + thirds["opaque_count"] == 48 and thirds["scattering_count"] <= thirds["transmissive_count"]
+    assert set(evaluation["presets"]["rmse"]) == set(presets.PRESETS) and evaluation["presets"]["spp"] == 4
+    assert (Path(tiny_dataset) / "presets.npz").is_file()
     assert evaluation["best_of_n"]["image_rmse"] == pytest.approx(evaluation["encoders"]["8"]["image_rmse"])
 
 

@@ -117,3 +117,93 @@ def test_a_weights_file_of_another_network_is_refused(tmp_path):
     first = models.load_model(str(moved))
     os.rename(moved, tmp_path / "elsewhere")
     assert models.load_model(str(tmp_path / "elsewhere")).identity() == first.identity()  # the weights, not the place
+
+
+def test_bilinear_upsampling_matches_jax_image_resize():
+    x = jax.random.normal(jax.random.key(0), (2, 4, 6, 3))
+    expected = jax.image.resize(x, (2, 8, 12, 3), "linear")
+    np.testing.assert_allclose(models.upsample_bilinear(x), expected, atol=1e-6)
+
+
+def test_coordinate_channels_are_pixel_centres_in_the_unit_square():
+    out = models.coordinate_channels(jnp.zeros((1, 2, 4, 1)))
+    assert out.shape == (1, 2, 4, 3)
+    np.testing.assert_allclose(out[0, 0, :, 1], [-0.75, -0.25, 0.25, 0.75])  # x along a row
+    np.testing.assert_allclose(out[0, :, 0, 2], [-0.5, 0.5])  # y down a column
+
+
+def reference_bilinear(image, x, y):
+    """Bilinear lookup of one (H, W, C) image at one (x, y), clamped, written independently."""
+    height, width = image.shape[:2]
+    x, y = min(max(x, 0.0), width - 1.0), min(max(y, 0.0), height - 1.0)
+    x0, y0 = min(int(np.floor(x)), width - 2), min(int(np.floor(y)), height - 2)
+    fx, fy = x - x0, y - y0
+    return (
+        image[y0, x0] * (1 - fx) * (1 - fy)
+        + image[y0, x0 + 1] * fx * (1 - fy)
+        + image[y0 + 1, x0] * (1 - fx) * fy
+        + image[y0 + 1, x0 + 1] * fx * fy
+    )
+
+
+def test_bilinear_sampling_matches_a_reference_and_clamps_at_the_border():
+    rng = np.random.default_rng(0)
+    levels = rng.uniform(size=(2, 5, 7, 3)).astype(np.float32)
+    position = rng.uniform(-2.0, 8.0, size=(3, 4, 4, 2)).astype(np.float32)
+    out = np.asarray(models.bilinear(jnp.asarray(levels), jnp.asarray(position)))
+    assert out.shape == (3, 4, 4, 2, 3)
+    for n, i, j, level in [(0, 0, 0, 0), (1, 2, 3, 1), (2, 3, 1, 0), (2, 1, 2, 1)]:
+        x, y = position[n, i, j]
+        np.testing.assert_allclose(out[n, i, j, level], reference_bilinear(levels[level], float(x), float(y)), rtol=1e-5, atol=1e-6)
+
+
+def test_bilinear_sampling_is_differentiable_in_the_position():
+    image = jnp.asarray(np.random.default_rng(1).uniform(size=(1, 6, 6, 3)).astype(np.float32))
+    position = jnp.array([[[[2.3, 3.6]]]])
+    gradient = jax.grad(lambda p: models.bilinear(image, p).sum())(position)
+    step = 1e-2
+    for axis in range(2):
+        shift = jnp.zeros((1, 1, 1, 2)).at[..., axis].set(step)
+        finite = (models.bilinear(image, position + shift).sum() - models.bilinear(image, position - shift).sum()) / (2 * step)
+        np.testing.assert_allclose(gradient[0, 0, 0, axis], finite, rtol=1e-3)
+
+
+def test_blur_pyramid_keeps_level_zero_and_the_mean_of_a_delta():
+    image = np.zeros((21, 21, 1), np.float32)
+    image[10, 10] = 1.0
+    pyramid = models.blur_pyramid(image, (0.0, 1.0, 2.0))
+    assert pyramid.shape == (3, 21, 21, 1)
+    np.testing.assert_array_equal(pyramid[0], image)
+    np.testing.assert_allclose(pyramid.sum(axis=(1, 2, 3)), [1.0, 1.0, 1.0], rtol=1e-5)
+    taps = np.exp(-0.5 * (np.arange(-3, 4) / 1.0) ** 2)
+    np.testing.assert_allclose(pyramid[1, 10, 7:14, 0], taps * taps[3] / taps.sum() ** 2, rtol=1e-5)
+
+
+def tiny_refracting_decoder():
+    return models.Decoder(resolution=16, hidden=16, base_channels=8, stage_channels=(8,), coordinates=True, blur_levels=(0.0, 2.0))
+
+
+def test_refracting_decoder_shows_the_scene_through_and_round_trips_with_it(tmp_path):
+    model = tiny_refracting_decoder()
+    scene = np.random.default_rng(2).uniform(0.0, 0.5, size=(16, 16, 3)).astype(np.float32)
+    variables = models.with_scene(model, dict(models.initialise(model, jax.random.key(0), (19,))), scene)
+    np.testing.assert_allclose(variables["constants"]["scene"], models.blur_pyramid(scene, (0.0, 2.0)))
+    x = jax.random.uniform(jax.random.key(1), (2, 19))
+    out = models.apply(model, variables, x)
+    assert out.shape == (2, 16, 16, 3) and float(out.min()) >= 0.0 and float(out.max()) <= 1.0
+    darker = models.apply(model, models.with_scene(model, variables, scene * 0.0), x)
+    assert float(jnp.mean(out - darker)) > 0.01  # the scene behind adds light
+    description = models.architecture("decoder", 16, model)
+    path = str(tmp_path / "decoder.msgpack")
+    models.save(path, models.Network("decoder", description, model, variables, {}))
+    loaded = models.load(path)
+    assert loaded.module == model
+    np.testing.assert_allclose(loaded.variables["constants"]["scene"], variables["constants"]["scene"], atol=1e-3)
+    np.testing.assert_allclose(models.apply(loaded.module, loaded.variables, x), out, atol=1e-2)
+
+
+def test_decoder_descriptions_without_refraction_fields_still_build():
+    description = models.architecture("decoder", 64)
+    for key in ("coordinates", "blur_levels", "max_offset"):
+        description.pop(key)
+    assert models.build(description) == models.Decoder()

@@ -1,11 +1,12 @@
 import json
 import os
+import shutil
 
 import jax
 import numpy as np
 import pytest
 
-from matfit import dataset, models, params, pipeline, train
+from matfit import dataset, images, models, params, pipeline, train
 from matfit.errors import DatasetError
 from matfit.train import Config, TrainingError
 
@@ -48,6 +49,28 @@ def test_training_reduces_the_loss(tmp_path, data, name):
     assert network.info["metrics"]["validation_loss"] == pytest.approx(metrics["validation_loss"])
 
 
+def test_refracting_decoder_trains_with_the_datasets_scene_and_ships_it(tmp_path, data):
+    decoder = models.Decoder(
+        resolution=32, hidden=32, base_channels=16, stage_channels=(16, 8, 8), coordinates=True, blur_levels=(0.0, 2.0)
+    )
+    metrics = train.train_network("decoder", data, str(tmp_path), Config(epochs=4, batch_size=8, learning_rate=3e-3), decoder=decoder)
+    losses = [record["train_loss"] for record in metrics["history"]]
+    assert losses[-1] < 0.7 * losses[0]
+    network = models.load(models.weights_path(str(tmp_path), "decoder"), resolution=32)
+    np.testing.assert_allclose(network.variables["constants"]["scene"], models.blur_pyramid(data.scene_image(), (0.0, 2.0)), atol=2e-3)
+
+
+def test_refracting_decoder_needs_the_scene_image(tmp_path, data):
+    copy = tmp_path / "data"
+    shutil.copytree(data.path, copy)
+    os.remove(copy / dataset.SCENE_FILE)
+    decoder = models.Decoder(resolution=32, hidden=16, base_channels=8, stage_channels=(8,), blur_levels=(0.0,))
+    with pytest.raises(TrainingError, match="render-dataset"):
+        train.train_network(
+            "decoder", dataset.open_dataset(str(copy)), str(tmp_path / "model"), Config(epochs=1, batch_size=8), decoder=decoder
+        )
+
+
 @pytest.mark.parametrize("arch", [1, 3])
 def test_encoder_steps_fit_a_batch(data, arch):
     module = models.encoder(arch)
@@ -58,7 +81,7 @@ def test_encoder_steps_fit_a_batch(data, arch):
     state = (variables["params"], tx.init(variables["params"]))
     losses = []
     for step in range(40):
-        state, loss = train_step(state, x, y, jax.random.key(step))
+        state, loss = train_step(state, {}, x, y, jax.random.key(step))
         losses.append(float(loss))
     assert losses[-1] < 0.6 * losses[0]  # below the 1/12 of predicting the mean: it fits
 
@@ -173,3 +196,12 @@ def test_encoder_input_box_filters_then_encodes():
     assert out.shape == (32, 32, 3)
     np.testing.assert_allclose(out[0, 0], [1.0, 0.7353569, 0.0], rtol=1e-6)
     assert out[0, 1].max() == 0.0
+
+
+def test_encoder_input_clips_before_averaging_as_a_saved_picture_does():
+    linear = np.zeros((64, 64, 3), np.float32)
+    linear[:2, :2, 0] = [[4.0, 0.0], [0.0, 0.0]]  # an HDR highlight in one of four pixels
+    rendered = models.encoder_input(linear)
+    saved = models.encoder_input(images.srgb_decode(images.srgb_encode(linear)))
+    np.testing.assert_allclose(rendered, saved, atol=1e-6)
+    np.testing.assert_allclose(rendered[0, 0, 0], images.srgb_encode(np.float32(0.25)), rtol=1e-6)

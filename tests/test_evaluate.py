@@ -1,0 +1,41 @@
+import numpy as np
+import pytest
+
+from matfit import dataset, evaluate, params, presets, render
+
+
+def test_subsets_split_the_parameter_space_into_thirds():
+    values = np.stack(
+        [
+            params.from_mapping(m)
+            for m in (
+                {"spec_trans": 0.2},
+                {"spec_trans": 0.5},
+                {"spec_trans": 0.9, "scattering": 0.6, "density": 1.0},
+                {"spec_trans": 0.9, "scattering": 0.6, "density": 0.5},
+                {"spec_trans": 0.3, "scattering": 1.0, "density": 4.0},
+            )
+        ]
+    )
+    masks = evaluate.subsets(values)
+    assert masks["transmissive"].tolist() == [False, True, True, True, False]
+    assert masks["scattering"].tolist() == [False, False, True, False, False]
+    assert masks["opaque"].tolist() == [True, False, False, False, True]
+    preset_masks = evaluate.subsets(np.stack([presets.preset(name) for name in presets.PRESETS]))
+    assert [name for name, s in zip(presets.PRESETS, preset_masks["scattering"], strict=True) if s] == ["jade", "milk"]
+    assert int(preset_masks["transmissive"].sum()) == 5
+
+
+def test_preset_references_are_rendered_once_and_kept(tiny_dataset, monkeypatch):
+    references = dataset.open_dataset(tiny_dataset)
+    first = evaluate.preset_references(references, spp=2)
+    assert list(first) == list(presets.PRESETS) and first["gold"].shape == (32, 32, 3)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("rendered again")
+
+    monkeypatch.setattr(render, "Renderer", refuse)
+    again = evaluate.preset_references(references, spp=2)
+    np.testing.assert_array_equal(again["jade"], first["jade"])
+    with pytest.raises(AssertionError, match="rendered again"):
+        evaluate.preset_references(references, spp=3)  # other settings: rendered anew
