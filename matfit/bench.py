@@ -36,7 +36,10 @@ class Targets:
 def reachable_targets(renderer, count: int, spp: int = 256) -> Targets:
     """Returns `count` renders of held-out sampled parameters (seed TARGET_SEED)."""
     unit = np.stack([params.sample_index(TARGET_SEED, TARGET_OFFSET + i) for i in range(count)]).astype(np.float32)
-    rendered = [images.srgb_encode(renderer.render(params.from_unit(u), seed=TARGET_OFFSET + i, spp=spp)) for i, u in enumerate(unit)]
+    rendered = [
+        images.srgb_encode(renderer.render(params.from_unit(u), seed=TARGET_OFFSET + i, spp=spp))
+        for i, u in enumerate(unit)
+    ]
     return Targets(unit, np.stack(rendered))
 
 
@@ -57,7 +60,9 @@ def default_configurations(evaluations: int) -> dict[str, fit.Settings]:
     }
 
 
-def compare(model: models.Model, targets: Targets, configurations: dict[str, fit.Settings], progress=None) -> dict[str, dict]:
+def compare(
+    model: models.Model, targets: Targets, configurations: dict[str, fit.Settings], progress=None
+) -> dict[str, dict]:
     """Fits every target with every configuration; returns per configuration the results' figures."""
     table = {}
     for label, settings in configurations.items():
@@ -105,7 +110,9 @@ def black_level(srgb: np.ndarray, level: float) -> np.ndarray:
     return np.clip((srgb - level) / (1.0 - level), 0.0, 1.0)
 
 
-def black_level_sequence(renderer, count: int = 120, highest: float = 0.3, spp: int = 256) -> tuple[np.ndarray, list[np.ndarray]]:
+def black_level_sequence(
+    renderer, count: int = 120, highest: float = 0.3, spp: int = 256
+) -> tuple[np.ndarray, list[np.ndarray]]:
     """Returns (the base material's unit parameters, `count` frames with a black level rising from 0 to `highest`).
 
     The base is a reachable material (a held-out sample) rendered at `spp`, as in the paper's sequence.
@@ -115,7 +122,9 @@ def black_level_sequence(renderer, count: int = 120, highest: float = 0.3, spp: 
     return unit, [black_level(base, highest * k / max(1, count - 1)) for k in range(count)]
 
 
-def sequence_table(model: models.Model, frames: list[np.ndarray], budgets: tuple[int, ...] = (100, 300, 600), every: int = 10) -> str:
+def sequence_table(
+    model: models.Model, frames: list[np.ndarray], budgets: tuple[int, ...] = (100, 300, 600), every: int = 10
+) -> str:
     """Returns the paper's sequence table: per-frame RMSE with and without reinitialisation, for each budget."""
     runs = {}
     for budget in budgets:
@@ -130,8 +139,12 @@ def sequence_table(model: models.Model, frames: list[np.ndarray], budgets: tuple
     header = "| frame | " + " | ".join(f"{budget}: per frame | {budget}: reinit" for budget in budgets) + " |"
     lines = [header, "|---|" + "---|---|" * len(budgets)]
     for k in range(0, len(frames), every):
-        lines.append(f"| {k} | " + " | ".join(f"{runs[(b, False)][k]:.2f} | {runs[(b, True)][k]:.2f}" for b in budgets) + " |")
-    lines.append("| sum | " + " | ".join(f"{runs[(b, False)].sum():.1f} | {runs[(b, True)].sum():.1f}" for b in budgets) + " |")
+        lines.append(
+            f"| {k} | " + " | ".join(f"{runs[(b, False)][k]:.2f} | {runs[(b, True)][k]:.2f}" for b in budgets) + " |"
+        )
+    lines.append(
+        "| sum | " + " | ".join(f"{runs[(b, False)].sum():.1f} | {runs[(b, True)].sum():.1f}" for b in budgets) + " |"
+    )
     counts = []
     for b in budgets:
         counts += ["", f"{int(np.sum(runs[(b, True)] <= runs[(b, False)] + 1e-6))}/{len(frames)}"]
@@ -152,7 +165,12 @@ SUITE = (
         ("jade", "blue-rubber"),
         lambda a, b: edits.stitch(a, b, (0.0, 0.0, 0.5, 1.0)),
     ),
-    ("highlight blur", "red plastic, specular highlight blurred", ("red-plastic",), lambda a: edits.blur_highlight(a, 0.55, 2.0)),
+    (
+        "highlight blur",
+        "red plastic, specular highlight blurred",
+        ("red-plastic",),
+        lambda a: edits.blur_highlight(a, 0.55, 2.0),
+    ),
     ("mix", "gold and blue rubber blended 50/50", ("gold", "blue-rubber"), lambda a, b: edits.mix(a, b, 0.5)),
 )
 
@@ -163,11 +181,18 @@ def suite_targets(renderer, spp: int = 256) -> list[tuple[str, str, np.ndarray]]
 
     def source(name: str) -> np.ndarray:
         if name not in cache:
-            values = params.from_unit(params.sample_index(TARGET_SEED, TARGET_OFFSET - 2)) if name == "held-out" else presets.preset(name)
+            values = (
+                params.from_unit(params.sample_index(TARGET_SEED, TARGET_OFFSET - 2))
+                if name == "held-out"
+                else presets.preset(name)
+            )
             cache[name] = images.srgb_encode(renderer.render(values, seed=3, spp=spp))
         return cache[name]
 
-    return [(name, description, edit(*[source(s) for s in sources]).astype(np.float32)) for name, description, sources, edit in SUITE]
+    return [
+        (name, description, edit(*[source(s) for s in sources]).astype(np.float32))
+        for name, description, sources, edit in SUITE
+    ]
 
 
 def random_guess_rmse(model: models.Model, target: np.ndarray, seeds: int) -> float:
@@ -226,7 +251,9 @@ def optimiser_table(model: models.Model, cases, evaluations: int = 1500, basin_s
     jaxopt's scipy wrappers with exact gradients of the decoder (at most `evaluations` iterations);
     basin-hopping (scipy, L-BFGS-B local steps with exact gradients) stops after `basin_seconds`.
     """
-    return [{"case": name, **compare_optimisers(model, target, evaluations, basin_seconds)} for name, _, target in cases]
+    return [
+        {"case": name, **compare_optimisers(model, target, evaluations, basin_seconds)} for name, _, target in cases
+    ]
 
 
 def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int, basin_seconds: float) -> dict:
@@ -263,7 +290,9 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
 
     @jax.jit
     def ours(x0):
-        ends, _, counts = gradient.minimise(lambda y, data: fit.decoded_rmse(y, (decoder, *data)), x0[None], args[1:], iterations)
+        ends, _, counts = gradient.minimise(
+            lambda y, data: fit.decoded_rmse(y, (decoder, *data)), x0[None], args[1:], iterations
+        )
         return ends[0], counts[0]
 
     solvers = {
@@ -273,10 +302,15 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
         "SLSQP": lambda x0: scipy.optimize.minimize(
             host(bounded_grad), x0, jac=True, method="SLSQP", bounds=box, options={"maxiter": calls}
         ),
-        "CG": lambda x0: scipy.optimize.minimize(host(penalised_grad), x0, jac=True, method="CG", options={"maxiter": calls}),
+        "CG": lambda x0: scipy.optimize.minimize(
+            host(penalised_grad), x0, jac=True, method="CG", options={"maxiter": calls}
+        ),
     }
     best = fit.fit(model, target, fit.Settings(method=fit.Method.nn))
-    starts = {"random": np.random.default_rng(0).uniform(0.0, 1.0, params.COUNT).astype(np.float32), "best-of-9": best.start}
+    starts = {
+        "random": np.random.default_rng(0).uniform(0.0, 1.0, params.COUNT).astype(np.float32),
+        "best-of-9": best.start,
+    }
     row = {}
 
     def record(name: str, x: np.ndarray, seconds: float, spent: float) -> None:
@@ -289,11 +323,18 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
             solve(np.asarray(x0, np.float64))  # compile outside the timing
             started = time.perf_counter()
             solution = solve(np.asarray(x0, np.float64))
-            record(f"{solver_name} ({start_name})", solution.x, time.perf_counter() - started, solution.nfev * fit.GRADIENT_COST)
+            record(
+                f"{solver_name} ({start_name})",
+                solution.x,
+                time.perf_counter() - started,
+                solution.nfev * fit.GRADIENT_COST,
+            )
         ours(jnp.asarray(x0))
         started = time.perf_counter()
         end, count = jax.device_get(ours(jnp.asarray(x0)))
-        record(f"L-BFGS-B, ours ({start_name})", np.asarray(end), time.perf_counter() - started, count * fit.GRADIENT_COST)
+        record(
+            f"L-BFGS-B, ours ({start_name})", np.asarray(end), time.perf_counter() - started, count * fit.GRADIENT_COST
+        )
         started = time.perf_counter()
         method = fit.Method.hybrid if start_name == "best-of-9" else fit.Method.optimize
         result = fit.fit(model, target, fit.Settings(method=method, evaluations=evaluations))
@@ -309,11 +350,15 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
             minimizer_kwargs={"method": "L-BFGS-B", "jac": True, "bounds": box},
             callback=lambda x, f, accept, deadline=deadline: time.perf_counter() > deadline,
         )
-        record(f"basin-hopping ({start_name})", hopped.x, time.perf_counter() - started, hopped.nfev * fit.GRADIENT_COST)
+        record(
+            f"basin-hopping ({start_name})", hopped.x, time.perf_counter() - started, hopped.nfev * fit.GRADIENT_COST
+        )
     return row
 
 
-def case_picture(model: models.Model, renderer, target: np.ndarray, row: dict, budget: int, spp: int = 256) -> np.ndarray:
+def case_picture(
+    model: models.Model, renderer, target: np.ndarray, row: dict, budget: int, spp: int = 256
+) -> np.ndarray:
     """Returns target | best-of-9 | optimiser | hybrid | Mitsuba render of hybrid (| of the default, if `row` has it),
     and stores in `row` the RMSE of Mitsuba renders of the best-of-9, optimiser (seed 0), hybrid and default results."""
     from matfit import report
@@ -326,7 +371,9 @@ def case_picture(model: models.Model, renderer, target: np.ndarray, row: dict, b
     hybrid_values = np.asarray(row[f"hybrid_{budget}_values"])
     rendered = images.srgb_encode(renderer.render(hybrid_values, seed=11, spp=spp))
     rendered_best = images.srgb_encode(renderer.render(best.values, seed=11, spp=spp))
-    rendered_optimiser = images.srgb_encode(renderer.render(np.asarray(row[f"optimize_{budget}_values"]), seed=11, spp=spp))
+    rendered_optimiser = images.srgb_encode(
+        renderer.render(np.asarray(row[f"optimize_{budget}_values"]), seed=11, spp=spp)
+    )
     hybrid_render_rmse = float(images.rmse(rendered, target))
     row[f"mitsuba_hybrid_{budget}"] = hybrid_render_rmse
     row["mitsuba_best_of_n"] = float(images.rmse(rendered_best, target))
@@ -349,9 +396,18 @@ def case_picture(model: models.Model, renderer, target: np.ndarray, row: dict, b
     return report.compose(panels, size=128, caption=14)
 
 
-def suite_report(main: list[dict], optimisers: list[dict], sequence: str, budgets=BUDGETS, seeds: int = 5, settings: str = "") -> str:
+def suite_report(
+    main: list[dict], optimisers: list[dict], sequence: str, budgets=BUDGETS, seeds: int = 5, settings: str = ""
+) -> str:
     """Returns the Markdown report of the edit suite: main table with Mitsuba column, optimisers, sequence, timings."""
-    lines = ["# matfit bench: the paper's tables on the built-in edit suite", "", settings, "", "## 1. Main table (RMSE, 0-255 sRGB)", ""]
+    lines = [
+        "# matfit bench: the paper's tables on the built-in edit suite",
+        "",
+        settings,
+        "",
+        "## 1. Main table (RMSE, 0-255 sRGB)",
+        "",
+    ]
     header = (
         "| case | random guess | best-of-9 | "
         + " | ".join(f"optimiser {b} | hybrid {b}" for b in budgets)
@@ -363,7 +419,9 @@ def suite_report(main: list[dict], optimisers: list[dict], sequence: str, budget
         for b in budgets:
             cells += [
                 f"{row[f'optimize_{b}']:.2f}",
-                f"**{row[f'hybrid_{b}']:.2f}**" if row[f"hybrid_{b}"] <= row[f"optimize_{b}"] + 1e-6 else f"{row[f'hybrid_{b}']:.2f}",
+                f"**{row[f'hybrid_{b}']:.2f}**"
+                if row[f"hybrid_{b}"] <= row[f"optimize_{b}"] + 1e-6
+                else f"{row[f'hybrid_{b}']:.2f}",
             ]
         cells += [
             f"{row['mitsuba_best_of_n']:.2f}",
@@ -408,7 +466,9 @@ def suite_report(main: list[dict], optimisers: list[dict], sequence: str, budget
     lines += ["| method | " + " | ".join(str(b) for b in budgets) + " |", "|---|" + "---|" * len(budgets)]
     for method in ("optimize", "hybrid"):
         lines.append(
-            f"| {method} | " + " | ".join(f"{np.median([row[f'{method}_{b}_seconds'] for row in main]):.3f}" for b in budgets) + " |"
+            f"| {method} | "
+            + " | ".join(f"{np.median([row[f'{method}_{b}_seconds'] for row in main]):.3f}" for b in budgets)
+            + " |"
         )
     lines += [
         "",
@@ -419,7 +479,10 @@ def suite_report(main: list[dict], optimisers: list[dict], sequence: str, budget
         "![RMSE against evaluations](rmse-vs-evaluations.png)",
         "",
     ]
-    lines += ["target | best-of-9 | optimiser | hybrid | Mitsuba renders of the hybrid and of the default result, per case:", ""]
+    lines += [
+        "target | best-of-9 | optimiser | hybrid | Mitsuba renders of the hybrid and of the default result, per case:",
+        "",
+    ]
     lines += [f"![{row['case']}](cases/{slug(row['case'])}.png)" for row in main]
     return "\n".join(lines) + "\n"
 
@@ -434,7 +497,10 @@ def default_rows(main: list[dict], budget: int) -> list[str]:
         for row in rows
     ]
     if rows:
-        mean = {key: np.mean([row[key] for row in rows]) for key in ("mitsuba_start", f"mitsuba_hybrid_{budget}", "mitsuba_default")}
+        mean = {
+            key: np.mean([row[key] for row in rows])
+            for key in ("mitsuba_start", f"mitsuba_hybrid_{budget}", "mitsuba_default")
+        }
         lines.append(
             f"| mean | | | | | {mean['mitsuba_start']:.2f} | {mean[f'mitsuba_hybrid_{budget}']:.2f} | **{mean['mitsuba_default']:.2f}** "
             f"| {sum(row['mitsuba_default'] <= row['mitsuba_start'] + 1e-9 for row in rows)}/{len(rows)} |"
@@ -454,7 +520,9 @@ def budget_plot(main: list[dict], path: str, budgets=BUDGETS) -> None:
     matplotlib.use("Agg")
     from matplotlib import pyplot
 
-    mean = {key: [float(np.mean([row[f"{key}_{b}"] for row in main])) for b in budgets] for key in ("optimize", "hybrid")}
+    mean = {
+        key: [float(np.mean([row[f"{key}_{b}"] for row in main])) for b in budgets] for key in ("optimize", "hybrid")
+    }
     best_of_n = float(np.mean([row["best_of_n"] for row in main]))
     figure, axes = pyplot.subplots(figsize=(6.4, 4.0), dpi=100)
     axes.plot(budgets, mean["optimize"], "o-", color="tab:red", label="optimiser (Nelder-Mead from a random start)")

@@ -32,7 +32,9 @@ from matfit.errors import OutputError, RenderError
 from matfit.render import Renderer
 
 ENVIRONMENT_VARIABLE = "MATFIT_BLENDER_PYTHON"
-DEFAULT_PYTHON = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".venv-blender", "bin", "python")
+DEFAULT_PYTHON = os.path.join(
+    os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".venv-blender", "bin", "python"
+)
 TABLE_FILE, PICTURE_FILE = "blender-check.md", "blender-check.png"
 OPAQUE_PRESETS = ("gold", "silver", "copper", "red-plastic", "blue-rubber", "velvet")
 OPAQUE_TARGET = 8.0  # RMSE the opaque presets must stay under (issue 15)
@@ -185,7 +187,9 @@ def table(comparison: Comparison, targets: dict[str, float] | None = None) -> st
         "| material | RMSE, whole image | RMSE, sphere only | noise floor (Mitsuba, two seeds) | target |",
         "|---|---|---|---|---|",
     ]
-    for name, whole, sphere, noise in zip(comparison.names, comparison.rmse, comparison.rmse_sphere, comparison.noise, strict=True):
+    for name, whole, sphere, noise in zip(
+        comparison.names, comparison.rmse, comparison.rmse_sphere, comparison.noise, strict=True
+    ):
         target = targets.get(name)
         verdict = "" if target is None else f"<= {target:g} ({'met' if whole <= target else 'missed'})"
         lines.append(f"| {name} | {whole:.2f} | {sphere:.2f} | {noise:.2f} | {verdict} |")
@@ -200,7 +204,9 @@ def picture(comparison: Comparison, scale: int = 2) -> np.ndarray:
         tiles.append(np.clip(4.0 * np.abs(tiles[0] - tiles[1]), 0.0, 1.0))
         tiles = [np.repeat(np.repeat(tile, scale, axis=0), scale, axis=1) for tile in tiles]
         captions = [f"{name}: Mitsuba", "Cycles", f"diff x4, RMSE {whole:.1f}"]
-        rows.append(np.concatenate([images.label(tile, caption) for tile, caption in zip(tiles, captions, strict=True)], axis=1))
+        rows.append(
+            np.concatenate([images.label(tile, caption) for tile, caption in zip(tiles, captions, strict=True)], axis=1)
+        )
     return images.srgb_decode(np.concatenate(rows, axis=0))
 
 

@@ -176,7 +176,9 @@ def _world(description: dict) -> None:
     height, width, _ = bitmap.shape
     image = bpy.data.images.new("matfit-sky", width, height, alpha=True, float_buffer=True)
     image.colorspace_settings.name = "Linear Rec.709"
-    rgba = np.concatenate([bitmap[::-1], np.ones((height, width, 1), np.float32)], axis=2)  # Blender's rows run bottom-up
+    rgba = np.concatenate(
+        [bitmap[::-1], np.ones((height, width, 1), np.float32)], axis=2
+    )  # Blender's rows run bottom-up
     image.pixels.foreach_set(rgba.ravel())
     image.pack()
     world = bpy.data.worlds.new("matfit-world")
@@ -267,7 +269,11 @@ def build(resolution: int, spp: int, seed: int = 0):
     light = description["key_light"]
     _rectangle("matfit-key-light", light["to_world"], _light_material(light["emitter"]["radiance"]["value"]))
     for name in ("floor", "backdrop"):
-        _rectangle(f"matfit-{name}", description[name]["to_world"], _checker_material(f"matfit-{name}", description[name]["bsdf"]))
+        _rectangle(
+            f"matfit-{name}",
+            description[name]["to_world"],
+            _checker_material(f"matfit-{name}", description[name]["bsdf"]),
+        )
     sphere = _sphere()
     for obj in bpy.context.scene.objects:
         obj.select_set(obj is sphere)

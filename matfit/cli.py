@@ -17,7 +17,16 @@ from typing import Annotated
 import typer
 
 from matfit import console, dataset, params, presets
-from matfit.methods import MAX_EVALUATIONS, MAX_ITERATIONS, MAX_POLISH, MAX_STARTS, MIN_EVALUATIONS, Box, Method, Settings
+from matfit.methods import (
+    MAX_EVALUATIONS,
+    MAX_ITERATIONS,
+    MAX_POLISH,
+    MAX_STARTS,
+    MIN_EVALUATIONS,
+    Box,
+    Method,
+    Settings,
+)
 from matfit.render import VARIANTS
 
 Variant = StrEnum("Variant", {name: name for name in VARIANTS})  # the Mitsuba variants matfit renders with
@@ -34,9 +43,14 @@ def seed_option(help: str):
 ModelOption = Annotated[Path, typer.Option("--model", help="Model directory (default: the shipped model).")]
 VariantOption = Annotated[Variant | None, typer.Option(help="Force a Mitsuba variant.")]
 SppOption = Annotated[int, typer.Option(min=1, max=dataset.MAX_SPP, help="Samples per pixel (of the renders).")]
-SizeOption = Annotated[int, typer.Option(min=dataset.MIN_RESOLUTION, max=MAX_SIZE, help="Image side in pixels (of the renders).")]
+SizeOption = Annotated[
+    int, typer.Option(min=dataset.MIN_RESOLUTION, max=MAX_SIZE, help="Image side in pixels (of the renders).")
+]
 EvaluationsOption = Annotated[
-    int, typer.Option("--evals", min=MIN_EVALUATIONS, max=MAX_EVALUATIONS, help="Nelder-Mead budget in objective evaluations.")
+    int,
+    typer.Option(
+        "--evals", min=MIN_EVALUATIONS, max=MAX_EVALUATIONS, help="Nelder-Mead budget in objective evaluations."
+    ),
 ]
 InitOption = Annotated[Path | None, typer.Option(help="params.json of the source material: joins the candidates.")]
 MethodOption = Annotated[
@@ -62,14 +76,20 @@ echo_lines = console.echo_lines
 
 @command
 def render(
-    params_file: Annotated[Path | None, typer.Argument(help="params.json with named values; names left out take defaults.")] = None,
-    output: Annotated[Path, typer.Option("--output", "-o", help="Image: .png/.jpg/.tif (sRGB 8-bit) or .exr (linear).")] = Path(
-        "render.png"
-    ),
+    params_file: Annotated[
+        Path | None, typer.Argument(help="params.json with named values; names left out take defaults.")
+    ] = None,
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="Image: .png/.jpg/.tif (sRGB 8-bit) or .exr (linear).")
+    ] = Path("render.png"),
     size: SizeOption = 512,
     spp: SppOption = 256,
-    preset: Annotated[str | None, typer.Option(help=f"A named material instead of a file: {', '.join(presets.PRESETS)}.")] = None,
-    random: Annotated[bool, typer.Option("--random", help="A random material from the training distribution (see --seed).")] = False,
+    preset: Annotated[
+        str | None, typer.Option(help=f"A named material instead of a file: {', '.join(presets.PRESETS)}.")
+    ] = None,
+    random: Annotated[
+        bool, typer.Option("--random", help="A random material from the training distribution (see --seed).")
+    ] = False,
     seed: Annotated[int, seed_option("Seed of the random material and of the render's noise.")] = 0,
     variant: VariantOption = None,
 ) -> None:
@@ -86,7 +106,9 @@ def render(
 
 @command(name="presets")
 def presets_sheet(
-    output: Annotated[Path, typer.Option("--output", "-o", help="Contact sheet to write (.png, .jpg or .exr).")] = Path("presets.png"),
+    output: Annotated[Path, typer.Option("--output", "-o", help="Contact sheet to write (.png, .jpg or .exr).")] = Path(
+        "presets.png"
+    ),
     size: Annotated[int, typer.Option(min=32, max=1024, help="Side of each tile in pixels.")] = 128,
     spp: SppOption = 256,
     variant: VariantOption = None,
@@ -101,15 +123,22 @@ def presets_sheet(
 
 @command(name="blender-check")
 def blender_check(
-    out: Annotated[Path, typer.Option("--out", "-o", help="Folder for blender-check.md (table) and blender-check.png.")] = Path(
-        "blender-check"
-    ),
-    preset: Annotated[list[str] | None, typer.Option(help="A preset to compare (repeat it); default: every preset.")] = None,
-    params_file: Annotated[list[Path] | None, typer.Option("--params", help="A params.json to compare too (repeat it).")] = None,
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Folder for blender-check.md (table) and blender-check.png.")
+    ] = Path("blender-check"),
+    preset: Annotated[
+        list[str] | None, typer.Option(help="A preset to compare (repeat it); default: every preset.")
+    ] = None,
+    params_file: Annotated[
+        list[Path] | None, typer.Option("--params", help="A params.json to compare too (repeat it).")
+    ] = None,
     size: Annotated[int, typer.Option(min=16, max=512, help="Image side in pixels.")] = 64,
     spp: Annotated[int, typer.Option(min=1, max=dataset.MAX_SPP, help="Samples per pixel, in both renderers.")] = 256,
     blender: Annotated[
-        str | None, typer.Option(help="A Python with bpy 4.5 or a Blender 4.5 executable (default: .venv-blender, `make blender`).")
+        str | None,
+        typer.Option(
+            help="A Python with bpy 4.5 or a Blender 4.5 executable (default: .venv-blender, `make blender`)."
+        ),
     ] = None,
     variant: VariantOption = None,
 ) -> None:
@@ -118,7 +147,9 @@ def blender_check(
 
     paths = [str(path) for path in params_file or []]
     progress = functools.partial(typer.echo, err=True)
-    comparison = round_trip.check(str(out), preset or None, paths, size, spp, blender, variant and variant.value, progress)
+    comparison = round_trip.check(
+        str(out), preset or None, paths, size, spp, blender, variant and variant.value, progress
+    )
     typer.echo(round_trip.table(comparison), nl=False)
     typer.echo(f"wrote {out / round_trip.TABLE_FILE} and {out / round_trip.PICTURE_FILE}", err=True)
 
@@ -137,7 +168,9 @@ def render_dataset(
     resolution: Annotated[int, typer.Option(help="Image side in pixels.")] = 64,
     spp: Annotated[int, typer.Option(help="Samples per pixel.")] = 16,
     seed: Annotated[int, seed_option("Seed of the parameter sampling and of the renders' noise.")] = 0,
-    workers: Annotated[int, typer.Option(help="Rendering processes, one thread each (default: one per core).")] = os.cpu_count() or 1,
+    workers: Annotated[
+        int, typer.Option(help="Rendering processes, one thread each (default: one per core).")
+    ] = os.cpu_count() or 1,
     variant: VariantOption = None,
     ray: Annotated[
         str | None,
@@ -151,33 +184,60 @@ def render_dataset(
 
     with Progress(f"rendering {out}") as progress:
         data, rendered, notices = dataset.render_dataset(
-            str(out), count, resolution, spp, seed, workers, variant and variant.value, progress.counter(), ray_address=ray
+            str(out),
+            count,
+            resolution,
+            spp,
+            seed,
+            workers,
+            variant and variant.value,
+            progress.counter(),
+            ray_address=ray,
         )
     echo_lines(notices)
-    typer.echo(f"{out}: {count}/{count} samples ({rendered} rendered now, {resolution} px, {spp} spp, {data.meta['variant']})", err=True)
+    typer.echo(
+        f"{out}: {count}/{count} samples ({rendered} rendered now, {resolution} px, {spp} spp, {data.meta['variant']})",
+        err=True,
+    )
 
 
 @command(name="fit", interrupted="nothing was written")
 def fit_command(
     target: Annotated[Path, typer.Argument(help="The edited picture: PNG, JPEG, TIFF (8/16-bit) or EXR (linear).")],
-    output: Annotated[Path, typer.Option("--output", "-o", help="params.json to write (feeds `matfit render`).")] = Path("params.json"),
+    output: Annotated[
+        Path, typer.Option("--output", "-o", help="params.json to write (feeds `matfit render`).")
+    ] = Path("params.json"),
     model_path: ModelOption = DEFAULT_MODEL,
     method: MethodOption = Method.hybrid,
     evaluations: EvaluationsOption = 1500,
     seed: Annotated[int, seed_option("Seed of the random start of --method optimize.")] = 0,
-    mask: Annotated[Path | None, typer.Option(help="Per-pixel weights, the target's size: white = match here, black = ignore.")] = None,
-    box: Annotated[Box, typer.Option(help="Keeping inside the parameter box: clip (clip + penalty) or barrier (the paper's).")] = Box.clip,
-    polish_steps: Annotated[int, typer.Option("--polish", min=0, max=MAX_POLISH, help="Projected-Adam steps after Nelder-Mead.")] = 0,
-    report: Annotated[Path | None, typer.Option(help="Comparison picture: target | guess | fit | Mitsuba render | difference.")] = None,
+    mask: Annotated[
+        Path | None, typer.Option(help="Per-pixel weights, the target's size: white = match here, black = ignore.")
+    ] = None,
+    box: Annotated[
+        Box, typer.Option(help="Keeping inside the parameter box: clip (clip + penalty) or barrier (the paper's).")
+    ] = Box.clip,
+    polish_steps: Annotated[
+        int, typer.Option("--polish", min=0, max=MAX_POLISH, help="Projected-Adam steps after Nelder-Mead.")
+    ] = 0,
+    report: Annotated[
+        Path | None, typer.Option(help="Comparison picture: target | guess | fit | Mitsuba render | difference.")
+    ] = None,
     render: Annotated[Path | None, typer.Option(help="Render the fitted material with Mitsuba to this image.")] = None,
     size: SizeOption = 512,
     spp: SppOption = 256,
-    mitsuba_xml: Annotated[Path | None, typer.Option("--mitsuba-xml", help="Write the BSDF and medium as Mitsuba 3 XML.")] = None,
+    mitsuba_xml: Annotated[
+        Path | None, typer.Option("--mitsuba-xml", help="Write the BSDF and medium as Mitsuba 3 XML.")
+    ] = None,
     blender: Annotated[Path | None, typer.Option(help="Write a Blender 4.x script that builds the material.")] = None,
     init: InitOption = None,
-    starts: Annotated[int, typer.Option(min=1, max=MAX_STARTS, help="L-BFGS-B starts (the best best-of-n candidates).")] = 4,
+    starts: Annotated[
+        int, typer.Option(min=1, max=MAX_STARTS, help="L-BFGS-B starts (the best best-of-n candidates).")
+    ] = 4,
     iterations: Annotated[int, typer.Option(min=1, max=MAX_ITERATIONS, help="L-BFGS-B iterations per start.")] = 100,
-    verified: Annotated[bool, typer.Option("--verify/--no-verify", help="Let Mitsuba choose among the final candidates.")] = True,
+    verified: Annotated[
+        bool, typer.Option("--verify/--no-verify", help="Let Mitsuba choose among the final candidates.")
+    ] = True,
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
     from matfit import fitfile
@@ -195,16 +255,23 @@ def fit_command(
 @command(interrupted="finished frames are saved; run the same command to resume")
 def sequence(
     frames: Annotated[
-        Path, typer.Argument(help="Folder of frames (PNG, JPEG, TIFF, EXR), fitted in natural order: frame_2 before frame_10.")
+        Path,
+        typer.Argument(
+            help="Folder of frames (PNG, JPEG, TIFF, EXR), fitted in natural order: frame_2 before frame_10."
+        ),
     ],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder: one JSON per frame, summary.md, preview.png.")] = Path(
-        "sequence"
-    ),
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Output folder: one JSON per frame, summary.md, preview.png.")
+    ] = Path("sequence"),
     model_path: ModelOption = DEFAULT_MODEL,
     evaluations: EvaluationsOption = 100,
     method: MethodOption = Method.hybrid,
-    reinit: Annotated[bool, typer.Option("--reinit/--no-reinit", help="Add the previous frame's optimum to the best-of-n pool.")] = True,
-    render: Annotated[bool, typer.Option("--render", help="Also render every fitted frame with Mitsuba (<frame>-render.png).")] = False,
+    reinit: Annotated[
+        bool, typer.Option("--reinit/--no-reinit", help="Add the previous frame's optimum to the best-of-n pool.")
+    ] = True,
+    render: Annotated[
+        bool, typer.Option("--render", help="Also render every fitted frame with Mitsuba (<frame>-render.png).")
+    ] = False,
     size: SizeOption = 256,
     spp: SppOption = 64,
     init: InitOption = None,
@@ -228,12 +295,17 @@ def sequence(
 
 @command(interrupted="finished epochs are saved in the model's checkpoints/; run the same command to resume")
 def train(
-    arch: Annotated[str, typer.Option(help="decoder, 1 to 9 (one encoder), 1..9 (all nine), all (decoder and nine), or a comma list.")],
+    arch: Annotated[
+        str,
+        typer.Option(help="decoder, 1 to 9 (one encoder), 1..9 (all nine), all (decoder and nine), or a comma list."),
+    ],
     dataset_path: Annotated[Path, typer.Option("--dataset", help="A finished `matfit render-dataset` directory.")],
-    out: Annotated[Path, typer.Option("--out", "-o", help="Model directory: weights, metrics, and checkpoints/ for resuming.")] = Path(
-        "runs/model"
-    ),
-    epochs: Annotated[int | None, typer.Option(help="Epochs per network (default: decoder 20, encoders 10; 4, 5: 8; 7: 5; 9: 20).")] = None,
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Model directory: weights, metrics, and checkpoints/ for resuming.")
+    ] = Path("runs/model"),
+    epochs: Annotated[
+        int | None, typer.Option(help="Epochs per network (default: decoder 20, encoders 10; 4, 5: 8; 7: 5; 9: 20).")
+    ] = None,
     batch_size: Annotated[int, typer.Option(help="Samples per training step.")] = 64,
     learning_rate: Annotated[float, typer.Option(help="Peak Adam learning rate (warm-up, then cosine decay).")] = 1e-3,
     seed: Annotated[int, seed_option("Seed of initialisation, shuffling and dropout.")] = 0,
@@ -253,14 +325,19 @@ def train(
 @command
 def evaluate(
     model_path: ModelOption = DEFAULT_MODEL,
-    references: Annotated[Path, typer.Option(help="Held-out references, e.g. `matfit render-dataset ref --spp 256 --seed 1`.")] = Path(
-        "datasets/reference"
-    ),
+    references: Annotated[
+        Path, typer.Option(help="Held-out references, e.g. `matfit render-dataset ref --spp 256 --seed 1`.")
+    ] = Path("datasets/reference"),
     card: Annotated[
         bool, typer.Option("--card/--no-card", help="Also write evaluation.json and MODEL.md into the model directory.")
     ] = False,
     preset_spp: Annotated[
-        int, typer.Option(min=1, max=65536, help="Samples per pixel of the presets' clean renders (made once, kept beside the references).")
+        int,
+        typer.Option(
+            min=1,
+            max=65536,
+            help="Samples per pixel of the presets' clean renders (made once, kept beside the references).",
+        ),
     ] = 4096,
 ) -> None:
     """Measure a model against clean references: decoder RMSE (all, each third, each preset), each encoder's errors, best-of-n."""
@@ -299,20 +376,28 @@ def bench_model(
 @command
 def bench_fit(
     model_path: ModelOption = DEFAULT_MODEL,
-    count: Annotated[int, typer.Option(min=1, max=10_000, help="Reachable targets (256-spp renders of held-out parameters).")] = 20,
+    count: Annotated[
+        int, typer.Option(min=1, max=10_000, help="Reachable targets (256-spp renders of held-out parameters).")
+    ] = 20,
     evaluations: EvaluationsOption = 1500,
 ) -> None:
     """Compare the fitting methods on reachable targets: neural and Mitsuba RMSE, warm fit time."""
     from matfit import bench, fitfile
 
-    typer.echo(bench.fit_comparison(fitfile.load_model(str(model_path)), count, evaluations, log=lambda line: typer.echo(line, err=True)))
+    typer.echo(
+        bench.fit_comparison(
+            fitfile.load_model(str(model_path)), count, evaluations, log=lambda line: typer.echo(line, err=True)
+        )
+    )
 
 
 @command
 def bench_sequence(
     model_path: ModelOption = DEFAULT_MODEL,
     frames: Annotated[int, typer.Option(min=2, max=100_000, help="Frames of the built-in black-level sequence.")] = 120,
-    frames_out: Annotated[Path | None, typer.Option("--write-frames", help="Also write the sequence's frames to this folder.")] = None,
+    frames_out: Annotated[
+        Path | None, typer.Option("--write-frames", help="Also write the sequence's frames to this folder.")
+    ] = None,
 ) -> None:
     """Reinitialisation against per-frame fitting on a built-in sequence (a rising black level), as in the paper."""
     from matfit import bench, fitfile
@@ -322,9 +407,13 @@ def bench_sequence(
 
 @command
 def bench(
-    out: Annotated[Path, typer.Option("--out", "-o", help="Output folder: report.md, report.json, cases/*.png.")] = Path("data/bench"),
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="Output folder: report.md, report.json, cases/*.png.")
+    ] = Path("data/bench"),
     model_path: ModelOption = DEFAULT_MODEL,
-    full: Annotated[bool, typer.Option("--full", help="10 seeds, 60 s basin-hopping, 120 frames (quick: 5, 5 s, 40).")] = False,
+    full: Annotated[
+        bool, typer.Option("--full", help="10 seeds, 60 s basin-hopping, 120 frames (quick: 5, 5 s, 40).")
+    ] = False,
 ) -> None:
     """Reproduce the paper's evaluation tables on the built-in edit suite (quick version by default)."""
     from matfit import bench as bench_module

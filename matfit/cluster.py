@@ -52,7 +52,9 @@ def require_ray():
     try:
         import ray
     except ImportError:
-        raise DatasetError("--ray needs Ray, an optional extra: pip install -e '.[cluster]' (or pip install 'ray>=2.60,<3')") from None
+        raise DatasetError(
+            "--ray needs Ray, an optional extra: pip install -e '.[cluster]' (or pip install 'ray>=2.60,<3')"
+        ) from None
     return ray
 
 
@@ -141,7 +143,9 @@ def _submit_and_collect(ray, settings: Settings, tasks: list[Task]) -> Results:
         try:
             result = ray.get(ready[0])
         except ray.exceptions.RayTaskError as error:
-            raise DatasetError(f"a Ray worker could not render: {error.cause!r}; fix it on that node and run the same command") from None
+            raise DatasetError(
+                f"a Ray worker could not render: {error.cause!r}; fix it on that node and run the same command"
+            ) from None
         except ray.exceptions.RayError as error:
             raise DatasetError(
                 f"Ray lost a chunk {RETRIES + 1} times ({type(error).__name__}); what was rendered is saved: run the same command to resume"
@@ -180,7 +184,9 @@ def measure_transfer(resolution: int, chunks: int = 200, workers: int = 2) -> di
     }
 
 
-def measure_loader(resolution: int, batch_size: int, host_cast: bool = False, samples: int = 22000, seconds: float = 2.0) -> dict:
+def measure_loader(
+    resolution: int, batch_size: int, host_cast: bool = False, samples: int = 22000, seconds: float = 2.0
+) -> dict:
     """Returns samples/s of training's data loading: gather a shuffled batch (`host_cast`: and cast it to float32 in NumPy).
 
     The same operations as a training step's host side, on in-memory arrays of the shapes and
@@ -191,8 +197,14 @@ def measure_loader(resolution: int, batch_size: int, host_cast: bool = False, sa
     """
     rng = np.random.default_rng(0)
     arrays = {
-        "decoder": (rng.random((samples, 19), np.float32), rng.random((samples, resolution, resolution, 3), np.float32).astype(np.float16)),
-        "encoder": (rng.random((samples, 32, 32, 3), np.float32).astype(np.float16), rng.random((samples, 19), np.float32)),
+        "decoder": (
+            rng.random((samples, 19), np.float32),
+            rng.random((samples, resolution, resolution, 3), np.float32).astype(np.float16),
+        ),
+        "encoder": (
+            rng.random((samples, 32, 32, 3), np.float32).astype(np.float16),
+            rng.random((samples, 19), np.float32),
+        ),
     }
     rates = {}
     for name, (inputs, targets) in arrays.items():
@@ -205,7 +217,11 @@ def measure_loader(resolution: int, batch_size: int, host_cast: bool = False, sa
                 np.asarray(x, np.float32), np.asarray(y, np.float32)
             steps += 1
         rates[name] = steps * batch_size / (time.perf_counter() - started)
-    return {"resolution": resolution, "batch_size": batch_size, **{f"{name}_samples_per_s": rate for name, rate in rates.items()}}
+    return {
+        "resolution": resolution,
+        "batch_size": batch_size,
+        **{f"{name}_samples_per_s": rate for name, rate in rates.items()},
+    }
 
 
 if __name__ == "__main__":

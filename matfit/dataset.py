@@ -63,7 +63,8 @@ class Settings:
         """Raises DatasetError for values no dataset should be made with."""
         if not MIN_RESOLUTION <= self.resolution <= MAX_RESOLUTION:
             raise DatasetError(
-                f"resolution {self.resolution} is out of range: use {MIN_RESOLUTION} to {MAX_RESOLUTION} pixels", field="resolution"
+                f"resolution {self.resolution} is out of range: use {MIN_RESOLUTION} to {MAX_RESOLUTION} pixels",
+                field="resolution",
             )
         if not 1 <= self.spp <= MAX_SPP:
             raise DatasetError(f"spp {self.spp} is out of range: use 1 to {MAX_SPP} samples per pixel", field="spp")
@@ -142,7 +143,9 @@ def read_meta(path: str) -> dict:
     """Returns a dataset's metadata, checking that it is a matfit dataset of a known format."""
     meta_path = os.path.join(path, "meta.json")
     if not os.path.isfile(meta_path):
-        raise DatasetError(f"{path} is not a matfit dataset (no meta.json): make one with `matfit render-dataset {path} --count N`")
+        raise DatasetError(
+            f"{path} is not a matfit dataset (no meta.json): make one with `matfit render-dataset {path} --count N`"
+        )
     try:
         with open(meta_path) as file:
             meta = json.load(file)
@@ -151,7 +154,9 @@ def read_meta(path: str) -> dict:
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise DatasetError(f"{meta_path} does not describe a matfit dataset: delete {path} and render it again")
     if meta.get("format_version") != FORMAT_VERSION:
-        raise DatasetError(f"{path} has dataset format {meta.get('format_version')}, this matfit reads {FORMAT_VERSION}: render it again")
+        raise DatasetError(
+            f"{path} has dataset format {meta.get('format_version')}, this matfit reads {FORMAT_VERSION}: render it again"
+        )
     return meta
 
 
@@ -174,9 +179,13 @@ def open_dataset(path: str, writable: bool = False) -> Dataset:
         try:
             arrays[name] = np.load(file, mmap_mode=mode)
         except (OSError, ValueError) as error:
-            raise DatasetError(f"{file} is missing or corrupt ({error}): delete {path} and render the dataset again") from None
+            raise DatasetError(
+                f"{file} is missing or corrupt ({error}): delete {path} and render the dataset again"
+            ) from None
         if arrays[name].shape != shape:
-            raise DatasetError(f"{file} has shape {arrays[name].shape}, meta.json says {shape}: delete {path} and render it again")
+            raise DatasetError(
+                f"{file} has shape {arrays[name].shape}, meta.json says {shape}: delete {path} and render it again"
+            )
     return Dataset(path, meta, arrays["params.npy"], arrays["images.npy"], arrays["done.npy"])
 
 
@@ -259,7 +268,9 @@ def prepare(path: str, settings: Settings, count: int, versions: dict) -> Datase
             raise DatasetError(f"{path} already holds {old.count} samples: pass --count {old.count} or more")
         if count == old.count:
             return open_dataset(path, writable=True)
-    _check_disk(path, settings, count - (old.count if old else 0))  # before the folder is made: a refusal leaves nothing
+    _check_disk(
+        path, settings, count - (old.count if old else 0)
+    )  # before the folder is made: a refusal leaves nothing
     os.makedirs(path, exist_ok=True)
     _write_arrays(path, settings, count, old)
     _write_json(os.path.join(path, "meta.json"), _meta(settings, count, versions))
@@ -275,7 +286,9 @@ def _chunks(indices: np.ndarray, size: int) -> Iterator[np.ndarray]:
 _worker_renderer = None
 
 
-def init_worker(resolution: int, spp: int, variant: str, ignore_interrupts: bool = True, new_session: bool = True) -> None:
+def init_worker(
+    resolution: int, spp: int, variant: str, ignore_interrupts: bool = True, new_session: bool = True
+) -> None:
     """Makes this process's renderer, with one Dr.Jit thread; a worker also ignores Ctrl-C."""
     global _worker_renderer
     # Mitsuba catches SIGINT during a render, cancels it and returns an incomplete image. A worker
@@ -362,11 +375,17 @@ def render_missing(
     after each chunk. The scene without its sphere (`SCENE_FILE`, `SCENE_SPP` samples) is
     rendered first, in this process, if missing.
     """
-    settings = Settings(dataset.resolution, int(dataset.meta["spp"]), int(dataset.meta["seed"]), dataset.meta["variant"])
+    settings = Settings(
+        dataset.resolution, int(dataset.meta["spp"]), int(dataset.meta["seed"]), dataset.meta["variant"]
+    )
     render_scene_image(dataset, settings)
     missing = np.flatnonzero(dataset.done == 0)
     tasks = [
-        (chunk, np.asarray(dataset.params[chunk], dtype=np.float64), np.array([image_seed(settings.seed, int(i)) for i in chunk]))
+        (
+            chunk,
+            np.asarray(dataset.params[chunk], dtype=np.float64),
+            np.array([image_seed(settings.seed, int(i)) for i in chunk]),
+        )
         for chunk in _chunks(missing, CHUNK)
     ]
     total, finished, rendered, started = dataset.count, dataset.finished, 0, time.perf_counter()

@@ -55,7 +55,9 @@ class SequenceError(MatfitError):
     """A frames folder or sequence output that cannot be used."""
 
 
-def check_range(field: str, value: int | float, low: int | float, high: int | float, error: type[MatfitError] = MatfitError) -> None:
+def check_range(
+    field: str, value: int | float, low: int | float, high: int | float, error: type[MatfitError] = MatfitError
+) -> None:
     """Raises `error` (naming `field`) unless low <= value <= high."""
     if not low <= value <= high:
         raise error(f"{field} {value} is out of range: use {low} to {high}", field=field)

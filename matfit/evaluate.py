@@ -29,7 +29,14 @@ from matfit.errors import DatasetError
 PRESET_SPP = 4096
 PRESET_FILE = "presets.npz"
 # What the issue's targets ask of the decoder (0-255 sRGB RMSE against clean renders).
-TARGETS = {"preset": 4.0, "transmissive_presets_mean": 3.0, "opaque_presets": 2.8, "mean": 2.5, "transmissive_mean": 3.0, "p95": 5.0}
+TARGETS = {
+    "preset": 4.0,
+    "transmissive_presets_mean": 3.0,
+    "opaque_presets": 2.8,
+    "mean": 2.5,
+    "transmissive_mean": 3.0,
+    "p95": 5.0,
+}
 
 
 def subsets(values: np.ndarray) -> dict[str, np.ndarray]:
@@ -40,7 +47,9 @@ def subsets(values: np.ndarray) -> dict[str, np.ndarray]:
     """
     values = np.asarray(values).reshape(-1, params.COUNT)
     transmissive = values[:, params.INDEX["spec_trans"]] >= 0.5
-    scattering = transmissive & (values[:, params.INDEX["scattering"]] >= 0.5) & (values[:, params.INDEX["density"]] >= 1.0)
+    scattering = (
+        transmissive & (values[:, params.INDEX["scattering"]] >= 0.5) & (values[:, params.INDEX["density"]] >= 1.0)
+    )
     return {"transmissive": transmissive, "scattering": scattering, "opaque": ~transmissive}
 
 
@@ -54,7 +63,11 @@ def preset_references(references: Dataset, spp: int = PRESET_SPP) -> dict[str, n
     names = list(presets.PRESETS)
     if os.path.isfile(path):
         with np.load(path) as stored:
-            if list(stored["names"]) == names and int(stored["spp"]) == spp and stored["images"].shape[1] == references.resolution:
+            if (
+                list(stored["names"]) == names
+                and int(stored["spp"]) == spp
+                and stored["images"].shape[1] == references.resolution
+            ):
                 return dict(zip(names, stored["images"].astype(np.float32), strict=True))
     from matfit.render import Renderer
 
@@ -86,7 +99,8 @@ def evaluate(model: models.Model, references: Dataset, preset_spp: int = PRESET_
     clean = preset_references(references, preset_spp)
     preset_values = np.stack([presets.preset(name) for name in clean])
     preset_error = images.rmse(
-        model.decode(params.to_unit(preset_values).astype(np.float32)), images.srgb_encode(np.stack(list(clean.values())))
+        model.decode(params.to_unit(preset_values).astype(np.float32)),
+        images.srgb_encode(np.stack(list(clean.values()))),
     )
     preset_masks = subsets(preset_values)
     result = {
@@ -98,11 +112,16 @@ def evaluate(model: models.Model, references: Dataset, preset_spp: int = PRESET_
             **{f"{name}_count": int(mask.sum()) for name, mask in masks.items()},
         },
         "decoder_rmse": summary(decoder_error),
-        **{f"decoder_rmse_{name}": summary(decoder_error[mask]) if mask.any() else None for name, mask in masks.items()},
+        **{
+            f"decoder_rmse_{name}": summary(decoder_error[mask]) if mask.any() else None for name, mask in masks.items()
+        },
         "presets": {
             "spp": preset_spp,
             "rmse": {name: float(error) for name, error in zip(clean, preset_error, strict=True)},
-            **{f"{name}_mean": float(preset_error[mask].mean()) if mask.any() else None for name, mask in preset_masks.items()},
+            **{
+                f"{name}_mean": float(preset_error[mask].mean()) if mask.any() else None
+                for name, mask in preset_masks.items()
+            },
             "max": float(preset_error.max()),
         },
         "encoders": {},
@@ -158,10 +177,16 @@ def card(model: models.Model, evaluation: dict) -> str:
             f"| {network.name} | {metrics.get('parameter_count', 0):,} | {metrics.get('epochs', '?')} | {config.get('batch_size', '?')} "
             f"| {metrics.get('wall_time_s', 0) / 60:.1f} min | {figure} |"
         )
-    total = sum(network.info.get("metrics", {}).get("wall_time_s", 0) for network in [model.decoder, *model.encoders.values()])
+    total = sum(
+        network.info.get("metrics", {}).get("wall_time_s", 0) for network in [model.decoder, *model.encoders.values()]
+    )
     lines += ["", f"Training all {1 + len(model.encoders)} networks took {total / 60:.0f} min on this machine's CPU."]
     lines += decoder_tables(evaluation)
-    lines += ["", "| encoder | parameter RMSE (unit cube) | image RMSE of phi(encoder(t)) vs t | wins in best-of-n |", "|---|---|---|---|"]
+    lines += [
+        "",
+        "| encoder | parameter RMSE (unit cube) | image RMSE of phi(encoder(t)) vs t | wins in best-of-n |",
+        "|---|---|---|---|",
+    ]
     best = evaluation["best_of_n"]
     for arch, entry in evaluation["encoders"].items():
         lines.append(f"| {arch} | {entry['parameter_rmse']:.4f} | {entry['image_rmse']:.2f} | {best['wins'][arch]} |")
@@ -189,7 +214,13 @@ def decoder_tables(evaluation: dict) -> list[str]:
         "|---|---|---|---|",
     ]
     for k, (name, error) in enumerate(preset_figures["rmse"].items()):
-        third = "scattering" if preset_thirds["scattering"][k] else "transmissive" if preset_thirds["transmissive"][k] else "opaque"
+        third = (
+            "scattering"
+            if preset_thirds["scattering"][k]
+            else "transmissive"
+            if preset_thirds["transmissive"][k]
+            else "opaque"
+        )
         lines.append(f"| {name} | {third} | {error:.2f} | <= {TARGETS['preset']:.1f} |")
     if preset_figures.get("transmissive_mean") is not None:
         lines.append(

@@ -76,7 +76,9 @@ def mitsuba_xml(values: np.ndarray) -> str:
     """Returns a Mitsuba 3 XML scene fragment holding the material's BSDF and interior medium."""
     root = ElementTree.Element("scene", version="3.0.0")
     root.append(
-        ElementTree.Comment(' matfit: use with <ref id="matfit-material"/>, and <ref name="interior" id="matfit-interior"/> for a medium ')
+        ElementTree.Comment(
+            ' matfit: use with <ref id="matfit-material"/>, and <ref name="interior" id="matfit-interior"/> for a medium '
+        )
     )
     _object(root, "bsdf", MATERIAL_ID, scene.bsdf(values))
     _object(root, "medium", MEDIUM_ID, scene.medium(values))

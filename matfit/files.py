@@ -46,7 +46,9 @@ def check_writable(path: str) -> None:
         with tempfile.TemporaryFile(dir=directory):
             pass
     except OSError:
-        raise OutputError(f"cannot write {path}: directory {directory} is read-only (choose another output path)") from None
+        raise OutputError(
+            f"cannot write {path}: directory {directory} is read-only (choose another output path)"
+        ) from None
 
 
 @contextlib.contextmanager

@@ -89,8 +89,22 @@ def decoded_rmse(y: jax.Array, args: tuple) -> jax.Array:
 
 
 @partial(jax.jit, static_argnames=("decoder", "encoders", "settings"))
-def _fit(decoder, encoders, settings: Settings, decoder_variables, encoder_variables, target, encoder_target, weights, extra, start):
-    guesses = [encoder.apply(variables, encoder_target[None])[0] for encoder, variables in zip(encoders, encoder_variables, strict=True)]
+def _fit(
+    decoder,
+    encoders,
+    settings: Settings,
+    decoder_variables,
+    encoder_variables,
+    target,
+    encoder_target,
+    weights,
+    extra,
+    start,
+):
+    guesses = [
+        encoder.apply(variables, encoder_target[None])[0]
+        for encoder, variables in zip(encoders, encoder_variables, strict=True)
+    ]
     candidates = jnp.concatenate([jnp.stack(guesses), extra]) if guesses else extra
     candidate_images = decoder.apply(decoder_variables, candidates)
     candidate_errors = images.rmse(candidate_images, target, weights)
@@ -115,11 +129,19 @@ def _fit(decoder, encoders, settings: Settings, decoder_variables, encoder_varia
         if settings.method.uses_simplex:
             starts = jnp.concatenate([ends, starts])
         args = (decoder_variables, target, weights)
-        ends, end_errors, counts = gradient.minimise(lambda y, a: decoded_rmse(y, (decoder, *a)), starts, args, settings.iterations)
+        ends, end_errors, counts = gradient.minimise(
+            lambda y, a: decoded_rmse(y, (decoder, *a)), starts, args, settings.iterations
+        )
         evaluations = evaluations + GRADIENT_COST * jnp.sum(counts).astype(jnp.float32)
     if settings.polish_steps:
         polished = polish(
-            decoder, decoder_variables, target, weights, ends[jnp.argmin(end_errors)], settings.polish_steps, settings.polish_rate
+            decoder,
+            decoder_variables,
+            target,
+            weights,
+            ends[jnp.argmin(end_errors)],
+            settings.polish_steps,
+            settings.polish_rate,
         )
         ends = jnp.concatenate([polished[None], ends])
         end_errors = images.rmse(decoder.apply(decoder_variables, ends), target, weights)
@@ -183,11 +205,17 @@ def fit(
     side = model.resolution
     target = np.asarray(target, np.float32)
     if target.shape != (side, side, 3):
-        raise FitError(f"the target is {target.shape}, the model needs ({side}, {side}, 3): resample it with prepare_target")
+        raise FitError(
+            f"the target is {target.shape}, the model needs ({side}, {side}, 3): resample it with prepare_target"
+        )
     weights = np.ones((side, side), np.float32) if weights is None else np.asarray(weights, np.float32)
     if weights.shape != (side, side) or not np.all(np.isfinite(weights)) or weights.min() < 0 or weights.sum() <= 0:
         raise FitError("the mask must be (R, R) finite non-negative weights, not all zero: paint some of it white")
-    extra = np.zeros((0, params.COUNT), np.float32) if extra is None else np.asarray(extra, np.float32).reshape(-1, params.COUNT)
+    extra = (
+        np.zeros((0, params.COUNT), np.float32)
+        if extra is None
+        else np.asarray(extra, np.float32).reshape(-1, params.COUNT)
+    )
     if not model.encoders and not len(extra) and settings.method != Method.optimize:
         raise FitError("best-of-n needs at least one encoder or extra candidate: use a model with encoders")
     start = np.random.default_rng(seed).uniform(0.0, 1.0, params.COUNT).astype(np.float32)

@@ -162,7 +162,9 @@ def run(
     return outcome
 
 
-def document(outcome: Outcome, settings: fit.Settings, model_path: str, target: str, mask: str | None, init: str | None) -> dict:
+def document(
+    outcome: Outcome, settings: fit.Settings, model_path: str, target: str, mask: str | None, init: str | None
+) -> dict:
     """Returns the params.json document of a fit: the 19 values with units, and how they were found."""
     result, checked = outcome.result, outcome.verified
     mitsuba = {}

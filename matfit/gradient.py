@@ -15,7 +15,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-with warnings.catch_warnings():  # jaxopt says on import that it is no longer maintained; its native LBFGSB is what we need
+with (
+    warnings.catch_warnings()
+):  # jaxopt says on import that it is no longer maintained; its native LBFGSB is what we need
     warnings.simplefilter("ignore", DeprecationWarning)
     import jaxopt
 

@@ -67,7 +67,9 @@ def box_downsample(linear: np.ndarray, size: int) -> np.ndarray:
     linear = np.asarray(linear, dtype=np.float32)
     height, width = linear.shape[-3:-1]
     if height != width or height % size:
-        raise ValueError(f"cannot box-filter a {height}x{width} image down to {size}x{size}: the side must be a multiple of {size}")
+        raise ValueError(
+            f"cannot box-filter a {height}x{width} image down to {size}x{size}: the side must be a multiple of {size}"
+        )
     factor = height // size
     blocks = linear.reshape(*linear.shape[:-3], size, factor, size, factor, linear.shape[-1])
     return blocks.mean(axis=(-4, -2))
@@ -174,7 +176,9 @@ def check_readable(path: str) -> None:
     try:
         path.encode()
     except UnicodeEncodeError:
-        raise ImageError(f"the file name {printable(path)} is not valid UTF-8, which OpenImageIO cannot open: rename the file") from None
+        raise ImageError(
+            f"the file name {printable(path)} is not valid UTF-8, which OpenImageIO cannot open: rename the file"
+        ) from None
 
 
 @contextlib.contextmanager

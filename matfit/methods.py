@@ -66,7 +66,9 @@ class Settings:
         try:  # accept the plain strings too ("hybrid"), as the library's callers write them
             object.__setattr__(self, "method", Method(self.method))
         except ValueError:
-            raise FitError(f"method {self.method!r} is unknown: use one of {', '.join(m.value for m in Method)}", field="method") from None
+            raise FitError(
+                f"method {self.method!r} is unknown: use one of {', '.join(m.value for m in Method)}", field="method"
+            ) from None
         try:
             object.__setattr__(self, "box", Box(self.box))
         except ValueError:
@@ -80,8 +82,12 @@ class Settings:
                 field="evaluations",
             )
         if not 0 <= self.polish_steps <= MAX_POLISH:
-            raise FitError(f"polish steps {self.polish_steps} is out of range: use 0 to {MAX_POLISH}", field="polish_steps")
+            raise FitError(
+                f"polish steps {self.polish_steps} is out of range: use 0 to {MAX_POLISH}", field="polish_steps"
+            )
         if not 1 <= self.starts <= MAX_STARTS:
             raise FitError(f"starts {self.starts} is out of range: use 1 to {MAX_STARTS}", field="starts")
         if not 1 <= self.iterations <= MAX_ITERATIONS:
-            raise FitError(f"iterations {self.iterations} is out of range: use 1 to {MAX_ITERATIONS}", field="iterations")
+            raise FitError(
+                f"iterations {self.iterations} is out of range: use 1 to {MAX_ITERATIONS}", field="iterations"
+            )

@@ -188,7 +188,9 @@ class Decoder(nn.Module):
     def __call__(self, x: jax.Array) -> jax.Array:
         stages = self.resolution.bit_length() - 1 - 3  # from 4 x 4 up to resolution / 2
         if self.resolution < 8 or 8 * 2**stages != self.resolution:
-            raise ValueError(f"decoder resolution must be 4 times a power of two (8, 16, ..., 256), got {self.resolution}")
+            raise ValueError(
+                f"decoder resolution must be 4 times a power of two (8, 16, ..., 256), got {self.resolution}"
+            )
         batch_shape = x.shape[:-1]
         x = x.reshape(-1, x.shape[-1])
         x = nn.gelu(nn.Dense(self.hidden)(x))
@@ -343,7 +345,11 @@ def architecture(name: str, resolution: int, decoder: Decoder | None = None) -> 
     """
     if name == DECODER:
         decoder = decoder or Decoder(resolution=resolution)
-        fields = {field.name: getattr(decoder, field.name) for field in dataclasses.fields(Decoder) if field.name not in ("parent", "name")}
+        fields = {
+            field.name: getattr(decoder, field.name)
+            for field in dataclasses.fields(Decoder)
+            if field.name not in ("parent", "name")
+        }
         fields["stage_channels"] = list(fields["stage_channels"])
         fields["blur_levels"] = list(fields["blur_levels"])
         return {"kind": DECODER, **fields}
@@ -398,7 +404,9 @@ class Network:
 
 def save(path: str, network: Network, dtype: np.dtype = np.float16) -> None:
     """Writes a network's weights (as `dtype`) and description to a Flax msgpack file, atomically."""
-    weights = jax.tree_util.tree_map(lambda leaf: np.asarray(leaf, dtype=dtype), serialization.to_state_dict(network.variables))
+    weights = jax.tree_util.tree_map(
+        lambda leaf: np.asarray(leaf, dtype=dtype), serialization.to_state_dict(network.variables)
+    )
     document = {
         "format": WEIGHTS_FORMAT,
         "version": WEIGHTS_VERSION,
@@ -420,14 +428,20 @@ def restore_document(path: str, expected_format: str, what: str) -> dict:
     except FileNotFoundError:
         raise WeightsError(f"{path} does not exist: train it with `matfit train` or check the path") from None
     except Exception as error:  # msgpack raises many types on damaged bytes
-        raise WeightsError(f"{path} is not a readable {what} ({type(error).__name__}): delete it and train again") from None
+        raise WeightsError(
+            f"{path} is not a readable {what} ({type(error).__name__}): delete it and train again"
+        ) from None
     if not isinstance(document, dict) or document.get("format") != expected_format:
         raise WeightsError(f"{path} is not a matfit {what}: delete it and train again")
     if document.get("version") != WEIGHTS_VERSION:
-        raise WeightsError(f"{path} is {what} version {document.get('version')}, this matfit reads {WEIGHTS_VERSION}: train again")
+        raise WeightsError(
+            f"{path} is {what} version {document.get('version')}, this matfit reads {WEIGHTS_VERSION}: train again"
+        )
     difference = params.describe_table_difference(document.get("parameter_table", {}))
     if difference is not None:
-        raise WeightsError(f"{path} was trained for another parameter table ({difference}): train again on a new dataset")
+        raise WeightsError(
+            f"{path} was trained for another parameter table ({difference}): train again on a new dataset"
+        )
     return {**document, "sha256": hashlib.sha256(data).hexdigest()}
 
 
@@ -436,7 +450,9 @@ def restore_variables(path: str, description: dict, stored: dict) -> tuple[nn.Mo
     try:
         module = build(description)
     except (KeyError, TypeError, ValueError) as error:
-        raise WeightsError(f"{path} describes an architecture this matfit cannot build ({error}): train again") from None
+        raise WeightsError(
+            f"{path} describes an architecture this matfit cannot build ({error}): train again"
+        ) from None
     template = jax.eval_shape(lambda: initialise(module, jax.random.key(0), input_shape(description)))
     shapes = jax.tree_util.tree_map(lambda leaf: tuple(leaf.shape), template)
     try:
@@ -457,13 +473,17 @@ def load(path: str, resolution: int | None = None, name: str | None = None) -> N
         raise WeightsError(f"{path} has no architecture description: train again")
     stored_name = describe_network(description)
     if name is not None and stored_name != name:
-        raise WeightsError(f"{path} holds the weights of the {stored_name}, not of the {name}: copy the right file there or train it again")
+        raise WeightsError(
+            f"{path} holds the weights of the {stored_name}, not of the {name}: copy the right file there or train it again"
+        )
     if resolution is not None and int(description["resolution"]) != resolution:
         raise WeightsError(
             f"{path} was trained on {description['resolution']} px images, not {resolution} px: use a model of that resolution"
         )
     module, variables = restore_variables(path, description, document.get("variables"))
-    return Network(str(document.get("name")), description, module, variables, document.get("info") or {}, document["sha256"])
+    return Network(
+        str(document.get("name")), description, module, variables, document.get("info") or {}, document["sha256"]
+    )
 
 
 def describe_network(description: dict) -> str:
@@ -495,7 +515,9 @@ class Model:
 
     def decode(self, unit: np.ndarray) -> np.ndarray:
         """Returns phi(x) of unit-cube parameters (N, 19): sRGB images (N, R, R, 3), float32, decoded in batches."""
-        return apply_in_batches(self.decoder.module, self.decoder.variables, np.asarray(unit, np.float32).reshape(-1, params.COUNT))
+        return apply_in_batches(
+            self.decoder.module, self.decoder.variables, np.asarray(unit, np.float32).reshape(-1, params.COUNT)
+        )
 
 
 def weights_path(directory: str, name: str) -> str:
@@ -506,7 +528,9 @@ def weights_path(directory: str, name: str) -> str:
 def load_model(directory: str) -> Model:
     """Returns the decoder and every encoder found in a model directory (at least one encoder)."""
     if not os.path.isdir(directory):
-        raise WeightsError(f"model directory {directory} does not exist: train one with `matfit train` or use data/models/default")
+        raise WeightsError(
+            f"model directory {directory} does not exist: train one with `matfit train` or use data/models/default"
+        )
     decoder = load(weights_path(directory, DECODER), name=DECODER)
     encoders = {}
     for arch, name in zip(ENCODERS, ENCODER_NAMES, strict=True):
@@ -514,7 +538,9 @@ def load_model(directory: str) -> Model:
         if os.path.exists(path):
             encoders[arch] = load(path, resolution=decoder.resolution, name=name)
     if not encoders:
-        raise WeightsError(f"{directory} has a decoder but no encoders: train them with `matfit train --arch 1..9 --out {directory}`")
+        raise WeightsError(
+            f"{directory} has a decoder but no encoders: train them with `matfit train --arch 1..9 --out {directory}`"
+        )
     return Model(directory, decoder, encoders)
 
 

@@ -54,32 +54,83 @@ PARAMETERS: tuple[Parameter, ...] = (
     Parameter("base_color_r", 0.0, 1.0, 0.8, "reflectance", "base colour, red channel (linear)"),
     Parameter("base_color_g", 0.0, 1.0, 0.8, "reflectance", "base colour, green channel (linear)"),
     Parameter("base_color_b", 0.0, 1.0, 0.8, "reflectance", "base colour, blue channel (linear)"),
-    Parameter("metallic", 0.0, 1.0, 0.0, "fraction", "0 dielectric, 1 metal (base colour tints the reflection)", 0.45, 0.2),
+    Parameter(
+        "metallic", 0.0, 1.0, 0.0, "fraction", "0 dielectric, 1 metal (base colour tints the reflection)", 0.45, 0.2
+    ),
     Parameter("roughness", 0.0, 1.0, 0.5, "fraction", "microfacet roughness: 0 mirror-like, 1 matte", 0.15, 0.0, 2.0),
     Parameter("anisotropic", 0.0, 1.0, 0.0, "fraction", "stretches highlights along the tangent direction", 0.5, 0.0),
-    Parameter("specular", 0.0, 1.0, 0.5, "fraction", "Fresnel reflectance; sets the index of refraction eta (0.5 -> 1.5)"),
-    Parameter("spec_tint", 0.0, 1.0, 0.0, "fraction", "tints dielectric specular reflection towards the base colour", 0.4, 0.0),
+    Parameter(
+        "specular", 0.0, 1.0, 0.5, "fraction", "Fresnel reflectance; sets the index of refraction eta (0.5 -> 1.5)"
+    ),
+    Parameter(
+        "spec_tint", 0.0, 1.0, 0.0, "fraction", "tints dielectric specular reflection towards the base colour", 0.4, 0.0
+    ),
     Parameter("sheen", 0.0, 1.0, 0.0, "fraction", "soft grazing-angle reflection, as on cloth", 0.5, 0.0),
     Parameter("sheen_tint", 0.0, 1.0, 0.5, "fraction", "tints the sheen towards the base colour"),
-    Parameter("clearcoat", 0.0, 1.0, 0.0, "fraction", "strength of a second, clear varnish-like specular layer", 0.5, 0.0),
+    Parameter(
+        "clearcoat", 0.0, 1.0, 0.0, "fraction", "strength of a second, clear varnish-like specular layer", 0.5, 0.0
+    ),
     Parameter("clearcoat_gloss", 0.0, 1.0, 1.0, "fraction", "glossiness of the clearcoat: 0 satin, 1 gloss"),
     Parameter("spec_trans", 0.0, 1.0, 0.0, "fraction", "specular transmission: 0 opaque, 1 glass-like", 0.4, 0.3),
     Parameter(
-        "medium_color_r", 0.01, 1.0, 1.0, "transmittance", "absorption colour, red: light kept after one radius at density 1", 0.0, 0.2
+        "medium_color_r",
+        0.01,
+        1.0,
+        1.0,
+        "transmittance",
+        "absorption colour, red: light kept after one radius at density 1",
+        0.0,
+        0.2,
     ),
     Parameter(
-        "medium_color_g", 0.01, 1.0, 1.0, "transmittance", "absorption colour, green: light kept after one radius at density 1", 0.0, 0.2
+        "medium_color_g",
+        0.01,
+        1.0,
+        1.0,
+        "transmittance",
+        "absorption colour, green: light kept after one radius at density 1",
+        0.0,
+        0.2,
     ),
     Parameter(
-        "medium_color_b", 0.01, 1.0, 1.0, "transmittance", "absorption colour, blue: light kept after one radius at density 1", 0.0, 0.2
+        "medium_color_b",
+        0.01,
+        1.0,
+        1.0,
+        "transmittance",
+        "absorption colour, blue: light kept after one radius at density 1",
+        0.0,
+        0.2,
     ),
     Parameter(
-        "density", 0.0, 4.0, 0.0, "multiplier", "thickness of the interior medium: extinction = density * -ln(colour)", 0.3, 0.0, 1.5
+        "density",
+        0.0,
+        4.0,
+        0.0,
+        "multiplier",
+        "thickness of the interior medium: extinction = density * -ln(colour)",
+        0.3,
+        0.0,
+        1.5,
     ),
     Parameter(
-        "scattering", 0.0, 1.0, 0.0, "albedo", "share of the medium's extinction that scatters (milky) rather than absorbs", 0.3, 0.2
+        "scattering",
+        0.0,
+        1.0,
+        0.0,
+        "albedo",
+        "share of the medium's extinction that scatters (milky) rather than absorbs",
+        0.3,
+        0.2,
     ),
-    Parameter("phase_g", -0.9, 0.9, 0.0, "mean cosine", "Henyey-Greenstein anisotropy of the medium: < 0 back-, > 0 forward-scattering"),
+    Parameter(
+        "phase_g",
+        -0.9,
+        0.9,
+        0.0,
+        "mean cosine",
+        "Henyey-Greenstein anisotropy of the medium: < 0 back-, > 0 forward-scattering",
+    ),
 )
 
 NAMES: tuple[str, ...] = tuple(p.name for p in PARAMETERS)
@@ -226,17 +277,25 @@ def parse_params_json(text: str, source: str = "params.json") -> np.ndarray:
     try:
         data = json.loads(text, object_pairs_hook=_unique_keys, parse_int=float)
     except json.JSONDecodeError as error:
-        raise ParameterError(f"{source} is not valid JSON ({error.msg} at line {error.lineno}, column {error.colno})") from None
+        raise ParameterError(
+            f"{source} is not valid JSON ({error.msg} at line {error.lineno}, column {error.colno})"
+        ) from None
     except ParameterError as error:
         raise ParameterError(f"{source}: {error}") from None
     if not isinstance(data, dict):
-        raise ParameterError(f'{source} must hold a JSON object of parameter names and values, like {{"roughness": 0.2}}')
+        raise ParameterError(
+            f'{source} must hold a JSON object of parameter names and values, like {{"roughness": 0.2}}'
+        )
     if "params" in data:
         if not isinstance(data["params"], dict):
-            raise ParameterError(f'{source}: "params" must be a JSON object of names and values, like {{"params": {{"roughness": 0.2}}}}')
+            raise ParameterError(
+                f'{source}: "params" must be a JSON object of names and values, like {{"params": {{"roughness": 0.2}}}}'
+            )
         outside = [name for name in data if name in INDEX]
         if outside:
-            raise ParameterError(f'{source} names {", ".join(outside)} outside "params" as well: put every parameter inside "params"')
+            raise ParameterError(
+                f'{source} names {", ".join(outside)} outside "params" as well: put every parameter inside "params"'
+            )
         data = data["params"]
     try:
         return from_mapping(data)

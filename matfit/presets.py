@@ -10,12 +10,44 @@ from matfit.errors import ParameterError
 PRESETS: dict[str, dict[str, float]] = {
     "gold": {"base_color_r": 1.0, "base_color_g": 0.71, "base_color_b": 0.29, "metallic": 1.0, "roughness": 0.25},
     "silver": {"base_color_r": 0.95, "base_color_g": 0.93, "base_color_b": 0.88, "metallic": 1.0, "roughness": 0.12},
-    "copper": {"base_color_r": 0.95, "base_color_g": 0.64, "base_color_b": 0.54, "metallic": 1.0, "roughness": 0.35, "anisotropic": 0.6},
-    "red-plastic": {"base_color_r": 0.7, "base_color_g": 0.05, "base_color_b": 0.04, "roughness": 0.3, "clearcoat": 0.5},
-    "blue-rubber": {"base_color_r": 0.05, "base_color_g": 0.12, "base_color_b": 0.45, "roughness": 0.85, "specular": 0.3},
-    "velvet": {"base_color_r": 0.35, "base_color_g": 0.02, "base_color_b": 0.2, "roughness": 0.9, "sheen": 1.0, "sheen_tint": 0.6},
+    "copper": {
+        "base_color_r": 0.95,
+        "base_color_g": 0.64,
+        "base_color_b": 0.54,
+        "metallic": 1.0,
+        "roughness": 0.35,
+        "anisotropic": 0.6,
+    },
+    "red-plastic": {
+        "base_color_r": 0.7,
+        "base_color_g": 0.05,
+        "base_color_b": 0.04,
+        "roughness": 0.3,
+        "clearcoat": 0.5,
+    },
+    "blue-rubber": {
+        "base_color_r": 0.05,
+        "base_color_g": 0.12,
+        "base_color_b": 0.45,
+        "roughness": 0.85,
+        "specular": 0.3,
+    },
+    "velvet": {
+        "base_color_r": 0.35,
+        "base_color_g": 0.02,
+        "base_color_b": 0.2,
+        "roughness": 0.9,
+        "sheen": 1.0,
+        "sheen_tint": 0.6,
+    },
     "glass": {"base_color_r": 1.0, "base_color_g": 1.0, "base_color_b": 1.0, "roughness": 0.0, "spec_trans": 1.0},
-    "frosted-glass": {"base_color_r": 1.0, "base_color_g": 1.0, "base_color_b": 1.0, "roughness": 0.35, "spec_trans": 1.0},
+    "frosted-glass": {
+        "base_color_r": 1.0,
+        "base_color_g": 1.0,
+        "base_color_b": 1.0,
+        "roughness": 0.35,
+        "spec_trans": 1.0,
+    },
     "amber-glass": {
         "base_color_r": 1.0,
         "base_color_g": 1.0,
@@ -63,7 +95,9 @@ def preset(name: str) -> np.ndarray:
     return params.from_mapping(PRESETS[name])
 
 
-def material(params_file: str | None = None, preset_name: str | None = None, random_seed: int | None = None) -> np.ndarray:
+def material(
+    params_file: str | None = None, preset_name: str | None = None, random_seed: int | None = None
+) -> np.ndarray:
     """Returns the physical vector (19,) of exactly one source: a params.json file, a preset or a random draw."""
     if sum(source is not None for source in (params_file, preset_name, random_seed)) != 1:
         raise ParameterError("give exactly one material: a params.json file, --preset NAME or --random")

@@ -45,7 +45,9 @@ class Progress:
                 self.start(self.label, self.total, done)
             self.bar.update(self.task, completed=done, stats=stats)
         elif self.total and (done / self.total >= self.next_report or done == self.total):
-            print(f"{self.label}: {done}/{self.total} ({100 * done / self.total:.0f}%) {stats}".rstrip(), file=sys.stderr)
+            print(
+                f"{self.label}: {done}/{self.total} ({100 * done / self.total:.0f}%) {stats}".rstrip(), file=sys.stderr
+            )
             self.next_report = min(1.0, done / self.total + 0.1)
 
     def note(self, line: str) -> None:

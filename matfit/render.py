@@ -66,7 +66,9 @@ def choose_variant(requested: str | None = None) -> tuple[str, str | None]:
     configured = os.environ.get("DRJIT_LIBLLVM_PATH")
     if configured:
         if not os.path.isfile(configured):
-            raise RenderError(f"DRJIT_LIBLLVM_PATH={configured} does not exist: point it at libLLVM >= {MINIMUM_LLVM} or unset it")
+            raise RenderError(
+                f"DRJIT_LIBLLVM_PATH={configured} does not exist: point it at libLLVM >= {MINIMUM_LLVM} or unset it"
+            )
         return LLVM_VARIANT, None
     found = find_libllvm()
     if found is not None:
@@ -212,7 +214,9 @@ class Rendered:
     seconds: float
 
 
-def render_file(values: np.ndarray, path: str, size: int, spp: int, seed: int = 0, variant: str | None = None) -> Rendered:
+def render_file(
+    values: np.ndarray, path: str, size: int, spp: int, seed: int = 0, variant: str | None = None
+) -> Rendered:
     """Renders a material (19 physical values) at size x size and writes it to an image file; checks the path first."""
     from matfit import images
 

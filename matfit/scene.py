@@ -145,7 +145,9 @@ def scene(resolution: int, spp: int, values: np.ndarray | None = None, sphere: b
         },
         "key_light": {
             "type": "rectangle",
-            "to_world": identity().then("scale", (1.2, 1.2, 1.0)).then("look_at", (-3.0, 4.0, 3.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+            "to_world": identity()
+            .then("scale", (1.2, 1.2, 1.0))
+            .then("look_at", (-3.0, 4.0, 3.0), (0.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
             "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [6.0, 6.0, 6.0]}},
         },
         "floor": {

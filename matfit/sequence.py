@@ -42,9 +42,15 @@ def list_frames(directory: str) -> list[str]:
     """Returns the image files of a folder in natural order; refuses a missing or empty folder."""
     if not os.path.isdir(directory):
         raise SequenceError(f"{directory} is not a folder: give the folder that holds the frames")
-    names = [name for name in os.listdir(directory) if os.path.splitext(name)[1].lower() in FRAME_EXTENSIONS and not name.startswith(".")]
+    names = [
+        name
+        for name in os.listdir(directory)
+        if os.path.splitext(name)[1].lower() in FRAME_EXTENSIONS and not name.startswith(".")
+    ]
     if not names:
-        raise SequenceError(f"{directory} holds no frames ({', '.join(FRAME_EXTENSIONS)}): export the frames there first")
+        raise SequenceError(
+            f"{directory} holds no frames ({', '.join(FRAME_EXTENSIONS)}): export the frames there first"
+        )
     return [os.path.join(directory, name) for name in sorted(names, key=natural_key)]
 
 
@@ -94,7 +100,13 @@ def read_finished(path: str, expected: dict) -> tuple[Frame, dict] | None:
         if unit.shape != (params.COUNT,):
             raise ValueError("unit vector of the wrong length")
         frame = Frame(
-            stored["frame"], unit, stored["rmse"], stored["start"], stored["start_rmse"], stored["evaluations"], stored["seconds"]
+            stored["frame"],
+            unit,
+            stored["rmse"],
+            stored["start"],
+            stored["start_rmse"],
+            stored["evaluations"],
+            stored["seconds"],
         )
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise SequenceError(f"{path} is damaged ({type(error).__name__}): delete it to fit that frame again") from None
@@ -113,7 +125,11 @@ def stale(finished: tuple[Frame, dict] | None, computed_from: dict, first: bool 
     if recorded["frame_sha256"] != computed_from["frame_sha256"]:
         return "the picture is not the one its result on disk was fitted to: fitted again"
     if recorded["previous"] != computed_from["previous"]:
-        return "the --init material changed: fitted again" if first else "the previous frame's result changed: fitted again"
+        return (
+            "the --init material changed: fitted again"
+            if first
+            else "the previous frame's result changed: fitted again"
+        )
     return None
 
 
@@ -123,7 +139,9 @@ def check_sizes(frames: list[str]) -> None:
     for path in frames[1:]:
         size = images.header(path)[:2]
         if size != first:
-            raise SequenceError(f"{path} is {size[0]}x{size[1]}, the first frame is {first[0]}x{first[1]}: give every frame the same size")
+            raise SequenceError(
+                f"{path} is {size[0]}x{size[1]}, the first frame is {first[0]}x{first[1]}: give every frame the same size"
+            )
 
 
 def load_frame(path: str, resolution: int) -> np.ndarray:
@@ -178,7 +196,16 @@ def _fit_frames(model, frames, out, settings, reinit, progress, init) -> list[Fr
             result = fit.fit(model, target, settings, extra=extra)
             start = (INIT if index == 0 else PREVIOUS) if result.chosen == "extra-1" else result.chosen
             frame = Frame(
-                path, result.unit, result.rmse, start, result.start_rmse, result.evaluations, result.seconds, result.image, target, note
+                path,
+                result.unit,
+                result.rmse,
+                start,
+                result.start_rmse,
+                result.evaluations,
+                result.seconds,
+                result.image,
+                target,
+                note,
             )
             document = params.params_document(
                 result.values,
@@ -221,9 +248,13 @@ def preview(model: models.Model, results: list[Frame], columns: int = 12, tile: 
 
     chosen = np.unique(np.linspace(0, len(results) - 1, min(columns, len(results))).round().astype(int))
     decoded = model.decode(np.stack([results[k].unit for k in chosen]))
-    top = report.compose([(results[k].target, os.path.basename(results[k].path)) for k in chosen], size=tile, caption=12)
+    top = report.compose(
+        [(results[k].target, os.path.basename(results[k].path)) for k in chosen], size=tile, caption=12
+    )
     bottom = report.compose(
-        [(image, f"RMSE {results[k].rmse:.2f}") for image, k in zip(decoded, chosen, strict=True)], size=tile, caption=12
+        [(image, f"RMSE {results[k].rmse:.2f}") for image, k in zip(decoded, chosen, strict=True)],
+        size=tile,
+        caption=12,
     )
     return np.concatenate([top, bottom], axis=0)
 
@@ -251,7 +282,9 @@ def run(
         raise SequenceError(f"output folder {out} is a file: give a folder for the results", field="out")
     parent = os.path.dirname(os.path.abspath(out))
     if not os.path.isdir(parent):
-        raise SequenceError(f"output folder {out} cannot be created: {parent} does not exist (create it first)", field="out")
+        raise SequenceError(
+            f"output folder {out} cannot be created: {parent} does not exist (create it first)", field="out"
+        )
     started = time.perf_counter()
 
     def report(done: int, total: int, frame: Frame) -> None:

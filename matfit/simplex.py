@@ -45,7 +45,9 @@ REFLECT, EXPAND, OUTSIDE, INSIDE, SHRINK = range(5)
 def steps_for_budget(evaluations: int, dimension: int) -> int:
     """Returns the `max_steps` that spends exactly `evaluations` function evaluations."""
     if evaluations < dimension + 2:
-        raise ValueError(f"a budget of {evaluations} evaluations is too small for {dimension} dimensions: use at least {dimension + 2}")
+        raise ValueError(
+            f"a budget of {evaluations} evaluations is too small for {dimension} dimensions: use at least {dimension + 2}"
+        )
     return evaluations - (dimension + 1)
 
 
@@ -84,7 +86,9 @@ def best_so_far(state: _State) -> tuple[Array, Array]:
     """
     best = jnp.argmin(state.values)
     pending = (state.phase == EXPAND) & (state.reflected_value < state.values[best])
-    return jnp.where(pending, state.reflected, state.simplex[best]), jnp.where(pending, state.reflected_value, state.values[best])
+    return jnp.where(pending, state.reflected, state.simplex[best]), jnp.where(
+        pending, state.reflected_value, state.values[best]
+    )
 
 
 class NelderMead(optx.AbstractMinimiser):
@@ -189,7 +193,9 @@ class NelderMead(optx.AbstractMinimiser):
         best = jnp.argmin(values)
         x_scale = self.atol + self.rtol * jnp.abs(simplex[best])[None, :]
         f_scale = self.atol + self.rtol * jnp.abs(values[best])
-        return jnp.all(jnp.abs(simplex - simplex[best][None, :]) <= x_scale) & jnp.all(jnp.abs(values - values[best]) <= f_scale)
+        return jnp.all(jnp.abs(simplex - simplex[best][None, :]) <= x_scale) & jnp.all(
+            jnp.abs(values - values[best]) <= f_scale
+        )
 
     def terminate(self, fn, y, args, options, state: _State, tags):
         return state.converged, optx.RESULTS.successful

@@ -68,13 +68,18 @@ class Config:
         if self.epochs is None or not 1 <= self.epochs <= MAX_EPOCHS:
             raise TrainingError(f"epochs {self.epochs} is out of range: use 1 to {MAX_EPOCHS}", field="epochs")
         if not 0.0 < self.learning_rate <= 1.0:
-            raise TrainingError(f"learning rate {self.learning_rate} is out of range: use a value in (0, 1]", field="learning_rate")
+            raise TrainingError(
+                f"learning rate {self.learning_rate} is out of range: use a value in (0, 1]", field="learning_rate"
+            )
         if not 0.0 < self.validation_fraction < 0.5:
-            raise TrainingError(f"validation fraction {self.validation_fraction} is out of range: use a value in (0, 0.5)")
+            raise TrainingError(
+                f"validation fraction {self.validation_fraction} is out of range: use a value in (0, 0.5)"
+            )
         training = samples - validation_count(samples, self.validation_fraction)
         if not 1 <= self.batch_size <= training:
             raise TrainingError(
-                f"batch size {self.batch_size} does not fit {training} training samples: use 1 to {training}", field="batch_size"
+                f"batch size {self.batch_size} does not fit {training} training samples: use 1 to {training}",
+                field="batch_size",
             )
 
 
@@ -125,14 +130,10 @@ def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool):
         return jnp.mean((prediction - y) ** 2)
 
     @jax.jit
-<<<<<<< HEAD
-    def train_step(state, x, y, key):
+    def train_step(state, constants, x, y, key):
         # Batches arrive as stored (float16 images): casting here, on the accelerator, is exact
         # and 10-17x cheaper for the host than NumPy's cast (README: data loading).
         x, y = x.astype(jnp.float32), y.astype(jnp.float32)
-=======
-    def train_step(state, constants, x, y, key):
->>>>>>> glass
         weights, opt_state = state
         loss, grads = jax.value_and_grad(loss_fn)(weights, constants, x, y, key)
         with jax.numpy_dtype_promotion("standard"):  # optax mixes Python floats with its int32 step count
@@ -192,7 +193,9 @@ def save_checkpoint(path: str, name: str, description: dict, config: Config, ide
     files.write_bytes(path, serialization.msgpack_serialize(document))
 
 
-def load_checkpoint(path: str, name: str, description: dict, config: Config, identity: dict, template: Checkpoint) -> Checkpoint:
+def load_checkpoint(
+    path: str, name: str, description: dict, config: Config, identity: dict, template: Checkpoint
+) -> Checkpoint:
     """Returns the checkpoint at `path` if it belongs to this very run; refuses any other."""
     document = models.restore_document(path, CHECKPOINT_FORMAT, "checkpoint")
     fix = f"delete {path} to start afresh, or pass the settings it was made with"
@@ -200,11 +203,17 @@ def load_checkpoint(path: str, name: str, description: dict, config: Config, ide
         raise TrainingError(f"{path} is a checkpoint of another network or architecture: {fix}")
     if document.get("config") != asdict(config):
         stored = document.get("config") or {}
-        different = ", ".join(f"{key} {stored.get(key)} (now {value})" for key, value in asdict(config).items() if stored.get(key) != value)
+        different = ", ".join(
+            f"{key} {stored.get(key)} (now {value})"
+            for key, value in asdict(config).items()
+            if stored.get(key) != value
+        )
         raise TrainingError(f"{path} was made with other settings ({different}): {fix}")
     if document.get("dataset") != identity:
         stored = document.get("dataset") or {}
-        different = ", ".join(f"{key} {stored.get(key)!r}" for key, value in identity.items() if stored.get(key) != value)
+        different = ", ".join(
+            f"{key} {stored.get(key)!r}" for key, value in identity.items() if stored.get(key) != value
+        )
         raise TrainingError(f"{path} was trained on another dataset ({different}): {fix}")
     try:
         weights = serialization.from_state_dict(template.weights, document["weights"])
@@ -327,13 +336,8 @@ def train_epoch(run: Run, train_step, state: Checkpoint, reporter: Reporter) -> 
     training, losses = (state.weights, state.opt_state), []
     for step in range(run.steps):
         batch = order[step * batch_size : (step + 1) * batch_size]
-<<<<<<< HEAD
         x, y = run.inputs[batch], run.targets[batch]
-        training, loss = train_step(training, x, y, jax.random.fold_in(epoch_key, step))
-=======
-        x, y = np.asarray(run.inputs[batch], np.float32), np.asarray(run.targets[batch], np.float32)
         training, loss = train_step(training, run.constants, x, y, jax.random.fold_in(epoch_key, step))
->>>>>>> glass
         losses.append(loss)
         if step % 10 == 9 or step == run.steps - 1:
             reporter.step(step + 1, float(loss), (step + 1) * batch_size / (time.perf_counter() - started))
@@ -376,7 +380,12 @@ def finish(run: Run, state: Checkpoint) -> dict:
 
 
 def train_network(
-    name: str, data: Dataset, out: str, config: Config, reporter: Reporter | None = None, decoder: models.Decoder | None = None
+    name: str,
+    data: Dataset,
+    out: str,
+    config: Config,
+    reporter: Reporter | None = None,
+    decoder: models.Decoder | None = None,
 ) -> dict:
     """Trains (or resumes, or finds finished) network `name` and returns its final metrics.
 
@@ -437,7 +446,11 @@ def _arch_number(text: str) -> int:
     try:
         arch = int(text)
     except ValueError:
-        raise TrainingError(f"arch {text!r} is not an architecture: use decoder, 1 to 9, 1..9 or all", field="arch") from None
+        raise TrainingError(
+            f"arch {text!r} is not an architecture: use decoder, 1 to 9, 1..9 or all", field="arch"
+        ) from None
     if arch not in models.ENCODERS:
-        raise TrainingError(f"arch {arch} does not exist: the paper's encoders are 1 to 9 (or use decoder)", field="arch")
+        raise TrainingError(
+            f"arch {arch} does not exist: the paper's encoders are 1 to 9 (or use decoder)", field="arch"
+        )
     return arch

@@ -51,7 +51,9 @@ def candidates(result: fit.Result, count: int = CANDIDATES) -> dict[str, np.ndar
     return chosen
 
 
-def verify(renderer, result: fit.Result, target: np.ndarray, weights: np.ndarray | None = None, count: int = CANDIDATES) -> Verified:
+def verify(
+    renderer, result: fit.Result, target: np.ndarray, weights: np.ndarray | None = None, count: int = CANDIDATES
+) -> Verified:
     """Returns the candidate whose Mitsuba render is closest to the sRGB `target` (weighted like the fit, if a mask is given).
 
     `renderer` renders at the target's resolution; every candidate uses the same seed and SPP samples.
@@ -59,7 +61,10 @@ def verify(renderer, result: fit.Result, target: np.ndarray, weights: np.ndarray
     started = time.perf_counter()
     weights = np.ones(target.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
     pool = candidates(result, count)
-    renders = {name: images.srgb_encode(renderer.render(params.from_unit(unit), seed=SEED, spp=SPP)) for name, unit in pool.items()}
+    renders = {
+        name: images.srgb_encode(renderer.render(params.from_unit(unit), seed=SEED, spp=SPP))
+        for name, unit in pool.items()
+    }
     figures = {name: float(images.rmse(image, target, weights)) for name, image in renders.items()}
     chosen = min(figures, key=figures.get)  # the start comes first, so a tie keeps the start
     return Verified(pool[chosen], renders[chosen], figures[chosen], chosen, figures, time.perf_counter() - started)

@@ -22,7 +22,11 @@ def random_model(seed: int = 0) -> models.Model:
             models.initialise(module, jax.random.key(arch), (32, 32, 3)),
             {},
         )
-    return models.Model("memory", models.Network("decoder", models.architecture("decoder", R, decoder), decoder, variables, {}), networks)
+    return models.Model(
+        "memory",
+        models.Network("decoder", models.architecture("decoder", R, decoder), decoder, variables, {}),
+        networks,
+    )
 
 
 def decode(model, unit):

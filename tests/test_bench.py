@@ -23,7 +23,9 @@ def test_compare_and_tables(model):
     )
     configurations = {"nn (best-of-n)": fit.Settings(method="nn"), "hybrid 60": fit.Settings(evaluations=60)}
     table = bench.compare(model, targets, configurations)
-    assert np.all(table["hybrid 60"]["rmse"] <= table["nn (best-of-n)"]["rmse"] + 1e-6)  # hybrid starts from the nn answer
+    assert np.all(
+        table["hybrid 60"]["rmse"] <= table["nn (best-of-n)"]["rmse"] + 1e-6
+    )  # hybrid starts from the nn answer
     text = bench.markdown(table, "hybrid 60", {})
     assert "| nn (best-of-n) |" in text and "2/2" in text
     frames = [bench.black_level(decode(model, true_point(3)), level) for level in (0.0, 0.05, 0.1)]

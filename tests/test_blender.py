@@ -15,13 +15,23 @@ try:
     BLENDER = blender.find_blender()
 except blender.BlenderError:
     BLENDER = None
-needs_blender = pytest.mark.skipif(BLENDER is None, reason="bpy 4.5 is not installed: run `make blender` (.venv-blender)")
+needs_blender = pytest.mark.skipif(
+    BLENDER is None, reason="bpy 4.5 is not installed: run `make blender` (.venv-blender)"
+)
 INSPECT = os.path.join(os.path.dirname(__file__), "blender_inspect.py")
 
 
 def test_ior_and_tints_follow_mitsuba():
     values = params.from_mapping(
-        {"base_color_r": 0.6, "base_color_g": 0.3, "base_color_b": 0.1, "specular": 0.25, "spec_tint": 0.5, "sheen": 0.8, "sheen_tint": 1.0}
+        {
+            "base_color_r": 0.6,
+            "base_color_g": 0.3,
+            "base_color_b": 0.1,
+            "specular": 0.25,
+            "spec_tint": 0.5,
+            "sheen": 0.8,
+            "sheen_tint": 1.0,
+        }
     )
     principled, _ = export.blender_inputs(values)
     # F0 of the index of refraction equals Disney's 0.08 x specular
@@ -37,7 +47,9 @@ def test_ior_and_tints_follow_mitsuba():
 
 
 def test_metal_keeps_a_white_edge_and_no_sheen_through_glass():
-    metal, _ = export.blender_inputs(params.from_mapping({"metallic": 1.0, "spec_tint": 1.0, "sheen": 1.0, "base_color_r": 0.9}))
+    metal, _ = export.blender_inputs(
+        params.from_mapping({"metallic": 1.0, "spec_tint": 1.0, "sheen": 1.0, "base_color_r": 0.9})
+    )
     assert metal["Specular Tint"] == pytest.approx([1.0, 1.0, 1.0, 1.0])
     assert metal["Sheen Weight"] == 0.0
     glass, _ = export.blender_inputs(params.from_mapping({"spec_trans": 1.0, "sheen": 1.0}))
@@ -71,7 +83,15 @@ def fake_comparison(count=2, resolution=16):
     rng = np.random.default_rng(0)
     mitsuba = rng.uniform(0, 1, (count, resolution, resolution, 3)).astype(np.float32)
     return blender.Comparison(
-        ["gold", "glass"][:count], mitsuba, mitsuba * 0.5, 1.0, [1.5, 9.25][:count], [2.0, 10.0][:count], [1.0, 3.0][:count], resolution, 16
+        ["gold", "glass"][:count],
+        mitsuba,
+        mitsuba * 0.5,
+        1.0,
+        [1.5, 9.25][:count],
+        [2.0, 10.0][:count],
+        [1.0, 3.0][:count],
+        resolution,
+        16,
     )
 
 
@@ -95,7 +115,9 @@ def test_missing_blender_names_the_fix(tmp_path, monkeypatch):
 def test_cli_bad_inputs_are_one_line_and_write_nothing(tmp_path):
     runner = CliRunner()
     out = tmp_path / "check"
-    result = runner.invoke(app, ["blender-check", "--out", str(out), "--preset", "gold", "--blender", str(tmp_path / "no-python")])
+    result = runner.invoke(
+        app, ["blender-check", "--out", str(out), "--preset", "gold", "--blender", str(tmp_path / "no-python")]
+    )
     assert result.exit_code == 2 and result.output.count("\n") == 1 and "error: no Blender" in result.output
     assert not out.exists()
     result = runner.invoke(app, ["blender-check", "--out", str(out), "--preset", "gld"])
@@ -115,7 +137,10 @@ def test_exported_script_sets_every_input_on_selected_meshes_only(tmp_path, name
     script, report = tmp_path / "mat.py", tmp_path / "report.json"
     script.write_text(export.blender_script(values))
     subprocess.run(
-        [BLENDER, INSPECT, str(script), str(report)], check=True, capture_output=True, env={**os.environ, "PYTHONNOUSERSITE": "1"}
+        [BLENDER, INSPECT, str(script), str(report)],
+        check=True,
+        capture_output=True,
+        env={**os.environ, "PYTHONNOUSERSITE": "1"},
     )
     result = json.loads(report.read_text())
     assert result["version"].startswith("4.5")

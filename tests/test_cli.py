@@ -89,7 +89,10 @@ def test_bad_params_files(tmp_path, content, fragments):
         (("render", "--preset", "gold", "-o", "{tmp}/missing/x.png"), ("does not exist",)),
         (("render", "--preset", "gold", "-o", "/proc/x.png"), ("read-only",)),
         (("render", "--preset", "gold", "-o", "{tmp}/x.bmp"), ("unknown image type .bmp",)),
-        (("render", "--preset", "gold", "-o", "{tmp}/x.png", "--size", "100000"), ("--size 100000 is out of range: use 8 to 4096",)),
+        (
+            ("render", "--preset", "gold", "-o", "{tmp}/x.png", "--size", "100000"),
+            ("--size 100000 is out of range: use 8 to 4096",),
+        ),
         (("render", "--preset", "gold", "-o", "{tmp}/x.png", "--spp", "0"), ("--spp 0 is out of range",)),
         (("render", "{tmp}/none.json", "-o", "{tmp}/x.png"), ("cannot read", "none.json")),
         (("render", "--preset", "gold", "-o", "{tmp}/x.png", "--variant", "cuda"), ("--variant cuda", "llvm_ad_rgb")),
@@ -114,7 +117,8 @@ def test_dataset_with_other_settings_is_refused(tmp_path):
 
 
 @pytest.mark.skipif(
-    importlib.util.find_spec("ray") is None, reason="Ray is an optional extra: pip install -e '.[cluster]' to run the Ray tests"
+    importlib.util.find_spec("ray") is None,
+    reason="Ray is an optional extra: pip install -e '.[cluster]' to run the Ray tests",
 )
 def test_ray_run_with_other_settings_is_refused(tmp_path):
     assert run("render-dataset", tmp_path / "d", "--count", 4, "--resolution", 16, "--spp", 2).exit_code == 0
@@ -126,7 +130,9 @@ def test_ray_run_with_other_settings_is_refused(tmp_path):
     ):
         settings = {"--resolution": 16, "--spp": 2, "--seed": 0, option: value}
         arguments = [str(item) for pair in settings.items() for item in pair]
-        assert_one_line_error(run("render-dataset", tmp_path / "d", "--count", 8, *arguments, "--ray", "local"), message)
+        assert_one_line_error(
+            run("render-dataset", tmp_path / "d", "--count", 8, *arguments, "--ray", "local"), message
+        )
     assert {name: (tmp_path / "d" / name).read_bytes() for name in before} == before
 
 
@@ -140,7 +146,9 @@ def test_ray_without_the_extra_is_one_line(tmp_path, monkeypatch):
 @pytest.fixture(scope="module")
 def trained(tiny_dataset, tmp_path_factory):
     out = tmp_path_factory.mktemp("model")
-    result = run("train", "--arch", "decoder,8", "--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8, "--out", out)
+    result = run(
+        "train", "--arch", "decoder,8", "--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8, "--out", out
+    )
     assert result.exit_code == 0, result.output
     return out
 
@@ -163,14 +171,22 @@ def test_evaluate_writes_the_model_card(trained, tiny_dataset):
     evaluation = json.loads((trained / "evaluation.json").read_text())
     assert evaluation["references"]["count"] == 48
     thirds = evaluation["references"]
-    assert thirds["transmissive_count"] + thirds["opaque_count"] == 48 and thirds["scattering_count"] <= thirds["transmissive_count"]
+    assert (
+        thirds["transmissive_count"] + thirds["opaque_count"] == 48
+        and thirds["scattering_count"] <= thirds["transmissive_count"]
+    )
     assert set(evaluation["presets"]["rmse"]) == set(presets.PRESETS) and evaluation["presets"]["spp"] == 4
     assert (Path(tiny_dataset) / "presets.npz").is_file()
     assert evaluation["best_of_n"]["image_rmse"] == pytest.approx(evaluation["encoders"]["8"]["image_rmse"])
 
 
 @pytest.mark.parametrize(
-    "arch, fragment", [("0", "--arch 0 does not exist"), ("10", "--arch 10 does not exist"), ("two", "--arch 'two' is not an architecture")]
+    "arch, fragment",
+    [
+        ("0", "--arch 0 does not exist"),
+        ("10", "--arch 10 does not exist"),
+        ("two", "--arch 'two' is not an architecture"),
+    ],
 )
 def test_unknown_architectures(tiny_dataset, tmp_path, arch, fragment):
     assert_one_line_error(run("train", "--arch", arch, "--dataset", tiny_dataset, "--out", tmp_path), fragment)
@@ -183,11 +199,15 @@ def test_zero_epochs_is_refused_not_replaced_by_the_default(tiny_dataset, tmp_pa
 
 
 def test_missing_and_corrupt_datasets(tmp_path, tiny_dataset):
-    assert_one_line_error(run("train", "--arch", "1", "--dataset", tmp_path / "none", "--out", tmp_path), "no meta.json", "render-dataset")
+    assert_one_line_error(
+        run("train", "--arch", "1", "--dataset", tmp_path / "none", "--out", tmp_path), "no meta.json", "render-dataset"
+    )
     broken = tmp_path / "broken"
     shutil.copytree(tiny_dataset, broken)
     (broken / "images.npy").write_bytes(b"not numpy")
-    assert_one_line_error(run("train", "--arch", "1", "--dataset", broken, "--out", tmp_path), "images.npy is missing or corrupt")
+    assert_one_line_error(
+        run("train", "--arch", "1", "--dataset", broken, "--out", tmp_path), "images.npy is missing or corrupt"
+    )
 
 
 def test_corrupt_checkpoint_and_weights(tmp_path, tiny_dataset, trained):
@@ -198,7 +218,9 @@ def test_corrupt_checkpoint_and_weights(tmp_path, tiny_dataset, trained):
     assert_one_line_error(result, "encoder-8.ckpt", "delete it and train again")
     (out / "decoder.msgpack").write_bytes(b"")
     assert_one_line_error(run("evaluate", "--model", out, "--references", tiny_dataset), "decoder.msgpack")
-    assert_one_line_error(run("evaluate", "--model", tmp_path / "nothing", "--references", tiny_dataset), "does not exist")
+    assert_one_line_error(
+        run("evaluate", "--model", tmp_path / "nothing", "--references", tiny_dataset), "does not exist"
+    )
 
 
 def test_finished_networks_are_not_trained_again(trained, tiny_dataset):
@@ -237,7 +259,20 @@ def test_fit_writes_params_and_report(trained, target, tmp_path):
     out, report = tmp_path / "params.json", tmp_path / "report.png"
     xml, blender = tmp_path / "mat.xml", tmp_path / "mat.py"
     result = run(
-        "fit", target, "-o", out, "--model", trained, "--evals", 60, "--report", report, "--mitsuba-xml", xml, "--blender", blender
+        "fit",
+        target,
+        "-o",
+        out,
+        "--model",
+        trained,
+        "--evals",
+        60,
+        "--report",
+        report,
+        "--mitsuba-xml",
+        xml,
+        "--blender",
+        blender,
     )
     assert result.exit_code == 0, result.output
     assert 'id="matfit-material"' in xml.read_text() and "ShaderNodeBsdfPrincipled" in blender.read_text()
@@ -300,7 +335,11 @@ def test_sequence_through_the_cli(trained, tiny_dataset, tmp_path):
     out = tmp_path / "out"
     result = run("sequence", frames, "-o", out, "--model", trained, "--evals", 30)
     assert result.exit_code == 0, result.output
-    assert [line.split("|")[1].strip() for line in result.stdout.splitlines()[2:5]] == ["frame_8.png", "frame_9.png", "frame_10.png"]
+    assert [line.split("|")[1].strip() for line in result.stdout.splitlines()[2:5]] == [
+        "frame_8.png",
+        "frame_9.png",
+        "frame_10.png",
+    ]
     assert (out / "summary.md").is_file() and (out / "preview.png").is_file()
     assert json.loads((out / "frame_10.json").read_text())["sequence"]["index"] == 2
     again = run("sequence", frames, "-o", out, "--model", trained, "--evals", 30)
@@ -314,7 +353,9 @@ def test_sequence_through_the_cli(trained, tiny_dataset, tmp_path):
     empty.mkdir()
     assert_one_line_error(run("sequence", empty, "-o", out, "--model", trained), "holds no frames")
     images.write(str(frames / "frame_99.png"), np.zeros((8, 8, 3), np.float32))
-    assert_one_line_error(run("sequence", frames, "-o", tmp_path / "o2", "--model", trained), "frame_99.png is 8x8", "same size")
+    assert_one_line_error(
+        run("sequence", frames, "-o", tmp_path / "o2", "--model", trained), "frame_99.png is 8x8", "same size"
+    )
 
 
 def test_presets_sheet(tmp_path):
@@ -323,7 +364,9 @@ def test_presets_sheet(tmp_path):
     from matfit import presets
 
     assert images.read(str(tmp_path / "sheet.png")).shape == (32 + 14, 32 * len(presets.PRESETS), 3)
-    assert_one_line_error(run("presets", "-o", tmp_path / "sheet.png", "--size", 16), "--size 16 is out of range: use 32 to 1024")
+    assert_one_line_error(
+        run("presets", "-o", tmp_path / "sheet.png", "--size", 16), "--size 16 is out of range: use 32 to 1024"
+    )
 
 
 def test_bench_render_prints_both_configurations():
@@ -349,23 +392,42 @@ def test_fit_with_the_gradient_method_an_init_and_verification(trained, target, 
     source = tmp_path / "source.json"
     source.write_text(json.dumps(params.params_document(dataset.open_dataset(tiny_dataset).params[-1])))
     out = tmp_path / "params.json"
-    result = run("fit", target, "-o", out, "--model", trained, "--method", "lbfgsb", "--starts", 2, "--iterations", 10, "--init", source)
+    result = run(
+        "fit",
+        target,
+        "-o",
+        out,
+        "--model",
+        trained,
+        "--method",
+        "lbfgsb",
+        "--starts",
+        2,
+        "--iterations",
+        10,
+        "--init",
+        source,
+    )
     assert result.exit_code == 0, result.output
     document = json.loads(out.read_text())
     assert document["method"] == "lbfgsb" and document["init"] == str(source)
     figures = document["verification"]["mitsuba_rmse"]
     assert "start" in figures and document["mitsuba_rmse"] == min(figures.values()) <= figures["start"]
     assert "Mitsuba RMSE" in result.output and f"kept {document['verification']['kept']}" in result.output
-    assert_one_line_error(run("fit", target, "-o", out, "--model", trained, "--starts", 0), "--starts 0 is out of range")
+    assert_one_line_error(
+        run("fit", target, "-o", out, "--model", trained, "--starts", 0), "--starts 0 is out of range"
+    )
     (tmp_path / "bad.json").write_text('{"roughness": 3}')
     assert_one_line_error(
-        run("fit", target, "-o", tmp_path / "p2.json", "--model", trained, "--init", tmp_path / "bad.json"), "out of range"
+        run("fit", target, "-o", tmp_path / "p2.json", "--model", trained, "--init", tmp_path / "bad.json"),
+        "out of range",
     )
     assert not (tmp_path / "p2.json").exists()
 
 
 @pytest.mark.skipif(
-    importlib.util.find_spec("ray") is None, reason="Ray is an optional extra: pip install -e '.[cluster]' to run the Ray tests"
+    importlib.util.find_spec("ray") is None,
+    reason="Ray is an optional extra: pip install -e '.[cluster]' to run the Ray tests",
 )
 @pytest.mark.parametrize(
     ("address", "fragment"),

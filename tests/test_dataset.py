@@ -17,7 +17,8 @@ from matfit.dataset import DatasetError, Settings
 VERSIONS = {"mitsuba": "test", "drjit": "test"}
 # The Ray tests need the optional extra `.[cluster]`.
 needs_ray = pytest.mark.skipif(
-    importlib.util.find_spec("ray") is None, reason="Ray is an optional extra: pip install -e '.[cluster]' to run the Ray tests"
+    importlib.util.find_spec("ray") is None,
+    reason="Ray is an optional extra: pip install -e '.[cluster]' to run the Ray tests",
 )
 
 
@@ -56,7 +57,9 @@ def test_layout_and_contents(reference, settings, renderer):
     assert meta["resolution"] == 16 and meta["spp"] == 2 and meta["seed"] == 3 and meta["variant"] == settings.variant
     assert params.describe_table_difference(meta["parameter_table"]) is None
     # the stored image is the renderer's image for that sample's parameters and seed
-    again = render.Renderer(16, 2, settings.variant).render(data.params[5].astype(np.float64), seed=dataset.image_seed(3, 5))
+    again = render.Renderer(16, 2, settings.variant).render(
+        data.params[5].astype(np.float64), seed=dataset.image_seed(3, 5)
+    )
     np.testing.assert_array_equal(data.images[5], again.astype(np.float16))
     # plain NumPy reads it without matfit
     np.testing.assert_array_equal(np.load(reference / "images.npy", mmap_mode="r")[3], data.images[3])
@@ -100,7 +103,9 @@ def long_reference(tmp_path_factory, settings):
         pytest.param(signal.SIGKILL, -signal.SIGKILL, [], [], id="SIGKILL"),
         pytest.param(signal.SIGINT, 130, [], [], id="SIGINT"),
         # The driver killed, and the local Ray it started with it; the same command resumes.
-        pytest.param(signal.SIGKILL, -signal.SIGKILL, ["--ray", "local"], ["--ray", "local"], marks=needs_ray, id="ray-SIGKILL"),
+        pytest.param(
+            signal.SIGKILL, -signal.SIGKILL, ["--ray", "local"], ["--ray", "local"], marks=needs_ray, id="ray-SIGKILL"
+        ),
         # Ctrl-C of a Ray run; the local pool may finish what Ray started.
         pytest.param(signal.SIGINT, 130, ["--ray", "local"], [], marks=needs_ray, id="ray-SIGINT"),
     ],

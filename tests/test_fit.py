@@ -44,7 +44,10 @@ def test_box_terms():
     outside[0] = 1.5
     clipped = inside.copy()
     clipped[0] = 1.0
-    f = {box.value: (lambda x, box=box: float(fit.objective(x, (decoder, variables, target, weights, box)))) for box in fit.Box}
+    f = {
+        box.value: (lambda x, box=box: float(fit.objective(x, (decoder, variables, target, weights, box))))
+        for box in fit.Box
+    }
     assert f["clip"](outside) == pytest.approx(f["clip"](clipped) + fit.PENALTY * 0.5, rel=1e-5)
     assert f["barrier"](outside) >= fit.BARRIER
     assert f["barrier"](inside) == pytest.approx(f["clip"](inside))

@@ -15,7 +15,9 @@ def test_finds_the_argmin_of_off_centre_quadratics_inside_and_on_the_faces():
     centre = rng.uniform(-0.4, 1.4, 19).astype(np.float32)  # about a third of the coordinates outside [0, 1]
     scales = rng.uniform(0.5, 20.0, 19).astype(np.float32)  # badly conditioned
     starts = jnp.asarray(rng.uniform(0.0, 1.0, (3, 19)), jnp.float32)
-    ends, values, counts = gradient.minimise(quadratic, starts, (jnp.asarray(centre), jnp.asarray(scales)), iterations=200)
+    ends, values, counts = gradient.minimise(
+        quadratic, starts, (jnp.asarray(centre), jnp.asarray(scales)), iterations=200
+    )
     expected = np.clip(centre, 0.0, 1.0)  # the box's argmin: the centre projected onto the faces
     assert np.sum((centre < 0) | (centre > 1)) >= 4
     np.testing.assert_allclose(np.asarray(ends), np.broadcast_to(expected, (3, 19)), atol=2e-3)

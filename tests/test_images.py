@@ -37,7 +37,9 @@ def test_rmse_per_image_weighted_and_in_jax():
     np.testing.assert_allclose(images.rmse(batch, batch[::-1])[0], 255 * np.sqrt(np.mean((batch[0] - batch[1]) ** 2)))
     import jax.numpy as jnp
 
-    jax_figures = images.rmse(jnp.asarray(batch, jnp.float32), jnp.asarray(target, jnp.float32), jnp.asarray(weights, jnp.float32))
+    jax_figures = images.rmse(
+        jnp.asarray(batch, jnp.float32), jnp.asarray(target, jnp.float32), jnp.asarray(weights, jnp.float32)
+    )
     np.testing.assert_allclose(np.asarray(jax_figures), expected, rtol=1e-5)
 
 

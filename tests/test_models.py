@@ -87,7 +87,9 @@ def test_decoder_rejects_resolutions_it_cannot_reach():
 def test_upsample_pool_and_shuffle_match_their_definitions():
     x = jax.random.normal(jax.random.key(0), (2, 4, 6, 8))
     np.testing.assert_array_equal(models.upsample(x), np.repeat(np.repeat(x, 2, axis=1), 2, axis=2))
-    np.testing.assert_array_equal(models.max_pool(x), jax.lax.reduce_window(x, -np.inf, jax.lax.max, (1, 2, 2, 1), (1, 2, 2, 1), "VALID"))
+    np.testing.assert_array_equal(
+        models.max_pool(x), jax.lax.reduce_window(x, -np.inf, jax.lax.max, (1, 2, 2, 1), (1, 2, 2, 1), "VALID")
+    )
     shuffled = models.depth_to_space(x)
     assert shuffled.shape == (2, 8, 12, 2)
     # output pixel (2i + a, 2j + b) channel c comes from input (i, j) channel (2a + b) * 2 + c
@@ -97,23 +99,35 @@ def test_upsample_pool_and_shuffle_match_their_definitions():
 def test_a_weights_file_of_another_network_is_refused(tmp_path):
     decoder = models.Decoder(resolution=32, hidden=64, base_channels=32, stage_channels=(32,))
     network = models.Network(
-        "decoder", models.architecture("decoder", 32, decoder), decoder, models.initialise(decoder, jax.random.key(0), (19,)), {}
+        "decoder",
+        models.architecture("decoder", 32, decoder),
+        decoder,
+        models.initialise(decoder, jax.random.key(0), (19,)),
+        {},
     )
     encoder = models.encoder(8)
     variables = models.initialise(encoder, jax.random.key(1), (32, 32, 3))
     models.save(
-        str(tmp_path / "decoder.msgpack"), models.Network("encoder-8", models.architecture("encoder-8", 32), encoder, variables, {})
+        str(tmp_path / "decoder.msgpack"),
+        models.Network("encoder-8", models.architecture("encoder-8", 32), encoder, variables, {}),
     )
-    with pytest.raises(models.WeightsError, match="holds the weights of the encoder-8, not of the decoder: copy the right file"):
+    with pytest.raises(
+        models.WeightsError, match="holds the weights of the encoder-8, not of the decoder: copy the right file"
+    ):
         models.load_model(str(tmp_path))
     models.save(str(tmp_path / "decoder.msgpack"), network)
     models.save(str(tmp_path / "encoder-3.msgpack"), network)
-    with pytest.raises(models.WeightsError, match=r"encoder-3\.msgpack holds the weights of the decoder, not of the encoder-3"):
+    with pytest.raises(
+        models.WeightsError, match=r"encoder-3\.msgpack holds the weights of the decoder, not of the encoder-3"
+    ):
         models.load_model(str(tmp_path))
     moved = tmp_path / "moved"
     moved.mkdir()
     models.save(str(moved / "decoder.msgpack"), network)
-    models.save(str(moved / "encoder-8.msgpack"), models.Network("encoder-8", models.architecture("encoder-8", 32), encoder, variables, {}))
+    models.save(
+        str(moved / "encoder-8.msgpack"),
+        models.Network("encoder-8", models.architecture("encoder-8", 32), encoder, variables, {}),
+    )
     first = models.load_model(str(moved))
     os.rename(moved, tmp_path / "elsewhere")
     assert models.load_model(str(tmp_path / "elsewhere")).identity() == first.identity()  # the weights, not the place
@@ -154,7 +168,9 @@ def test_bilinear_sampling_matches_a_reference_and_clamps_at_the_border():
     assert out.shape == (3, 4, 4, 2, 3)
     for n, i, j, level in [(0, 0, 0, 0), (1, 2, 3, 1), (2, 3, 1, 0), (2, 1, 2, 1)]:
         x, y = position[n, i, j]
-        np.testing.assert_allclose(out[n, i, j, level], reference_bilinear(levels[level], float(x), float(y)), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(
+            out[n, i, j, level], reference_bilinear(levels[level], float(x), float(y)), rtol=1e-5, atol=1e-6
+        )
 
 
 def test_bilinear_sampling_is_differentiable_in_the_position():
@@ -164,7 +180,9 @@ def test_bilinear_sampling_is_differentiable_in_the_position():
     step = 1e-2
     for axis in range(2):
         shift = jnp.zeros((1, 1, 1, 2)).at[..., axis].set(step)
-        finite = (models.bilinear(image, position + shift).sum() - models.bilinear(image, position - shift).sum()) / (2 * step)
+        finite = (models.bilinear(image, position + shift).sum() - models.bilinear(image, position - shift).sum()) / (
+            2 * step
+        )
         np.testing.assert_allclose(gradient[0, 0, 0, axis], finite, rtol=1e-3)
 
 
@@ -180,7 +198,9 @@ def test_blur_pyramid_keeps_level_zero_and_the_mean_of_a_delta():
 
 
 def tiny_refracting_decoder():
-    return models.Decoder(resolution=16, hidden=16, base_channels=8, stage_channels=(8,), coordinates=True, blur_levels=(0.0, 2.0))
+    return models.Decoder(
+        resolution=16, hidden=16, base_channels=8, stage_channels=(8,), coordinates=True, blur_levels=(0.0, 2.0)
+    )
 
 
 def test_refracting_decoder_shows_the_scene_through_and_round_trips_with_it(tmp_path):

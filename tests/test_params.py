@@ -97,7 +97,9 @@ def test_bad_params_json_gives_one_line_errors(text, message):
 
 
 def test_medium_coefficients_follow_the_documented_formula():
-    values = params.from_mapping({"medium_color_r": 0.5, "medium_color_g": 0.25, "medium_color_b": 1.0, "density": 2.0, "scattering": 0.3})
+    values = params.from_mapping(
+        {"medium_color_r": 0.5, "medium_color_g": 0.25, "medium_color_b": 1.0, "density": 2.0, "scattering": 0.3}
+    )
     sigma_t, albedo = params.medium_coefficients(values)
     np.testing.assert_allclose(sigma_t, [2 * math.log(2), 2 * math.log(4), params.MINIMUM_EXTINCTION])
     np.testing.assert_allclose(albedo, [0.3, 0.3, 0.3])

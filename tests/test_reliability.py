@@ -104,7 +104,20 @@ def test_ctrl_c_during_a_long_render(tmp_path):
     """Mitsuba takes SIGINT inside a render for itself; the command still ends at once, without the image."""
     out = tmp_path / "out"
     out.mkdir()
-    command = [sys.executable, "-m", "matfit", "render", "--preset", "gold", "--size", "256", "--spp", "65536", "-o", str(out / "r.png")]
+    command = [
+        sys.executable,
+        "-m",
+        "matfit",
+        "render",
+        "--preset",
+        "gold",
+        "--size",
+        "256",
+        "--spp",
+        "65536",
+        "-o",
+        str(out / "r.png"),
+    ]
     started = time.monotonic()
     code, error, seconds = interrupt_after(command, lambda _: time.monotonic() - started > 5.0, tmp_path)
     assert_interrupted(code, error, seconds, out)
@@ -145,14 +158,26 @@ def test_a_full_disk_fails_every_kind_of_write_cleanly(tmp_path):
     names = ["r.png", "r.jpg", "r.exr", "r.tif", "p.json"]
     result, left = run_on_full_disk(tmp_path, [sys.executable, "-c", WRITE_EACH, str(tmp_path / "full"), *names])
     assert result.returncode == 0, result.stderr
-    assert result.stdout.splitlines() == [f"error: cannot write {tmp_path / 'full' / n}: No space left on device" for n in names]
+    assert result.stdout.splitlines() == [
+        f"error: cannot write {tmp_path / 'full' / n}: No space left on device" for n in names
+    ]
     assert left == []
 
 
 def test_a_full_disk_during_a_fit_leaves_no_output(model_dir, tmp_path):
     """params.json fits on the disk, the report does not: neither is left, nor any temporary file."""
     full = tmp_path / "full"
-    command = [sys.executable, "-m", "matfit", "fit", str(model_dir / "target.png"), "--model", str(model_dir), "--evals", "50"]
+    command = [
+        sys.executable,
+        "-m",
+        "matfit",
+        "fit",
+        str(model_dir / "target.png"),
+        "--model",
+        str(model_dir),
+        "--evals",
+        "50",
+    ]
     command += ["-o", str(full / "p.json"), "--report", str(full / "report.png")]
     result, left = run_on_full_disk(tmp_path, command, size="8k")
     assert result.returncode == 2, result.stderr

@@ -45,7 +45,9 @@ def test_glass_shows_the_checker_through_the_object(renderer):
     """Darkening the checkers' light squares changes a glass sphere a lot and an opaque one little."""
     mask = sphere_mask(renderer)
     keys = ("floor.bsdf.reflectance.color1.value", "backdrop.bsdf.reflectance.color1.value")
-    glass = params.from_mapping({"roughness": 0.0, "spec_trans": 1.0, "base_color_r": 1, "base_color_g": 1, "base_color_b": 1})
+    glass = params.from_mapping(
+        {"roughness": 0.0, "spec_trans": 1.0, "base_color_r": 1, "base_color_g": 1, "base_color_b": 1}
+    )
     opaque = params.from_mapping({"roughness": 0.6, "base_color_r": 0.8, "base_color_g": 0.8, "base_color_b": 0.8})
     before = {key: renderer.mi.Color3f(renderer.parameters[key]) for key in keys}  # a copy: the scene updates in place
     lit = [images.srgb_encode(renderer.render(v)) for v in (glass, opaque)]
@@ -105,7 +107,13 @@ def test_rejects_malformed_materials(renderer):
 
 @pytest.mark.parametrize(
     ("name", "major"),
-    [("libLLVM-19.so", 19), ("libLLVM.so.19.1", 19), ("libLLVM-15.so.1", 15), ("libLLVM.so.20.1", 20), ("libLLVM.so", None)],
+    [
+        ("libLLVM-19.so", 19),
+        ("libLLVM.so.19.1", 19),
+        ("libLLVM-15.so.1", 15),
+        ("libLLVM.so.20.1", 20),
+        ("libLLVM.so", None),
+    ],
 )
 def test_llvm_version_is_read_from_the_file_name(name, major):
     assert render.llvm_major(f"/usr/lib/x86_64-linux-gnu/{name}") == major

@@ -16,7 +16,12 @@ def model():
 def test_natural_order(tmp_path):
     for name in ("frame_10.png", "frame_2.png", "frame_1.png", "notes.txt", "Frame_3.PNG"):
         (tmp_path / name).write_bytes(b"")
-    assert [p.split("/")[-1] for p in sequence.list_frames(str(tmp_path))] == ["frame_1.png", "frame_2.png", "Frame_3.PNG", "frame_10.png"]
+    assert [p.split("/")[-1] for p in sequence.list_frames(str(tmp_path))] == [
+        "frame_1.png",
+        "frame_2.png",
+        "Frame_3.PNG",
+        "frame_10.png",
+    ]
 
 
 def test_empty_or_missing_folder(tmp_path):
@@ -72,7 +77,9 @@ def test_no_reinit_never_offers_the_previous_frame(tmp_path, model, frames):
 def test_mixed_sizes_and_other_settings_are_refused(tmp_path, model, frames):
     images.write(str(tmp_path / "frames" / "f9.png"), np.zeros((20, 20, 3), np.float32))
     with pytest.raises(SequenceError, match=r"f9\.png is 20x20, the first frame is 32x32"):
-        sequence.fit_sequence(model, sequence.list_frames(str(tmp_path / "frames")), str(tmp_path / "out"), fit.Settings(evaluations=30))
+        sequence.fit_sequence(
+            model, sequence.list_frames(str(tmp_path / "frames")), str(tmp_path / "out"), fit.Settings(evaluations=30)
+        )
     assert not (tmp_path / "out").exists()  # refused before fitting anything
     sequence.fit_sequence(model, frames[:1], str(tmp_path / "out"), fit.Settings(evaluations=30))
     with pytest.raises(SequenceError, match="other settings"):

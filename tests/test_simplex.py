@@ -118,7 +118,8 @@ def test_vmapped_fits_match_single_fits():
 def test_best_so_far_never_gets_worse():
     centre, weights = (jnp.asarray(a, jnp.float32) for a in problem(9))
     values = [
-        float(simplex.minimise(quadratic, jnp.full(N, 0.5), (centre, weights), budget).stats["value"]) for budget in (21, 40, 80, 160)
+        float(simplex.minimise(quadratic, jnp.full(N, 0.5), (centre, weights), budget).stats["value"])
+        for budget in (21, 40, 80, 160)
     ]
     assert all(b <= a for a, b in itertools.pairwise(values))
     assert values[-1] < 0.5 * values[0]

@@ -26,7 +26,9 @@ class StopAfterOneEpoch(train.Reporter):
 
 
 def weights_equal(a, b):
-    return all(np.array_equal(x, y) for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True))
+    return all(
+        np.array_equal(x, y) for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True)
+    )
 
 
 def test_split_holds_out_the_last_samples():
@@ -37,7 +39,9 @@ def test_split_holds_out_the_last_samples():
 
 @pytest.mark.parametrize("name", ["decoder", "encoder-8"])
 def test_training_reduces_the_loss(tmp_path, data, name):
-    metrics = train.train_network(name, data, str(tmp_path), Config(epochs=8, batch_size=8, learning_rate=3e-3), decoder=TINY_DECODER)
+    metrics = train.train_network(
+        name, data, str(tmp_path), Config(epochs=8, batch_size=8, learning_rate=3e-3), decoder=TINY_DECODER
+    )
     losses = [record["train_loss"] for record in metrics["history"]]
     assert len(losses) == 8
     # the decoder learns the scene at once; an encoder on 46 samples first learns the mean (1/12 per parameter)
@@ -53,11 +57,15 @@ def test_refracting_decoder_trains_with_the_datasets_scene_and_ships_it(tmp_path
     decoder = models.Decoder(
         resolution=32, hidden=32, base_channels=16, stage_channels=(16, 8, 8), coordinates=True, blur_levels=(0.0, 2.0)
     )
-    metrics = train.train_network("decoder", data, str(tmp_path), Config(epochs=4, batch_size=8, learning_rate=3e-3), decoder=decoder)
+    metrics = train.train_network(
+        "decoder", data, str(tmp_path), Config(epochs=4, batch_size=8, learning_rate=3e-3), decoder=decoder
+    )
     losses = [record["train_loss"] for record in metrics["history"]]
     assert losses[-1] < 0.7 * losses[0]
     network = models.load(models.weights_path(str(tmp_path), "decoder"), resolution=32)
-    np.testing.assert_allclose(network.variables["constants"]["scene"], models.blur_pyramid(data.scene_image(), (0.0, 2.0)), atol=2e-3)
+    np.testing.assert_allclose(
+        network.variables["constants"]["scene"], models.blur_pyramid(data.scene_image(), (0.0, 2.0)), atol=2e-3
+    )
 
 
 def test_refracting_decoder_needs_the_scene_image(tmp_path, data):
@@ -67,7 +75,11 @@ def test_refracting_decoder_needs_the_scene_image(tmp_path, data):
     decoder = models.Decoder(resolution=32, hidden=16, base_channels=8, stage_channels=(8,), blur_levels=(0.0,))
     with pytest.raises(TrainingError, match="render-dataset"):
         train.train_network(
-            "decoder", dataset.open_dataset(str(copy)), str(tmp_path / "model"), Config(epochs=1, batch_size=8), decoder=decoder
+            "decoder",
+            dataset.open_dataset(str(copy)),
+            str(tmp_path / "model"),
+            Config(epochs=1, batch_size=8),
+            decoder=decoder,
         )
 
 
@@ -184,7 +196,11 @@ def test_arch_parsing():
     assert train.parse_arch("4") == ["encoder-4"]
     assert train.parse_arch("1..9") == [f"encoder-{i}" for i in range(1, 10)]
     assert train.parse_arch("all")[0] == "decoder" and len(train.parse_arch("all")) == 10
-    for bad, message in (("0", "arch 0 does not exist"), ("10", "arch 10 does not exist"), ("x", "not an architecture")):
+    for bad, message in (
+        ("0", "arch 0 does not exist"),
+        ("10", "arch 10 does not exist"),
+        ("x", "not an architecture"),
+    ):
         with pytest.raises(TrainingError, match=message):
             train.parse_arch(bad)
 

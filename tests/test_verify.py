@@ -32,7 +32,12 @@ def test_candidates_start_first_then_distinct_ends(model):
 def test_a_fooled_decoder_never_makes_the_answer_physically_worse_than_the_start(model, renderer32):
     # A random decoder knows nothing of the scene: its optimum for a jade render is physically arbitrary.
     target = images.srgb_encode(renderer32.render(presets.preset("jade"), seed=5))
-    result = fit.fit(model, target, fit.Settings(method="lbfgsb", starts=3, iterations=30), extra=to_unit(presets.preset("jade"))[None])
+    result = fit.fit(
+        model,
+        target,
+        fit.Settings(method="lbfgsb", starts=3, iterations=30),
+        extra=to_unit(presets.preset("jade"))[None],
+    )
     assert result.chosen == "extra-1" or result.start_rmse <= result.candidate_rmse["extra-1"]
     checked = verify.verify(renderer32, result, target)
     assert checked.rmse == min(checked.figures.values())
