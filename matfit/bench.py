@@ -48,14 +48,20 @@ def default_configurations(evaluations: int) -> dict[str, fit.Settings]:
     return {
         "nn (best-of-n)": fit.Settings(method=fit.Method.nn),
         f"optimize {evaluations} (random start)": fit.Settings(method="optimize", evaluations=evaluations),
-        "hybrid 50": fit.Settings(evaluations=50),
-        "hybrid 300": fit.Settings(evaluations=300),
-        f"hybrid {evaluations}": fit.Settings(evaluations=evaluations),
-        f"hybrid {evaluations}, paper's barrier": fit.Settings(evaluations=evaluations, box="barrier"),
-        f"hybrid {evaluations}, fixed coefficients": fit.Settings(evaluations=evaluations, adaptive=False),
-        f"hybrid {evaluations} + polish 200": fit.Settings(evaluations=evaluations, polish_steps=200),
+        "hybrid 50": fit.Settings(method=fit.Method.hybrid, evaluations=50),
+        "hybrid 300": fit.Settings(method=fit.Method.hybrid, evaluations=300),
+        f"hybrid {evaluations}": fit.Settings(method=fit.Method.hybrid, evaluations=evaluations),
+        f"hybrid {evaluations}, paper's barrier": fit.Settings(
+            method=fit.Method.hybrid, evaluations=evaluations, box="barrier"
+        ),
+        f"hybrid {evaluations}, fixed coefficients": fit.Settings(
+            method=fit.Method.hybrid, evaluations=evaluations, adaptive=False
+        ),
+        f"hybrid {evaluations} + polish 200": fit.Settings(
+            method=fit.Method.hybrid, evaluations=evaluations, polish_steps=200
+        ),
         "lbfgsb, 1 start": fit.Settings(method=fit.Method.lbfgsb, starts=1),
-        "lbfgsb, 4 starts": fit.Settings(method=fit.Method.lbfgsb, starts=4),
+        "lbfgsb, 4 starts (default)": fit.Settings(),
         "hybrid-lbfgsb 300, 4 starts": fit.Settings(method=fit.Method.hybrid_lbfgsb, evaluations=300, starts=4),
     }
 
@@ -92,7 +98,8 @@ def mitsuba_rmse(renderer, results: list[fit.Result], targets: Targets, spp: int
 def markdown(table: dict[str, dict], reference: str, mitsuba: dict[str, np.ndarray]) -> str:
     """Returns the comparison as a Markdown table; `reference` is the configuration others are compared to."""
     lines = [
-        f"| configuration | neural RMSE mean | median | targets where {reference} is lower or equal | Mitsuba RMSE mean | fit time, warm (s) |",
+        f"| configuration | neural RMSE mean | median | targets where {reference} is lower or equal | Mitsuba RMSE "
+        "mean | fit time, warm (s) |",
         "|---|---|---|---|---|---|",
     ]
     base = table[reference]["rmse"]
@@ -100,7 +107,8 @@ def markdown(table: dict[str, dict], reference: str, mitsuba: dict[str, np.ndarr
         wins = "" if label == reference else f"{int(np.sum(base <= row['rmse'] + 1e-9))}/{len(base)}"
         render = f"{mitsuba[label].mean():.2f}" if label in mitsuba else ""
         lines.append(
-            f"| {label} | {row['rmse'].mean():.2f} | {np.median(row['rmse']):.2f} | {wins} | {render} | {np.median(row['seconds']):.3f} |"
+            f"| {label} | {row['rmse'].mean():.2f} | {np.median(row['rmse']):.2f} | {wins} | {render} | "
+            f"{np.median(row['seconds']):.3f} |"
         )
     return "\n".join(lines)
 
@@ -128,7 +136,7 @@ def sequence_table(
     """Returns the paper's sequence table: per-frame RMSE with and without reinitialisation, for each budget."""
     runs = {}
     for budget in budgets:
-        settings = fit.Settings(evaluations=budget)
+        settings = fit.Settings(method=fit.Method.hybrid, evaluations=budget)
         for reinit in (False, True):
             errors, previous = [], None
             for frame in frames:
@@ -202,7 +210,7 @@ def random_guess_rmse(model: models.Model, target: np.ndarray, seeds: int) -> fl
 
 
 def default_fit(model: models.Model, renderer, target: np.ndarray) -> dict:
-    """Returns matfit's default fit of a target (`fit.Settings()` and Mitsuba verification): neural figures, time, values."""
+    """Returns matfit's default fit of a target (`fit.Settings()`, Mitsuba-verified): neural figures, time, values."""
     settings = fit.Settings()
     fit.fit(model, target, settings)  # compile outside the timing
     started = time.perf_counter()
@@ -233,7 +241,7 @@ def main_table(model: models.Model, cases, budgets=BUDGETS, seeds: int = 5, rend
             settings = fit.Settings(method=fit.Method.optimize, evaluations=budget)
             optimised = [fit.fit(model, target, settings, seed=seed) for seed in range(seeds)]
             started = time.perf_counter()
-            hybrid = fit.fit(model, target, fit.Settings(evaluations=budget))
+            hybrid = fit.fit(model, target, fit.Settings(method=fit.Method.hybrid, evaluations=budget))
             row[f"optimize_{budget}"] = float(np.mean([r.rmse for r in optimised]))
             row[f"optimize_{budget}_seconds"] = float(np.mean([r.seconds for r in optimised]))
             row[f"hybrid_{budget}"] = hybrid.rmse
@@ -247,8 +255,8 @@ def main_table(model: models.Model, cases, budgets=BUDGETS, seeds: int = 5, rend
 def optimiser_table(model: models.Model, cases, evaluations: int = 1500, basin_seconds: float = 5.0) -> list[dict]:
     """Returns the paper's optimiser comparison: each optimiser from a random and from the best-of-9 start.
 
-    Nelder-Mead is ours (`evaluations` evaluations); L-BFGS-B, SLSQP and conjugate gradient run through
-    jaxopt's scipy wrappers with exact gradients of the decoder (at most `evaluations` iterations);
+    Nelder-Mead is ours (`evaluations` evaluations); L-BFGS-B, SLSQP and conjugate gradient are
+    scipy's with exact gradients of the decoder (the budget below);
     basin-hopping (scipy, L-BFGS-B local steps with exact gradients) stops after `basin_seconds`.
     """
     return [
@@ -262,7 +270,8 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
     Every budget counts objective evaluations, a value-and-gradient as `fit.GRADIENT_COST` of them:
     scipy's L-BFGS-B stops at `evaluations / GRADIENT_COST` calls (`maxfun`), SLSQP and CG at as
     many iterations (they may call more often; the table says how many they spent). "L-BFGS-B
-    (ours)" is matfit's gradient stage (jaxopt's native LBFGSB, compiled) with the same budget.
+    (ours)" is matfit's gradient stage (`gradient.py`, one value-and-gradient per step) with the
+    same budget.
     """
     import jax
     import jax.numpy as jnp
@@ -286,14 +295,10 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
 
     calls = max(1, int(evaluations // fit.GRADIENT_COST))
     box = [(0.0, 1.0)] * params.COUNT
-    iterations = max(1, calls // 2)  # jaxopt's zoom line search calls about twice per iteration
 
-    @jax.jit
     def ours(x0):
-        ends, _, counts = gradient.minimise(
-            lambda y, data: fit.decoded_rmse(y, (decoder, *data)), x0[None], args[1:], iterations
-        )
-        return ends[0], counts[0]
+        ends, _, steps = gradient.minimise(fit.gradient_objective(decoder), x0[None], args[1:], calls)
+        return ends[0], steps
 
     solvers = {
         "L-BFGS-B": lambda x0: scipy.optimize.minimize(
@@ -331,7 +336,7 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
             )
         ours(jnp.asarray(x0))
         started = time.perf_counter()
-        end, count = jax.device_get(ours(jnp.asarray(x0)))
+        end, count = ours(jnp.asarray(x0))
         record(
             f"L-BFGS-B, ours ({start_name})", np.asarray(end), time.perf_counter() - started, count * fit.GRADIENT_COST
         )
@@ -431,22 +436,27 @@ def suite_report(
         lines.append(f"| {row['case']} | " + " | ".join(cells) + " |")
     lines += [
         "",
-        f"Optimiser = Nelder-Mead from a uniformly random start, mean over {seeds} seeds (the random-guess column is the mean RMSE of those starts).",
-        "Hybrid = Nelder-Mead from the best-of-9 guess; bold where it is at least as good as the optimiser. The Mitsuba columns render the result",
-        f"(best-of-9, optimiser seed 0 and hybrid at {budgets[-1]}) at 256 spp and compare it with the target: the neural renderer's own error shows there.",
+        f"Optimiser = Nelder-Mead from a uniformly random start, mean over {seeds} seeds (the random-guess column is "
+        "the mean RMSE of those starts).",
+        "Hybrid = Nelder-Mead from the best-of-9 guess; bold where it is at least as good as the optimiser. The "
+        "Mitsuba columns render the result",
+        f"(best-of-9, optimiser seed 0 and hybrid at {budgets[-1]}) at 256 spp and compare it with the target: "
+        "the neural renderer's own error shows there.",
         "",
-        f"## 1b. matfit's default ({fit.Settings().method.value}, Mitsuba-verified) against its start and the paper's hybrid",
+        f"## 1b. matfit's default ({fit.Settings().method.value}, Mitsuba-verified) against its start and the paper's "
+        "hybrid",
         "",
         "Mitsuba RMSE of a fresh 256-spp render (seed independent of verification's) against the target.",
         "",
-        f"| case | neural: default | evaluations | time (s) | kept | Mitsuba: start (best-of-9) | Mitsuba: hybrid {budgets[-1]} "
-        "| Mitsuba: default | default <= start |",
+        "| case | neural: default | evaluations | time (s) | kept | Mitsuba: start (best-of-9) | Mitsuba: "
+        f"hybrid {budgets[-1]} | Mitsuba: default | default <= start |",
         "|---|---|---|---|---|---|---|---|---|",
         *default_rows(main, budgets[-1]),
         "",
         "## 2. Optimisers from a random and from the best-of-9 start (RMSE; seconds and evaluations spent in brackets)",
         "",
-        f"Budget {1500} objective evaluations each, a value-and-gradient counted as {fit.GRADIENT_COST:g}; basin-hopping is time-boxed.",
+        f"Budget {1500} objective evaluations each, a value-and-gradient counted as {fit.GRADIENT_COST:g}; "
+        "basin-hopping is time-boxed.",
         "",
     ]
     names = [key for key in optimisers[0] if key != "case" and not key.endswith(("seconds", "evaluations"))]
@@ -491,9 +501,10 @@ def default_rows(main: list[dict], budget: int) -> list[str]:
     """Returns the rows of table 1b, and a row of means."""
     rows = [row for row in main if "mitsuba_default" in row]
     lines = [
-        f"| {row['case']} | {row['default']:.2f} | {row['default_evaluations']} | {row['default_seconds']:.2f} | {row['default_kept']} "
-        f"| {row['mitsuba_start']:.2f} | {row[f'mitsuba_hybrid_{budget}']:.2f} | **{row['mitsuba_default']:.2f}** "
-        f"| {'yes' if row['mitsuba_default'] <= row['mitsuba_start'] + 1e-9 else 'NO'} |"
+        f"| {row['case']} | {row['default']:.2f} | {row['default_evaluations']} | {row['default_seconds']:.2f} | "
+        f"{row['default_kept']} | {row['mitsuba_start']:.2f} | {row[f'mitsuba_hybrid_{budget}']:.2f} | "
+        f"**{row['mitsuba_default']:.2f}** | "
+        f"{'yes' if row['mitsuba_default'] <= row['mitsuba_start'] + 1e-9 else 'NO'} |"
         for row in rows
     ]
     if rows:
@@ -502,8 +513,9 @@ def default_rows(main: list[dict], budget: int) -> list[str]:
             for key in ("mitsuba_start", f"mitsuba_hybrid_{budget}", "mitsuba_default")
         }
         lines.append(
-            f"| mean | | | | | {mean['mitsuba_start']:.2f} | {mean[f'mitsuba_hybrid_{budget}']:.2f} | **{mean['mitsuba_default']:.2f}** "
-            f"| {sum(row['mitsuba_default'] <= row['mitsuba_start'] + 1e-9 for row in rows)}/{len(rows)} |"
+            f"| mean | | | | | {mean['mitsuba_start']:.2f} | {mean[f'mitsuba_hybrid_{budget}']:.2f} | "
+            f"**{mean['mitsuba_default']:.2f}** | "
+            f"{sum(row['mitsuba_default'] <= row['mitsuba_start'] + 1e-9 for row in rows)}/{len(rows)} |"
         )
     return lines
 
@@ -514,7 +526,7 @@ def slug(name: str) -> str:
 
 
 def budget_plot(main: list[dict], path: str, budgets=BUDGETS) -> None:
-    """Writes the main table as a plot: mean RMSE over the cases against the budget for optimiser, hybrid and best-of-9."""
+    """Writes the main table as a plot: mean RMSE over the cases against the budget (optimiser, hybrid, best-of-9)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -544,7 +556,7 @@ def budget_plot(main: list[dict], path: str, budgets=BUDGETS) -> None:
 
 
 def render_speed(count: int, variant: str | None = None) -> str:
-    """Returns a Markdown table of images per second of `Renderer` against a bare `mi.render` loop on the same materials."""
+    """Returns a Markdown table: images per second of `Renderer` against a bare `mi.render` loop, same materials."""
     from matfit.render import Renderer
 
     lines = ["| resolution | spp | matfit img/s | bare mi.render img/s | matfit / bare |", "|---|---|---|---|---|"]
@@ -581,7 +593,10 @@ def model_speed(model_path: str, repeats: int) -> str:
         models.apply(decoder.module, decoder.variables, x).block_until_ready()
     forward = (time.perf_counter() - started) / repeats
     networks = 1 + len(model.encoders)
-    return f"| networks | load (s) | decoder forward, batch 1 (ms) |\n|---|---|---|\n| {networks} | {loaded:.3f} | {1e3 * forward:.2f} |"
+    return (
+        f"| networks | load (s) | decoder forward, batch 1 (ms) |\n|---|---|---|\n"
+        f"| {networks} | {loaded:.3f} | {1e3 * forward:.2f} |"
+    )
 
 
 def fit_comparison(model: models.Model, count: int, evaluations: int, log=print) -> str:
@@ -593,7 +608,7 @@ def fit_comparison(model: models.Model, count: int, evaluations: int, log=print)
     targets = reachable_targets(renderer, count)
     table = compare(model, targets, default_configurations(evaluations))
     reference = f"hybrid {evaluations}"
-    shown = ("nn (best-of-n)", reference, "lbfgsb, 4 starts", "hybrid-lbfgsb 300, 4 starts")
+    shown = ("nn (best-of-n)", reference, "lbfgsb, 4 starts (default)", "hybrid-lbfgsb 300, 4 starts")
     mitsuba = {label: mitsuba_rmse(renderer, table[label]["results"], targets) for label in shown}
     return markdown(table, reference, mitsuba)
 
@@ -610,7 +625,7 @@ def check_output_folder(path: str, field: str) -> None:
 
 
 def sequence_benchmark(model: models.Model, frames: int, frames_out: str | None = None) -> str:
-    """Returns the reinitialisation table on the built-in black-level sequence; writes its frames to `frames_out` if given."""
+    """Returns the reinitialisation table on the built-in black-level sequence; writes the frames to `frames_out`."""
     from matfit.render import Renderer
 
     if frames_out is not None:
@@ -625,7 +640,7 @@ def sequence_benchmark(model: models.Model, frames: int, frames_out: str | None 
 
 
 def run_suite(model: models.Model, model_label: str, out: str, full: bool = False, log=print) -> str:
-    """Runs the paper's tables on the edit suite; writes report.md, report.json, the plot and a picture per case into `out`.
+    """Runs the paper's tables on the edit suite; writes report.md, report.json, the plot, a picture per case to `out`.
 
     Quick: 5 seeds, basin-hopping time-boxed to 5 s, 40 sequence frames; `full`: 10, 60 s, 120.
     Returns the report's Markdown.
@@ -650,9 +665,10 @@ def run_suite(model: models.Model, model_label: str, out: str, full: bool = Fals
     _, sequence_frames = black_level_sequence(renderer, frames)
     sequence_text = sequence_table(model, sequence_frames, every=max(1, frames // 12))
     settings = (
-        f"{'Full' if full else 'Quick'} version (`matfit bench{' --full' if full else ''}`), model {model_label}, targets at "
-        f"{model.resolution} px rendered at 256 spp; {seeds} seeds; basin-hopping time-boxed to {basin_seconds:g} s per run; "
-        f"{frames} sequence frames. Total {time.perf_counter() - started:.0f} s on this machine."
+        f"{'Full' if full else 'Quick'} version (`matfit bench{' --full' if full else ''}`), model {model_label}, "
+        f"targets at {model.resolution} px rendered at 256 spp; {seeds} seeds; basin-hopping time-boxed to "
+        f"{basin_seconds:g} s per run; {frames} sequence frames. Total {time.perf_counter() - started:.0f} s on this "
+        "machine."
     )
     budget_plot(main, os.path.join(out, "rmse-vs-evaluations.png"))
     report_text = suite_report(main, optimisers, sequence_text, seeds=seeds, settings=settings)

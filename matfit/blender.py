@@ -147,19 +147,24 @@ class Comparison:
     spp: int
 
 
+@dataclass(frozen=True)
+class Setup:
+    """How both renderers render a comparison: image side, samples per pixel, which Blender, which Mitsuba variant."""
+
+    resolution: int = 64
+    spp: int = 256
+    blender: str | None = None  # see find_blender
+    variant: str | None = None  # None: render.py chooses
+
+
 def compare(
-    names: list[str],
-    materials: list[np.ndarray],
-    resolution: int = 64,
-    spp: int = 256,
-    blender: str | None = None,
-    variant: str | None = None,
-    progress: Callable[[str], None] | None = None,
+    names: list[str], materials: list[np.ndarray], setup: Setup = Setup(), progress: Callable[[str], None] | None = None
 ) -> Comparison:
     """Returns the Comparison of Mitsuba and Cycles renders of `materials` (physical vectors (19,))."""
+    resolution, spp = setup.resolution, setup.spp
     scripts = [export.blender_script(values) for values in materials]
-    cycles = render_scripts(scripts, resolution, spp, blender=blender, progress=progress)
-    renderer = Renderer(resolution, spp, variant)
+    cycles = render_scripts(scripts, resolution, spp, blender=setup.blender, progress=progress)
+    renderer = Renderer(resolution, spp, setup.variant)
     mitsuba, again = [], []
     for index, values in enumerate(materials):
         mitsuba.append(renderer.render(values, seed=0))
@@ -214,10 +219,7 @@ def check(
     out: str,
     names: list[str] | None = None,
     params_files: list[str] | None = None,
-    resolution: int = 64,
-    spp: int = 256,
-    blender: str | None = None,
-    variant: str | None = None,
+    setup: Setup = Setup(),
     progress: Callable[[str], None] | None = None,
 ) -> Comparison:
     """Compares presets and params.json files in Cycles and Mitsuba; writes out/blender-check.md and .png.
@@ -236,8 +238,8 @@ def check(
         raise OutputError(f"out {out} is a file: give a folder for the table and the picture", field="out")
     existing = out if os.path.isdir(out) else os.path.dirname(os.path.abspath(out))
     files.check_writable(os.path.join(existing, TABLE_FILE))
-    find_blender(blender)
-    comparison = compare(names, materials, resolution, spp, blender, variant, progress)
+    find_blender(setup.blender)
+    comparison = compare(names, materials, setup, progress)
     os.makedirs(out, exist_ok=True)
     images.write(os.path.join(out, PICTURE_FILE), picture(comparison))
     files.write_text(os.path.join(out, TABLE_FILE), table(comparison))

@@ -2,8 +2,9 @@
 
 bpy 4.5 requires numpy < 2 and cannot share matfit's environment, so this module is run in a
 subprocess by `matfit.blender` (`python -m matfit.blender_scene job.json` with a Python that has
-bpy, or `blender -b -P matfit/blender_scene.py -- job.json`). It imports only bpy, NumPy and the
-NumPy-only modules `params` and `scene`, so it runs with either NumPy.
+bpy, or `blender -b -P matfit/blender_scene.py -- job.json`). It imports only bpy, NumPy, the
+NumPy-only modules `params` and `scene`, and `blender_material` (the exported material script,
+whose `node_tree` builds every node tree here too), so it runs with either NumPy.
 
 The scene is `scene.scene` rebuilt node for node: the same camera (field of view, look-at), unit
 sphere, checkered floor and backdrop (Mitsuba's checkerboard on the rectangles' uv, same cells and
@@ -39,11 +40,13 @@ if __package__ in (None, ""):  # run as a file (`blender -P`, `python blender_sc
 import bpy
 
 from matfit import scene
+from matfit.blender_material import node_tree
 
 # Mitsuba (x, y, z), y up -> Blender (x, -z, y), z up.
 MITSUBA_TO_BLENDER = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 SPHERE_SEGMENTS = (128, 64)
-FILTER_WIDTH = 2.0  # Cycles' Gaussian of width 2 px matches Mitsuba's (standard deviation 0.5 px): measured, see the module docstring
+# Cycles' Gaussian of width 2 px matches Mitsuba's (standard deviation 0.5 px): measured, see the module docstring.
+FILTER_WIDTH = 2.0
 
 
 def _look_at(origin, target, up) -> np.ndarray:
@@ -119,9 +122,7 @@ def _checker_material(name: str, description: dict):
     (operation, (across, down, _)) = texture["to_uv"].operations[0]  # scene.checker: one scale
     assert operation == "scale", texture["to_uv"]
     material = bpy.data.materials.new(name)
-    material.use_nodes = True
-    nodes, links = material.node_tree.nodes, material.node_tree.links
-    nodes.clear()
+    nodes, links = node_tree(material)
     coordinates = nodes.new("ShaderNodeTexCoord")
     stretch = nodes.new("ShaderNodeVectorMath")
     stretch.operation = "MULTIPLY"
@@ -146,10 +147,8 @@ def _light_material(radiance: list[float]):
     Mitsuba's area emitter is one-sided, and a shape without a BSDF gets Mitsuba's default diffuse 0.5.
     """
     material = bpy.data.materials.new("matfit-key-light")
-    material.use_nodes = True
     material.cycles.emission_sampling = "FRONT"
-    nodes, links = material.node_tree.nodes, material.node_tree.links
-    nodes.clear()
+    nodes, links = node_tree(material)
     emission = nodes.new("ShaderNodeEmission")
     emission.inputs["Color"].default_value = (*radiance, 1.0)
     emission.inputs["Strength"].default_value = 1.0
@@ -182,9 +181,7 @@ def _world(description: dict) -> None:
     image.pixels.foreach_set(rgba.ravel())
     image.pack()
     world = bpy.data.worlds.new("matfit-world")
-    world.use_nodes = True
-    nodes, links = world.node_tree.nodes, world.node_tree.links
-    nodes.clear()
+    nodes, links = node_tree(world)
     texture = nodes.new("ShaderNodeTexEnvironment")
     texture.image = image
     texture.interpolation = "Linear"

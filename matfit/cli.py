@@ -3,6 +3,7 @@
 Errors a user can fix (`errors.MatfitError`, and Typer's own usage errors) become one `error:` line
 and exit code 2; Ctrl-C or `kill` becomes one `interrupted:` line and exit code 130. JAX, Mitsuba
 and the networks are imported inside the commands that need them, so `matfit params` starts fast.
+Options that several commands take are declared once, in `options`.
 """
 
 from __future__ import annotations
@@ -10,57 +11,13 @@ from __future__ import annotations
 import functools
 import json
 import os
-from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from matfit import console, dataset, params, presets
-from matfit.methods import (
-    MAX_EVALUATIONS,
-    MAX_ITERATIONS,
-    MAX_POLISH,
-    MAX_STARTS,
-    MIN_EVALUATIONS,
-    Box,
-    Method,
-    Settings,
-)
-from matfit.render import VARIANTS
-
-Variant = StrEnum("Variant", {name: name for name in VARIANTS})  # the Mitsuba variants matfit renders with
-DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "data" / "models" / "default"  # shipped in the repository
-MAX_SIZE = 4096
-
-
-def seed_option(help: str):
-    """Returns the option of a seed: every seed of matfit is in [0, params.MAX_SEED]."""
-    return typer.Option(min=0, max=params.MAX_SEED, help=help)
-
-
-# Options that several commands share, declared once.
-ModelOption = Annotated[Path, typer.Option("--model", help="Model directory (default: the shipped model).")]
-VariantOption = Annotated[Variant | None, typer.Option(help="Force a Mitsuba variant.")]
-SppOption = Annotated[int, typer.Option(min=1, max=dataset.MAX_SPP, help="Samples per pixel (of the renders).")]
-SizeOption = Annotated[
-    int, typer.Option(min=dataset.MIN_RESOLUTION, max=MAX_SIZE, help="Image side in pixels (of the renders).")
-]
-EvaluationsOption = Annotated[
-    int,
-    typer.Option(
-        "--evals", min=MIN_EVALUATIONS, max=MAX_EVALUATIONS, help="Nelder-Mead budget in objective evaluations."
-    ),
-]
-InitOption = Annotated[Path | None, typer.Option(help="params.json of the source material: joins the candidates.")]
-MethodOption = Annotated[
-    Method,
-    typer.Option(
-        help="lbfgsb: best-of-n, then L-BFGS-B from the best --starts candidates; hybrid-lbfgsb: Nelder-Mead (--evals) between them; "
-        "the paper's hybrid (best-of-n, then Nelder-Mead), nn (best-of-n) and optimize (Nelder-Mead from a random start)."
-    ),
-]
-
+from matfit import console, dataset, options, params, presets
+from matfit.methods import MAX_ITERATIONS, MAX_POLISH, MAX_STARTS, Box, Method, Settings
 
 app = typer.Typer(
     cls=console.OneLineErrors,
@@ -72,63 +29,54 @@ app = typer.Typer(
 )
 command = functools.partial(console.command, app)
 echo_lines = console.echo_lines
+log = functools.partial(typer.echo, err=True)  # progress, notices and what was written go to standard error
 
 
 @command
 def render(
-    params_file: Annotated[
-        Path | None, typer.Argument(help="params.json with named values; names left out take defaults.")
-    ] = None,
-    output: Annotated[
-        Path, typer.Option("--output", "-o", help="Image: .png/.jpg/.tif (sRGB 8-bit) or .exr (linear).")
-    ] = Path("render.png"),
-    size: SizeOption = 512,
-    spp: SppOption = 256,
-    preset: Annotated[
-        str | None, typer.Option(help=f"A named material instead of a file: {', '.join(presets.PRESETS)}.")
-    ] = None,
+    params_file: Annotated[Path | None, typer.Argument(help="params.json (names left out take defaults).")] = None,
+    output: Annotated[Path, options.output("Image: .png/.jpg/.tif (8-bit sRGB) or .exr (linear).")] = Path(
+        "render.png"
+    ),
+    size: options.Size = 512,
+    spp: options.Spp = 256,
+    preset: Annotated[str | None, typer.Option(help=f"A named material: {', '.join(presets.PRESETS)}.")] = None,
     random: Annotated[
         bool, typer.Option("--random", help="A random material from the training distribution (see --seed).")
     ] = False,
-    seed: Annotated[int, seed_option("Seed of the random material and of the render's noise.")] = 0,
-    variant: VariantOption = None,
+    seed: Annotated[int, options.seed("Seed of the random material and of the render's noise.")] = 0,
+    variant: options.Variant = None,
 ) -> None:
     """Render one material in the test scene with Mitsuba: the artist's starting image."""
     from matfit import render as render_module
 
-    values = presets.material(str(params_file) if params_file else None, preset, seed if random else None)
+    values = presets.material(options.text(params_file), preset, seed if random else None)
     if random:
         typer.echo(json.dumps(params.params_document(values, source=f"--random --seed {seed}"), indent=2))
-    done = render_module.render_file(values, str(output), size, spp, seed, variant and variant.value)
+    done = render_module.render_file(values, str(output), size, spp, seed, variant)
     echo_lines(done.notices)
-    typer.echo(f"wrote {output} ({size}x{size}, {spp} spp, {done.variant}, {done.seconds:.1f} s)", err=True)
+    log(f"wrote {output} ({size}x{size}, {spp} spp, {done.variant}, {done.seconds:.1f} s)")
 
 
 @command(name="presets")
 def presets_sheet(
-    output: Annotated[Path, typer.Option("--output", "-o", help="Contact sheet to write (.png, .jpg or .exr).")] = Path(
-        "presets.png"
-    ),
+    output: Annotated[Path, options.output("Contact sheet to write (.png, .jpg or .exr).")] = Path("presets.png"),
     size: Annotated[int, typer.Option(min=32, max=1024, help="Side of each tile in pixels.")] = 128,
-    spp: SppOption = 256,
-    variant: VariantOption = None,
+    spp: options.Spp = 256,
+    variant: options.Variant = None,
 ) -> None:
     """Render every preset side by side, labelled, into one picture."""
     from matfit import images
 
     images.check_output(str(output))
-    images.write(str(output), presets.sheet(size, spp, variant and variant.value))
-    typer.echo(f"wrote {output} ({len(presets.PRESETS)} presets)", err=True)
+    images.write(str(output), presets.sheet(size, spp, variant))
+    log(f"wrote {output} ({len(presets.PRESETS)} presets)")
 
 
 @command(name="blender-check")
 def blender_check(
-    out: Annotated[
-        Path, typer.Option("--out", "-o", help="Folder for blender-check.md (table) and blender-check.png.")
-    ] = Path("blender-check"),
-    preset: Annotated[
-        list[str] | None, typer.Option(help="A preset to compare (repeat it); default: every preset.")
-    ] = None,
+    out: Annotated[Path, options.out("Folder for blender-check.md and blender-check.png.")] = Path("blender-check"),
+    preset: Annotated[list[str] | None, typer.Option(help="A preset to compare (repeat it; default: all).")] = None,
     params_file: Annotated[
         list[Path] | None, typer.Option("--params", help="A params.json to compare too (repeat it).")
     ] = None,
@@ -136,22 +84,17 @@ def blender_check(
     spp: Annotated[int, typer.Option(min=1, max=dataset.MAX_SPP, help="Samples per pixel, in both renderers.")] = 256,
     blender: Annotated[
         str | None,
-        typer.Option(
-            help="A Python with bpy 4.5 or a Blender 4.5 executable (default: .venv-blender, `make blender`)."
-        ),
+        typer.Option(help="Python with bpy 4.5, or Blender 4.5 (default: .venv-blender, `make blender`)."),
     ] = None,
-    variant: VariantOption = None,
+    variant: options.Variant = None,
 ) -> None:
     """Render materials through the exported Blender script in Cycles and with Mitsuba, and compare them."""
     from matfit import blender as round_trip
 
-    paths = [str(path) for path in params_file or []]
-    progress = functools.partial(typer.echo, err=True)
-    comparison = round_trip.check(
-        str(out), preset or None, paths, size, spp, blender, variant and variant.value, progress
-    )
+    setup = round_trip.Setup(size, spp, blender, variant)
+    comparison = round_trip.check(str(out), preset or None, [str(path) for path in params_file or []], setup, log)
     typer.echo(round_trip.table(comparison), nl=False)
-    typer.echo(f"wrote {out / round_trip.TABLE_FILE} and {out / round_trip.PICTURE_FILE}", err=True)
+    log(f"wrote {out / round_trip.TABLE_FILE} and {out / round_trip.PICTURE_FILE}")
 
 
 @command(name="params")
@@ -167,50 +110,36 @@ def render_dataset(
     count: Annotated[int, typer.Option(help="Total number of samples the dataset should hold.")] = 20000,
     resolution: Annotated[int, typer.Option(help="Image side in pixels.")] = 64,
     spp: Annotated[int, typer.Option(help="Samples per pixel.")] = 16,
-    seed: Annotated[int, seed_option("Seed of the parameter sampling and of the renders' noise.")] = 0,
+    seed: Annotated[int, options.seed("Seed of the parameter sampling and of the renders' noise.")] = 0,
     workers: Annotated[
         int, typer.Option(help="Rendering processes, one thread each (default: one per core).")
     ] = os.cpu_count() or 1,
-    variant: VariantOption = None,
+    variant: options.Variant = None,
     ray: Annotated[
         str | None,
-        typer.Option(
-            help="Render as Ray tasks: 'local' (a Ray of --workers CPUs started for the run), 'auto', HOST:PORT. Needs .[cluster]."
-        ),
+        typer.Option(help="Render on Ray (.[cluster]): 'local' (--workers CPUs, for this run), 'auto' or HOST:PORT."),
     ] = None,
 ) -> None:
     """Render a training set of sampled materials; run it again to resume or to grow it."""
     from matfit.progress import Progress
 
     with Progress(f"rendering {out}") as progress:
+        counter = progress.counter()
         data, rendered, notices = dataset.render_dataset(
-            str(out),
-            count,
-            resolution,
-            spp,
-            seed,
-            workers,
-            variant and variant.value,
-            progress.counter(),
-            ray_address=ray,
+            str(out), count, resolution, spp, seed, workers, variant, counter, ray_address=ray
         )
     echo_lines(notices)
-    typer.echo(
-        f"{out}: {count}/{count} samples ({rendered} rendered now, {resolution} px, {spp} spp, {data.meta['variant']})",
-        err=True,
-    )
+    log(f"{out}: {count}/{count} samples ({rendered} rendered now, {resolution} px, {spp} spp, {data.meta['variant']})")
 
 
 @command(name="fit", interrupted="nothing was written")
 def fit_command(
     target: Annotated[Path, typer.Argument(help="The edited picture: PNG, JPEG, TIFF (8/16-bit) or EXR (linear).")],
-    output: Annotated[
-        Path, typer.Option("--output", "-o", help="params.json to write (feeds `matfit render`).")
-    ] = Path("params.json"),
-    model_path: ModelOption = DEFAULT_MODEL,
-    method: MethodOption = Method.hybrid,
-    evaluations: EvaluationsOption = 1500,
-    seed: Annotated[int, seed_option("Seed of the random start of --method optimize.")] = 0,
+    output: Annotated[Path, options.output("params.json to write (feeds `matfit render`).")] = Path("params.json"),
+    model_path: options.Model = options.DEFAULT_MODEL,
+    method: options.Fitting = Method.lbfgsb,
+    evaluations: options.Evaluations = 1500,
+    seed: Annotated[int, options.seed("Seed of the random start of --method optimize.")] = 0,
     mask: Annotated[
         Path | None, typer.Option(help="Per-pixel weights, the target's size: white = match here, black = ignore.")
     ] = None,
@@ -224,57 +153,48 @@ def fit_command(
         Path | None, typer.Option(help="Comparison picture: target | guess | fit | Mitsuba render | difference.")
     ] = None,
     render: Annotated[Path | None, typer.Option(help="Render the fitted material with Mitsuba to this image.")] = None,
-    size: SizeOption = 512,
-    spp: SppOption = 256,
-    mitsuba_xml: Annotated[
-        Path | None, typer.Option("--mitsuba-xml", help="Write the BSDF and medium as Mitsuba 3 XML.")
-    ] = None,
+    size: options.Size = 512,
+    spp: options.Spp = 256,
+    mitsuba_xml: Annotated[Path | None, typer.Option(help="Write the BSDF and medium as Mitsuba 3 XML.")] = None,
     blender: Annotated[Path | None, typer.Option(help="Write a Blender 4.x script that builds the material.")] = None,
-    init: InitOption = None,
+    init: options.Init = None,
     starts: Annotated[
         int, typer.Option(min=1, max=MAX_STARTS, help="L-BFGS-B starts (the best best-of-n candidates).")
-    ] = 4,
-    iterations: Annotated[int, typer.Option(min=1, max=MAX_ITERATIONS, help="L-BFGS-B iterations per start.")] = 100,
-    verified: Annotated[
-        bool, typer.Option("--verify/--no-verify", help="Let Mitsuba choose among the final candidates.")
-    ] = True,
+    ] = Settings.starts,
+    iterations: Annotated[
+        int, typer.Option(min=1, max=MAX_ITERATIONS, help="L-BFGS-B steps per start (a value and gradient each).")
+    ] = Settings.iterations,
+    verify: Annotated[bool, typer.Option(help="Let Mitsuba choose among the final candidates.")] = True,
+    refine: options.Refine = 0,
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
     from matfit import fitfile
 
-    def name(path):
-        return None if path is None else str(path)
-
-    outputs = fitfile.Outputs(str(output), name(report), name(render), size, spp, name(mitsuba_xml), name(blender))
+    text = options.text
+    outputs = fitfile.Outputs(str(output), text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
     settings = Settings(method, evaluations, box, polish_steps=polish_steps, starts=starts, iterations=iterations)
-    outcome = fitfile.run(str(target), str(model_path), settings, outputs, name(mask), seed, name(init), verified)
+    outcome = fitfile.run(str(target), str(model_path), settings, outputs, text(mask), seed, text(init), verify, refine)
     echo_lines(outcome.notices)
-    typer.echo(outcome.summary(str(output)), err=True)
+    log(outcome.summary(str(output)))
 
 
 @command(interrupted="finished frames are saved; run the same command to resume")
 def sequence(
     frames: Annotated[
         Path,
-        typer.Argument(
-            help="Folder of frames (PNG, JPEG, TIFF, EXR), fitted in natural order: frame_2 before frame_10."
-        ),
+        typer.Argument(help="Folder of frames (PNG, JPEG, TIFF, EXR) in natural order: frame_2 before frame_10."),
     ],
-    out: Annotated[
-        Path, typer.Option("--out", "-o", help="Output folder: one JSON per frame, summary.md, preview.png.")
-    ] = Path("sequence"),
-    model_path: ModelOption = DEFAULT_MODEL,
-    evaluations: EvaluationsOption = 100,
-    method: MethodOption = Method.hybrid,
-    reinit: Annotated[
-        bool, typer.Option("--reinit/--no-reinit", help="Add the previous frame's optimum to the best-of-n pool.")
-    ] = True,
+    out: Annotated[Path, options.out("Folder: one JSON per frame, summary.md, preview.png.")] = Path("sequence"),
+    model_path: options.Model = options.DEFAULT_MODEL,
+    evaluations: options.Evaluations = 100,
+    method: options.Fitting = Method.hybrid,
+    reinit: Annotated[bool, typer.Option(help="Add the previous frame's optimum to the best-of-n pool.")] = True,
     render: Annotated[
-        bool, typer.Option("--render", help="Also render every fitted frame with Mitsuba (<frame>-render.png).")
+        bool, typer.Option("--render", help="Also render each fit with Mitsuba (<frame>-render.png).")
     ] = False,
-    size: SizeOption = 256,
-    spp: SppOption = 64,
-    init: InitOption = None,
+    size: options.Size = 256,
+    spp: options.Spp = 64,
+    init: options.Init = None,
 ) -> None:
     """Fit every frame of an edited sequence, reusing each optimum for the next frame; resumable."""
     from matfit import fitfile
@@ -283,14 +203,15 @@ def sequence(
 
     model = fitfile.load_model(str(model_path))
     settings = Settings(method=method, evaluations=evaluations)
+    rendered = (size, spp) if render else None
     with Progress("fitting frames") as progress:
-        rendered = (size, spp) if render else None
+        counter = progress.counter("frames/s")
         results = sequence_module.run(
-            model, str(frames), str(out), settings, reinit, rendered, progress.counter("frames/s"), init and str(init)
+            model, str(frames), str(out), settings, reinit, rendered, counter, options.text(init)
         )
     echo_lines(f"{os.path.basename(frame.path)}: {frame.note}" for frame in results if frame.note)
     typer.echo(sequence_module.summary_table(results))
-    typer.echo(f"{out}: {len(results)} frames, RMSE sum {sum(f.rmse for f in results):.2f}", err=True)
+    log(f"{out}: {len(results)} frames, RMSE sum {sum(f.rmse for f in results):.2f}")
 
 
 @command(interrupted="finished epochs are saved in the model's checkpoints/; run the same command to resume")
@@ -300,15 +221,15 @@ def train(
         typer.Option(help="decoder, 1 to 9 (one encoder), 1..9 (all nine), all (decoder and nine), or a comma list."),
     ],
     dataset_path: Annotated[Path, typer.Option("--dataset", help="A finished `matfit render-dataset` directory.")],
-    out: Annotated[
-        Path, typer.Option("--out", "-o", help="Model directory: weights, metrics, and checkpoints/ for resuming.")
-    ] = Path("runs/model"),
+    out: Annotated[Path, options.out("Model directory: weights, metrics, and checkpoints/ for resuming.")] = Path(
+        "runs/model"
+    ),
     epochs: Annotated[
         int | None, typer.Option(help="Epochs per network (default: decoder 20, encoders 10; 4, 5: 8; 7: 5; 9: 20).")
     ] = None,
     batch_size: Annotated[int, typer.Option(help="Samples per training step.")] = 64,
     learning_rate: Annotated[float, typer.Option(help="Peak Adam learning rate (warm-up, then cosine decay).")] = 1e-3,
-    seed: Annotated[int, seed_option("Seed of initialisation, shuffling and dropout.")] = 0,
+    seed: Annotated[int, options.seed("Seed of initialisation, shuffling and dropout.")] = 0,
 ) -> None:
     """Train the decoder and/or the encoders; run the same command again to resume after an interruption."""
     from matfit import train as train_module
@@ -324,12 +245,12 @@ def train(
 
 @command
 def evaluate(
-    model_path: ModelOption = DEFAULT_MODEL,
+    model_path: options.Model = options.DEFAULT_MODEL,
     references: Annotated[
         Path, typer.Option(help="Held-out references, e.g. `matfit render-dataset ref --spp 256 --seed 1`.")
     ] = Path("datasets/reference"),
     card: Annotated[
-        bool, typer.Option("--card/--no-card", help="Also write evaluation.json and MODEL.md into the model directory.")
+        bool, typer.Option(help="Also write evaluation.json and MODEL.md into the model directory.")
     ] = False,
     preset_spp: Annotated[
         int,
@@ -340,7 +261,10 @@ def evaluate(
         ),
     ] = 4096,
 ) -> None:
-    """Measure a model against clean references: decoder RMSE (all, each third, each preset), each encoder's errors, best-of-n."""
+    """Measure a model against clean references: the decoder's RMSE, each encoder's errors, best-of-n.
+
+    The decoder's RMSE over all references, each third (transmissive, scattering, opaque) and each preset.
+    """
     from matfit import evaluate as evaluate_module
     from matfit import models
 
@@ -354,17 +278,17 @@ def evaluate(
 @command
 def bench_render(
     count: Annotated[int, typer.Option(min=5, max=100_000, help="Images timed per configuration.")] = 100,
-    variant: VariantOption = None,
+    variant: options.Variant = None,
 ) -> None:
     """Measure images per second of `Renderer` against a bare `mi.render` loop on the same scene."""
     from matfit import bench
 
-    typer.echo(bench.render_speed(count, variant and variant.value))
+    typer.echo(bench.render_speed(count, variant))
 
 
 @command
 def bench_model(
-    model_path: ModelOption = DEFAULT_MODEL,
+    model_path: options.Model = options.DEFAULT_MODEL,
     repeats: Annotated[int, typer.Option(min=10, max=1_000_000, help="Timed decoder calls.")] = 500,
 ) -> None:
     """Time loading a model (all networks, weights ready in memory) and the decoder's forward pass at batch 1."""
@@ -375,25 +299,21 @@ def bench_model(
 
 @command
 def bench_fit(
-    model_path: ModelOption = DEFAULT_MODEL,
+    model_path: options.Model = options.DEFAULT_MODEL,
     count: Annotated[
         int, typer.Option(min=1, max=10_000, help="Reachable targets (256-spp renders of held-out parameters).")
     ] = 20,
-    evaluations: EvaluationsOption = 1500,
+    evaluations: options.Evaluations = 1500,
 ) -> None:
     """Compare the fitting methods on reachable targets: neural and Mitsuba RMSE, warm fit time."""
     from matfit import bench, fitfile
 
-    typer.echo(
-        bench.fit_comparison(
-            fitfile.load_model(str(model_path)), count, evaluations, log=lambda line: typer.echo(line, err=True)
-        )
-    )
+    typer.echo(bench.fit_comparison(fitfile.load_model(str(model_path)), count, evaluations, log=log))
 
 
 @command
 def bench_sequence(
-    model_path: ModelOption = DEFAULT_MODEL,
+    model_path: options.Model = options.DEFAULT_MODEL,
     frames: Annotated[int, typer.Option(min=2, max=100_000, help="Frames of the built-in black-level sequence.")] = 120,
     frames_out: Annotated[
         Path | None, typer.Option("--write-frames", help="Also write the sequence's frames to this folder.")
@@ -402,15 +322,13 @@ def bench_sequence(
     """Reinitialisation against per-frame fitting on a built-in sequence (a rising black level), as in the paper."""
     from matfit import bench, fitfile
 
-    typer.echo(bench.sequence_benchmark(fitfile.load_model(str(model_path)), frames, frames_out and str(frames_out)))
+    typer.echo(bench.sequence_benchmark(fitfile.load_model(str(model_path)), frames, options.text(frames_out)))
 
 
 @command
 def bench(
-    out: Annotated[
-        Path, typer.Option("--out", "-o", help="Output folder: report.md, report.json, cases/*.png.")
-    ] = Path("data/bench"),
-    model_path: ModelOption = DEFAULT_MODEL,
+    out: Annotated[Path, options.out("Output folder: report.md, report.json, cases/*.png.")] = Path("data/bench"),
+    model_path: options.Model = options.DEFAULT_MODEL,
     full: Annotated[
         bool, typer.Option("--full", help="10 seeds, 60 s basin-hopping, 120 frames (quick: 5, 5 s, 40).")
     ] = False,
@@ -421,4 +339,4 @@ def bench(
 
     model = fitfile.load_model(str(model_path))
     label = fitfile.display_path(str(model_path))
-    typer.echo(bench_module.run_suite(model, label, str(out), full, log=lambda line: typer.echo(line, err=True)))
+    typer.echo(bench_module.run_suite(model, label, str(out), full, log=log))

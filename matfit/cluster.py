@@ -77,7 +77,8 @@ def check(address: str) -> None:
             pass
     except OSError as error:
         raise DatasetError(
-            f"no Ray answers at {address} ({error.strerror or error}): start one there with `ray start --head`, or pass --ray {LOCAL}"
+            f"no Ray answers at {address} ({error.strerror or error}): "
+            f"start one there with `ray start --head`, or pass --ray {LOCAL}"
         ) from None
 
 
@@ -148,7 +149,8 @@ def _submit_and_collect(ray, settings: Settings, tasks: list[Task]) -> Results:
             ) from None
         except ray.exceptions.RayError as error:
             raise DatasetError(
-                f"Ray lost a chunk {RETRIES + 1} times ({type(error).__name__}); what was rendered is saved: run the same command to resume"
+                f"Ray lost a chunk {RETRIES + 1} times ({type(error).__name__}); what was rendered is saved: "
+                "run the same command to resume"
             ) from None
         yield result
 
@@ -187,7 +189,7 @@ def measure_transfer(resolution: int, chunks: int = 200, workers: int = 2) -> di
 def measure_loader(
     resolution: int, batch_size: int, host_cast: bool = False, samples: int = 22000, seconds: float = 2.0
 ) -> dict:
-    """Returns samples/s of training's data loading: gather a shuffled batch (`host_cast`: and cast it to float32 in NumPy).
+    """Returns samples/s of training's data loading: gather a shuffled batch (`host_cast`: cast to float32 in NumPy).
 
     The same operations as a training step's host side, on in-memory arrays of the shapes and
     types training holds: the decoder's sRGB targets (float16, resolution^2 x 3) with their
@@ -229,12 +231,14 @@ if __name__ == "__main__":
         for host_cast in (False, True):
             figures = measure_loader(side, 64, host_cast)
             print(
-                f"loader, {side} px, batch 64{', float32 cast in NumPy' if host_cast else ''}: "
-                f"decoder {figures['decoder_samples_per_s']:.0f} samples/s, encoder {figures['encoder_samples_per_s']:.0f} samples/s"
+                f"loader, {side} px, batch 64{', float32 cast in NumPy' if host_cast else ''}: decoder "
+                f"{figures['decoder_samples_per_s']:.0f} samples/s, encoder {figures['encoder_samples_per_s']:.0f} "
+                "samples/s"
             )
     for side in (64, 128, 256):
         figures = measure_transfer(side)
         print(
-            f"Ray object store into the driver, {side} px: {figures['images_per_s']:.0f} img/s, {figures['mib_per_s']:.0f} MiB/s "
-            f"({figures['chunks']} chunks of {dataset.CHUNK} in {figures['seconds']:.2f} s)"
+            f"Ray object store into the driver, {side} px: {figures['images_per_s']:.0f} img/s, "
+            f"{figures['mib_per_s']:.0f} MiB/s ({figures['chunks']} chunks of {dataset.CHUNK} in "
+            f"{figures['seconds']:.2f} s)"
         )

@@ -115,7 +115,7 @@ def system_message(error: OSError) -> str:
 
 
 def with_flag(message: str, field: str | None, options: dict[str, str]) -> str:
-    """Returns a library message with its leading field name ("evaluations 5 ...") replaced by the option ("--evals 5 ...")."""
+    """Returns a library message with its leading field ("evaluations 5 ...") as the option typed ("--evals 5 ...")."""
     if field is None or field not in options:
         return message
     words = field.replace("_", " ")

@@ -155,7 +155,8 @@ def read_meta(path: str) -> dict:
         raise DatasetError(f"{meta_path} does not describe a matfit dataset: delete {path} and render it again")
     if meta.get("format_version") != FORMAT_VERSION:
         raise DatasetError(
-            f"{path} has dataset format {meta.get('format_version')}, this matfit reads {FORMAT_VERSION}: render it again"
+            f"{path} has dataset format {meta.get('format_version')}, this matfit reads {FORMAT_VERSION}: "
+            "render it again"
         )
     return meta
 
@@ -207,8 +208,8 @@ def _check_disk(path: str, settings: Settings, count: int) -> None:
     free = shutil.disk_usage(path if os.path.isdir(path) else os.path.dirname(os.path.abspath(path))).free
     if needed > free:
         raise DatasetError(
-            f"{count} images at {settings.resolution} px need {needed / 2**30:.1f} GiB, only {free / 2**30:.1f} GiB are free: "
-            "lower --count or --resolution"
+            f"{count} images at {settings.resolution} px need {needed / 2**30:.1f} GiB, only {free / 2**30:.1f} GiB "
+            "are free: lower --count or --resolution"
         )
 
 
@@ -257,7 +258,8 @@ def prepare(path: str, settings: Settings, count: int, versions: dict) -> Datase
             if theirs != ours:
                 flag = f"--{field} {theirs}"
                 raise DatasetError(
-                    f"{path} was rendered with {field} {theirs}, not {ours}: pass {flag} to add to it, or choose a new directory"
+                    f"{path} was rendered with {field} {theirs}, not {ours}: "
+                    f"pass {flag} to add to it, or choose a new directory"
                 )
         if old.meta.get("integrator") != scene.INTEGRATOR["type"]:
             raise DatasetError(

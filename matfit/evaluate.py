@@ -84,12 +84,12 @@ def summary(values: np.ndarray) -> dict:
 
 
 def evaluate(model: models.Model, references: Dataset, preset_spp: int = PRESET_SPP) -> dict:
-    """Returns the decoder's fidelity (all, each third, each preset), each encoder's errors and the best-of-n figures."""
+    """Returns the decoder's fidelity (all, each third, each preset), each encoder's errors, the best-of-n figures."""
     pipeline.check_finished(references)
     if references.resolution != model.resolution:
         raise DatasetError(
-            f"{references.path} has {references.resolution} px images, the model's decoder makes {model.resolution} px: "
-            f"render references at {model.resolution} px"
+            f"{references.path} has {references.resolution} px images, the model's decoder makes {model.resolution} "
+            f"px: render references at {model.resolution} px"
         )
     unit = references.unit_params()
     targets = pipeline.srgb_targets(references).astype(np.float32)
@@ -156,10 +156,10 @@ def card(model: models.Model, evaluation: dict) -> str:
     lines = [
         "# matfit model card",
         "",
-        f"Trained on {data.get('count', '?')} Mitsuba renders ({data.get('resolution', '?')} px, {data.get('spp', '?')} spp, "
-        f"{data.get('variant', '?')}, sampling seed {data.get('seed', '?')}); the last "
-        f"{decoder.get('validation_samples', '?')} were held out for validation. "
-        f"Weights are stored as float16 ({weights_megabytes(model.path):.1f} MB for all networks).",
+        f"Trained on {data.get('count', '?')} Mitsuba renders ({data.get('resolution', '?')} px, "
+        f"{data.get('spp', '?')} spp, {data.get('variant', '?')}, sampling seed {data.get('seed', '?')}); the last "
+        f"{decoder.get('validation_samples', '?')} were held out for validation. Weights are stored as float16 "
+        f"({weights_megabytes(model.path):.1f} MB for all networks).",
         "",
         "## Training",
         "",
@@ -174,8 +174,8 @@ def card(model: models.Model, evaluation: dict) -> str:
             figure = f"parameter RMSE {metrics.get('validation_parameter_rmse', float('nan')):.4f}"
         config = metrics.get("config", {})
         lines.append(
-            f"| {network.name} | {metrics.get('parameter_count', 0):,} | {metrics.get('epochs', '?')} | {config.get('batch_size', '?')} "
-            f"| {metrics.get('wall_time_s', 0) / 60:.1f} min | {figure} |"
+            f"| {network.name} | {metrics.get('parameter_count', 0):,} | {metrics.get('epochs', '?')} | "
+            f"{config.get('batch_size', '?')} | {metrics.get('wall_time_s', 0) / 60:.1f} min | {figure} |"
         )
     total = sum(
         network.info.get("metrics", {}).get("wall_time_s", 0) for network in [model.decoder, *model.encoders.values()]
@@ -193,7 +193,8 @@ def card(model: models.Model, evaluation: dict) -> str:
     lines += [
         f"| best-of-{best['n']} | | {best['image_rmse']:.2f} | |",
         "",
-        f"Best-of-{best['n']} image RMSE {best['image_rmse']:.2f} against {best['best_single_image_rmse']:.2f} for the best single encoder.",
+        f"Best-of-{best['n']} image RMSE {best['image_rmse']:.2f} against {best['best_single_image_rmse']:.2f} for the "
+        "best single encoder.",
         "",
     ]
     return "\n".join(lines)
@@ -207,7 +208,8 @@ def decoder_tables(evaluation: dict) -> list[str]:
         "",
         "## The decoder against clean renders",
         "",
-        f"RMSE on 0-255 sRGB values per image. Presets against a {preset_figures['spp']}-spp render each; transmissive: spec_trans >= 0.5,",
+        f"RMSE on 0-255 sRGB values per image. Presets against a {preset_figures['spp']}-spp render each; "
+        "transmissive: spec_trans >= 0.5,",
         "scattering: transmissive with scattering >= 0.5 and density >= 1, opaque: the rest.",
         "",
         "| preset | third | decoder phi(x) vs Mitsuba | target |",
@@ -224,7 +226,8 @@ def decoder_tables(evaluation: dict) -> list[str]:
         lines.append(f"| {name} | {third} | {error:.2f} | <= {TARGETS['preset']:.1f} |")
     if preset_figures.get("transmissive_mean") is not None:
         lines.append(
-            f"| transmissive presets, mean | | {preset_figures['transmissive_mean']:.2f} | <= {TARGETS['transmissive_presets_mean']:.1f} |"
+            f"| transmissive presets, mean | | {preset_figures['transmissive_mean']:.2f} | <= "
+            f"{TARGETS['transmissive_presets_mean']:.1f} |"
         )
     opaque = [error for k, error in enumerate(preset_figures["rmse"].values()) if preset_thirds["opaque"][k]]
     if opaque:
@@ -232,8 +235,10 @@ def decoder_tables(evaluation: dict) -> list[str]:
     spp = references["spp"]
     lines += [
         "",
-        f"Against {references['count']} held-out random materials rendered at {spp} spp ({references.get('integrator') or 'volpath'}); their own",
-        f"noise is part of every figure (about {2.3 * (256 / spp) ** 0.5:.1f} on opaque materials at this spp, more in media:",
+        f"Against {references['count']} held-out random materials rendered at {spp} spp "
+        f"({references.get('integrator') or 'volpath'}); their own",
+        f"noise is part of every figure (about {2.3 * (256 / spp) ** 0.5:.1f} on opaque materials at this spp, more "
+        "in media:",
         "README, the renderer).",
         "",
         "| references | count | mean | median | p95 | target |",
@@ -248,7 +253,8 @@ def decoder_tables(evaluation: dict) -> list[str]:
         if figures:
             count = references["count"] if name == "all" else references[f"{name}_count"]
             lines.append(
-                f"| {name} | {count} | {figures['mean']:.2f} | {figures['median']:.2f} | {figures['p95']:.2f} | {targets.get(name, '')} |"
+                f"| {name} | {count} | {figures['mean']:.2f} | {figures['median']:.2f} | {figures['p95']:.2f} | "
+                f"{targets.get(name, '')} |"
             )
     return lines
 

@@ -10,16 +10,21 @@ the XML is written here from the same plain data.)
 
 Blender (Principled BSDF of 4.x, made for 4.5; checked in Cycles by `matfit blender-check`):
 
-| matfit | Blender 4.x | how |
-|---|---|---|
-| base_color_r/g/b | Base Color | same linear RGB |
-| metallic, roughness, anisotropic | Metallic, Roughness, Anisotropic (Diffuse Roughness 0) | same (alpha = roughness^2 and the same anisotropic aspect in both); distribution GGX, not Blender's default multiscatter GGX (rough gold: RMSE 2.9 against 25.7) |
-| specular | IOR | Mitsuba's eta from specular, F0 = 0.08 specular (0.5 -> 1.5), for reflection and refraction; Specular IOR Level 0.5 |
-| spec_tint | Specular Tint | Disney's tint: white + spec_tint x (base / luminance(base) - white), mixed to white by metallic (Blender also tints metal edges with it) |
-| sheen, sheen_tint | Sheen Weight, Sheen Tint, Sheen Roughness | SHEEN_WEIGHT_SCALE x sheen x (1 - metallic), none when spec_trans is 1; Disney's tint; roughness SHEEN_ROUGHNESS |
-| clearcoat, clearcoat_gloss | Coat Weight, Coat Roughness | COAT_WEIGHT_SCALE x clearcoat; sqrt of Disney's alpha 0.1 + (0.001 - 0.1) x gloss; Coat IOR 1.5 |
-| spec_trans | Transmission Weight | same (both tint by sqrt(base colour) per crossing) |
-| medium (6 values) | Volume Absorption + Volume Scatter | sigma_a = (1 - albedo) sigma_t, sigma_s = albedo sigma_t per unit of the sphere's radius; the script's OBJECT_RADIUS rescales them |
+- base_color_r/g/b -> Base Color: the same linear RGB.
+- metallic, roughness, anisotropic -> Metallic, Roughness, Anisotropic (Diffuse Roughness 0): the same (alpha =
+  roughness^2 and the same anisotropic aspect in both); distribution GGX, not Blender's default multiscatter GGX
+  (rough gold: RMSE 2.9 against 25.7).
+- specular -> IOR: Mitsuba's eta from specular, F0 = 0.08 specular (0.5 -> 1.5), for reflection and refraction;
+  Specular IOR Level 0.5.
+- spec_tint -> Specular Tint: Disney's tint, white + spec_tint x (base / luminance(base) - white), mixed to white
+  by metallic (Blender also tints metal edges with it).
+- sheen, sheen_tint -> Sheen Weight, Sheen Tint, Sheen Roughness: SHEEN_WEIGHT_SCALE x sheen x (1 - metallic), none
+  when spec_trans is 1; Disney's tint; roughness SHEEN_ROUGHNESS.
+- clearcoat, clearcoat_gloss -> Coat Weight, Coat Roughness: COAT_WEIGHT_SCALE x clearcoat; the square root of
+  Disney's alpha 0.1 + (0.001 - 0.1) x gloss; Coat IOR 1.5.
+- spec_trans -> Transmission Weight: the same (both tint by sqrt(base colour) per crossing).
+- medium (6 values) -> Volume Absorption + Volume Scatter: sigma_a = (1 - albedo) sigma_t, sigma_s = albedo sigma_t
+  per unit of the sphere's radius; the script's OBJECT_RADIUS rescales them.
 
 The sheen and coat constants were measured: the lobe's own contribution (image with the lobe
 minus image without, 64 px, 512 spp, over the sphere) in Cycles against Mitsuba, on calibration
@@ -37,12 +42,13 @@ roughness it made the sphere worse (RMSE 9.1 against 4.5 with Lambert on a grey 
 0.9, 6.2 against 4.5 at 0.4), so it stays 0.
 
 What Blender's Principled BSDF does differently by design is listed in the script's own header
-(BLENDER_TEMPLATE): Lambertian diffuse, microfibre sheen, a layered coat, the metal edge tint, and
-the tangent that anisotropy follows.
+(`blender_material`): Lambertian diffuse, microfibre sheen, a layered coat, the metal edge tint,
+and the tangent that anisotropy follows.
 """
 
 from __future__ import annotations
 
+import os
 import xml.etree.ElementTree as ElementTree
 
 import numpy as np
@@ -77,7 +83,8 @@ def mitsuba_xml(values: np.ndarray) -> str:
     root = ElementTree.Element("scene", version="3.0.0")
     root.append(
         ElementTree.Comment(
-            ' matfit: use with <ref id="matfit-material"/>, and <ref name="interior" id="matfit-interior"/> for a medium '
+            ' matfit: use with <ref id="matfit-material"/>, '
+            'and <ref name="interior" id="matfit-interior"/> for a medium '
         )
     )
     _object(root, "bsdf", MATERIAL_ID, scene.bsdf(values))
@@ -151,108 +158,25 @@ def blender_inputs(values: np.ndarray) -> tuple[dict, dict]:
     return principled, volume
 
 
-BLENDER_TEMPLATE = '''"""The matfit material "__NAME__" for Blender 4.x (made for 4.5): a Principled BSDF, and Volume
-Absorption + Volume Scatter for the interior medium.
-
-Run it from Blender's Text Editor (Text > Run Script) with the meshes to shade selected, or from a
-shell: `blender scene.blend --background --python this.py` (the objects selected in scene.blend).
-It creates (or rebuilds) the material "__NAME__" and puts it in every material slot of the selected
-meshes, linked to the object (slot link "Object"), so that other objects sharing a mesh keep their
-materials; a selected mesh without slots gets one. Nothing else is changed.
-
-How matfit's parameters (Mitsuba 3's Disney-style `principled` BSDF) were mapped:
-- base colour, metallic, roughness, anisotropic, spec_trans: the same values (roughness squared is
-  the GGX alpha in both); distribution GGX, since Mitsuba's is single-scattering GGX.
-- IOR: Mitsuba's index of refraction from `specular` (F0 = 0.08 specular, 0.5 -> 1.5), for the
-  reflection and the refraction alike; Specular IOR Level stays at 0.5.
-- Specular Tint, Sheen Tint: Disney's tints, white mixed towards base colour / luminance.
-- Sheen Weight = __SHEEN_SCALE__ x sheen x (1 - metallic) (Mitsuba's sheen belongs to its diffuse
-  lobe), Sheen Roughness __SHEEN_ROUGHNESS__; Coat Weight = __COAT_SCALE__ x clearcoat, Coat Roughness =
-  the square root of Disney's clearcoat alpha (0.1 at gloss 0 to 0.001 at gloss 1), Coat IOR 1.5.
-- Medium: absorption and scattering coefficients as in Mitsuba, per unit of matfit's sphere radius;
-  set OBJECT_RADIUS to your object's radius (scene units) to keep the look on a larger object.
-
-Where Blender's Principled BSDF differs by design (no mapping can fix it):
-- diffuse: Blender's is Lambertian; Disney's brightens rough surfaces at grazing angles
-  (retro-reflection) and darkens smooth ones;
-- sheen: Blender's is a microfibre layer, Disney's a Schlick-weighted term added to the diffuse;
-- coat: Blender's is a dielectric layer that also dims the base beneath it, Disney's an added
-  GTR1 lobe with longer tails;
-- Specular Tint also tints a metal's edges (F82) in Blender: Mitsuba's metals are plain Schlick, so
-  metals get white; a partly metallic material gets a mixture;
-- anisotropic highlights follow the tangent: Blender's default runs around the object's local Z
-  axis, matfit's sphere's around the axis pointing at the camera.
-How close it comes: `matfit blender-check` renders both (see matfit's README).
-"""
-
-import bpy
-
-NAME = "__NAME__"
-PRINCIPLED = __PRINCIPLED__
-VOLUME = __VOLUME__
-OBJECT_RADIUS = 1.0  # the medium's densities are per unit of matfit's sphere radius
-
-
-def build_material():
-    """Returns the material NAME with its node tree rebuilt."""
-    material = bpy.data.materials.get(NAME) or bpy.data.materials.new(NAME)
-    material.use_nodes = True
-    nodes, links = material.node_tree.nodes, material.node_tree.links
-    nodes.clear()
-    output = nodes.new("ShaderNodeOutputMaterial")
-    bsdf = nodes.new("ShaderNodeBsdfPrincipled")
-    bsdf.distribution = "GGX"
-    for key, value in PRINCIPLED.items():
-        bsdf.inputs[key].default_value = value
-    links.new(bsdf.outputs["BSDF"], output.inputs["Surface"])
-    if PRINCIPLED["Transmission Weight"] > 0 and max(VOLUME["absorption_density"], VOLUME["scatter_density"]) > 1e-6:
-        absorption = nodes.new("ShaderNodeVolumeAbsorption")
-        absorption.inputs["Color"].default_value = VOLUME["absorption_color"]
-        absorption.inputs["Density"].default_value = VOLUME["absorption_density"] / OBJECT_RADIUS
-        scatter = nodes.new("ShaderNodeVolumeScatter")
-        scatter.inputs["Color"].default_value = VOLUME["scatter_color"]
-        scatter.inputs["Density"].default_value = VOLUME["scatter_density"] / OBJECT_RADIUS
-        scatter.inputs["Anisotropy"].default_value = VOLUME["anisotropy"]
-        both = nodes.new("ShaderNodeAddShader")
-        links.new(absorption.outputs["Volume"], both.inputs[0])
-        links.new(scatter.outputs["Volume"], both.inputs[1])
-        links.new(both.outputs["Shader"], output.inputs["Volume"])
-        material.cycles.homogeneous_volume = True
-    return material
-
-
-def assign(material):
-    """Puts `material` in every slot of the selected meshes, linked to the object; returns them."""
-    meshes = [obj for obj in bpy.context.selected_objects if obj.type == "MESH"]
-    for obj in meshes:
-        if not obj.material_slots:
-            obj.data.materials.append(None)
-        for slot in obj.material_slots:
-            slot.link = "OBJECT"
-            slot.material = material
-    return meshes
-
-
-if __name__ == "__main__":
-    meshes = assign(build_material())
-    print(f"matfit: material {NAME!r} on {len(meshes)} selected mesh(es)" + ("" if meshes else "; select meshes and run again to assign it"))
-'''
+SCRIPT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "blender_material.py")  # filled in per material
 
 
 def blender_script(values: np.ndarray, name: str = "matfit") -> str:
-    """Returns a Python script that builds the material in Blender 4.x."""
+    """Returns a Python script that builds the material in Blender 4.x: `blender_material.py`, filled in."""
     principled, volume = blender_inputs(values)
     if not name.isprintable() or '"' in name or "\\" in name:
         raise ValueError(f"material name {name!r} must be printable, without quotes or backslashes")
-    replacements = {
-        "__NAME__": name,
-        "__PRINCIPLED__": repr(principled),
-        "__VOLUME__": repr(volume),
+    replacements = {  # the constants first: a name cannot hide one
+        "PRINCIPLED = {}": f"PRINCIPLED = {principled!r}",
+        "VOLUME = {}": f"VOLUME = {volume!r}",
         "__SHEEN_SCALE__": f"{SHEEN_WEIGHT_SCALE:g}",
         "__SHEEN_ROUGHNESS__": f"{SHEEN_ROUGHNESS:g}",
         "__COAT_SCALE__": f"{COAT_WEIGHT_SCALE:g}",
+        "__NAME__": name,
     }
-    script = BLENDER_TEMPLATE
+    with open(SCRIPT) as file:
+        source = file.read()
+    script = source[source.index('"""') :]  # from the script's own header: the comments above it are matfit's
     for marker, text in replacements.items():
         script = script.replace(marker, text)
     return script

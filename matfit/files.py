@@ -1,4 +1,4 @@
-"""Output files: written under a temporary name in the same directory, verified, then renamed into place (atomic, together).
+"""Output files: written under a temporary name beside them, verified, then renamed into place (atomic, together).
 
 A write either completes or fails with an OutputError (a full disk, a quota, a size limit): the
 bytes are written, flushed to the disk (`fsync`, where a delayed allocation failure would show) and

@@ -19,14 +19,17 @@ PENALTY x (distance outside); `barrier` is the paper's finite barrier (E + BARRI
 Both keep the result inside the box, which is clipped at the end in any case.
 
 Everything per call (weights, target, mask, candidates, random start) travels as arguments of
-one jitted function, compiled once per model and settings and reused for every target.
+compiled functions, compiled once per model and settings and reused for every target: `_fit`
+(best-of-n, Nelder-Mead), the gradient stage's step (a host loop, see `gradient.py` for why) and
+`_finish` (the optional polish, the end points sorted).
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import partial
+from functools import cache, partial
 
 import jax
 import jax.numpy as jnp
@@ -83,9 +86,13 @@ def polish(decoder, variables, target, weights, x: jax.Array, steps: int, rate: 
 
 
 def decoded_rmse(y: jax.Array, args: tuple) -> jax.Array:
-    """Returns E(y) = RMSE(phi(clip y), t), the gradient stage's objective; args = (decoder module, variables, target, weights)."""
+    """Returns E(y) = RMSE(phi(y), t) for y inside the box, the gradient stage's objective.
+
+    args = (decoder module, variables, target, weights). No clip: the gradient stage only evaluates
+    points inside the box, and a clip would halve the gradient of a coordinate lying on a face.
+    """
     decoder, variables, target, weights = args
-    return images.rmse(decoder.apply(variables, jnp.clip(y, 0.0, 1.0)), target, weights)
+    return images.rmse(decoder.apply(variables, y), target, weights)
 
 
 @partial(jax.jit, static_argnames=("decoder", "encoders", "settings"))
@@ -109,8 +116,8 @@ def _fit(
     candidate_images = decoder.apply(decoder_variables, candidates)
     candidate_errors = images.rmse(candidate_images, target, weights)
     chosen = jnp.argmin(candidate_errors)
-    # The fit's end points, best first after sorting: what Mitsuba verification chooses among.
-    ends, end_errors = candidates[chosen][None], candidate_errors[chosen][None]
+    # The fit's end points (sorted by `_finish`): what Mitsuba verification chooses among.
+    ends = candidates[chosen][None]
     evaluations = jnp.array(0, jnp.float32)
     if settings.method.uses_simplex:
         y0 = start if settings.method == Method.optimize else candidates[chosen]
@@ -121,18 +128,33 @@ def _fit(
 
         solution = simplex.minimise(fn, y0, (decoder_variables, target, weights), settings.evaluations, solver)
         x = jnp.clip(solution.value, 0.0, 1.0)
-        ends, end_errors = x[None], images.rmse(decoder.apply(decoder_variables, x[None]), target, weights)
+        ends = x[None]
         evaluations = solution.stats["evaluations"].astype(jnp.float32)
-    if settings.method.uses_gradient:
+    if settings.method.uses_gradient:  # the gradient stage's starts; it runs on the host (`gradient.py`)
         best_candidates = jnp.argsort(candidate_errors)[: min(settings.starts, candidates.shape[0])]
         starts = candidates[best_candidates]
-        if settings.method.uses_simplex:
-            starts = jnp.concatenate([ends, starts])
-        args = (decoder_variables, target, weights)
-        ends, end_errors, counts = gradient.minimise(
-            lambda y, a: decoded_rmse(y, (decoder, *a)), starts, args, settings.iterations
-        )
-        evaluations = evaluations + GRADIENT_COST * jnp.sum(counts).astype(jnp.float32)
+        ends = jnp.concatenate([ends, starts]) if settings.method.uses_simplex else starts
+    return {
+        "ends": ends,
+        "candidates": candidates,
+        "start_image": candidate_images[chosen],
+        "candidate_rmse": candidate_errors,
+        "chosen": chosen,
+        "evaluations": evaluations,
+    }
+
+
+@cache
+def gradient_objective(decoder) -> Callable[[jax.Array, tuple], jax.Array]:
+    """Returns E(y) for `decoder` as a function of (y, (variables, target, weights)): one object per decoder module,
+    so the gradient stage's compiled step is reused."""
+    return lambda y, args: decoded_rmse(y, (decoder, *args))
+
+
+@partial(jax.jit, static_argnames=("decoder", "settings"))
+def _finish(decoder, settings: Settings, decoder_variables, target, weights, ends):
+    """Returns the end points sorted by neural RMSE (after the optional polish), and the best one's image."""
+    end_errors = images.rmse(decoder.apply(decoder_variables, ends), target, weights)
     if settings.polish_steps:
         polished = polish(
             decoder,
@@ -148,18 +170,7 @@ def _fit(
     order = jnp.argsort(end_errors)
     ends, end_errors = ends[order], end_errors[order]
     image = decoder.apply(decoder_variables, ends[0])
-    return {
-        "unit": ends[0],
-        "image": image,
-        "rmse": end_errors[0],
-        "ends": ends,
-        "end_rmse": end_errors,
-        "candidates": candidates,
-        "start_image": candidate_images[chosen],
-        "candidate_rmse": candidate_errors,
-        "chosen": chosen,
-        "evaluations": evaluations,
-    }
+    return {"unit": ends[0], "image": image, "rmse": end_errors[0], "ends": ends, "end_rmse": end_errors}
 
 
 @dataclass
@@ -221,8 +232,9 @@ def fit(
     start = np.random.default_rng(seed).uniform(0.0, 1.0, params.COUNT).astype(np.float32)
     encoder_target = models.encoder_input(images.srgb_decode(target))
     started = time.perf_counter()
+    decoder = model.decoder.module
     out = _fit(
-        model.decoder.module,
+        decoder,
         tuple(network.module for network in model.encoders.values()),
         settings,
         model.decoder.variables,
@@ -233,6 +245,12 @@ def fit(
         extra,
         start,
     )
+    ends = out["ends"]
+    if settings.method.uses_gradient:
+        data = (model.decoder.variables, target, weights)
+        ends, _, steps = gradient.minimise(gradient_objective(decoder), ends, data, settings.iterations)
+        out["evaluations"] = out["evaluations"] + GRADIENT_COST * steps * len(ends)
+    out |= _finish(decoder, settings, model.decoder.variables, target, weights, ends)
     out = jax.device_get(out)
     seconds = time.perf_counter() - started
     names = candidate_names(model, len(extra))
@@ -281,8 +299,8 @@ def prepare_mask(linear: np.ndarray, target_shape: tuple[int, int], resolution: 
     """Returns per-pixel weights (R, R) from a mask image: white = 1 (fit here), black = 0 (ignore)."""
     if linear.shape[:2] != target_shape:
         raise FitError(
-            f"the mask {source} is {linear.shape[1]}x{linear.shape[0]}, the target is {target_shape[1]}x{target_shape[0]}: "
-            "make the mask the same size as the target"
+            f"the mask {source} is {linear.shape[1]}x{linear.shape[0]}, the target is "
+            f"{target_shape[1]}x{target_shape[0]}: make the mask the same size as the target"
         )
     weights = images.srgb_encode(images.resample(linear, resolution, resolution)).mean(axis=2)
     if weights.sum() <= 0:

@@ -15,8 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from matfit import files, fit, images, models, params, verify
-from matfit.errors import ImageError, OutputError
+from matfit import files, fit, images, models, params, refine, verify
+from matfit.errors import FitError, ImageError, OutputError
 
 PROJECT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEFAULT_MODEL = os.path.join(PROJECT, "data", "models", "default")  # shipped in the repository
@@ -73,6 +73,7 @@ class Outcome:
     image: np.ndarray  # phi(answer), sRGB
     neural_rmse: float
     verified: verify.Verified | None = None
+    refined: refine.Refined | None = None
     rendered: np.ndarray | None = None  # sRGB Mitsuba render of the answer at the model's resolution
     document: dict = field(default_factory=dict)
     notices: list[str] = field(default_factory=list)
@@ -87,9 +88,16 @@ class Outcome:
         result, document = self.result, self.document
         mitsuba = ""
         if self.verified is not None:
-            mitsuba = f", Mitsuba RMSE {self.verified.rmse:.2f} (start {self.verified.start_rmse:.2f}; kept {self.verified.chosen})"
+            verified = self.verified
+            mitsuba = f", Mitsuba RMSE {verified.rmse:.2f} (start {verified.start_rmse:.2f}; kept {verified.chosen})"
         elif "mitsuba_rmse" in document:
             mitsuba = f", Mitsuba RMSE {document['mitsuba_rmse']:.2f}"
+        if self.refined is not None:
+            refined = self.refined
+            kept = "kept" if refined.accepted else "not kept"
+            mitsuba += (
+                f"; refined {refined.steps} steps: {refined.rmse_before:.2f} -> {refined.rmse_after:.2f} ({kept})"
+            )
         return (
             f"{output}: {document['method']}, {result.evaluations} evaluations, neural RMSE {self.neural_rmse:.2f} "
             f"(start {result.chosen} {result.start_rmse:.2f}){mitsuba}, {document['wall_time_s']:.1f} s"
@@ -121,11 +129,13 @@ def run(
     seed: int = 0,
     init: str | None = None,
     verified: bool = True,
+    refine_steps: int = 0,
 ) -> Outcome:
     """Fits the image file `target` with a model (or a model directory) and writes `outputs`; returns what was found.
 
     `init`: a params.json of the source material, whose parameters join best-of-n's candidates.
-    `verified`: let Mitsuba choose among the fit's final candidates (`verify.verify`). Every input
+    `verified`: let Mitsuba choose among the fit's final candidates (`verify.verify`); `refine_steps`:
+    then that many steps through Mitsuba's differentiable renderer (`refine.refine`). Every input
     is read and every output path checked before the fit; the outputs are written together at the
     end (`files.together`), so a failure leaves none of them.
     """
@@ -142,7 +152,9 @@ def run(
     result = fit.fit(model, target_srgb, settings, weights, extra=extra, seed=seed)
     outcome = Outcome(result, target_srgb, result.unit, result.image, result.rmse, notices=notices)
     renderer = None
-    if verified or outputs.needs_render:
+    if refine_steps < 0:
+        raise FitError(f"refine steps {refine_steps} must be >= 0: use 0 to skip refinement", field="refine")
+    if verified or refine_steps or outputs.needs_render:
         from matfit.render import Renderer
 
         renderer = Renderer(model.resolution, verify.SPP)
@@ -150,10 +162,14 @@ def run(
     if verified:
         outcome.verified = verify.verify(renderer, result, target_srgb, weights)
         outcome.unit, outcome.rendered = outcome.verified.unit, outcome.verified.rendered
+    elif renderer is not None and not refine_steps:
+        outcome.rendered = images.srgb_encode(renderer.render(result.values, seed=verify.SEED))
+    if refine_steps:
+        outcome.refined = refine.refine(outcome.unit, target_srgb, refine_steps, weights, renderer)
+        outcome.unit, outcome.rendered = outcome.refined.unit, outcome.refined.rendered
+    if verified or refine_steps:
         outcome.image = model.decode(outcome.unit)[0]
         outcome.neural_rmse = float(images.rmse(outcome.image, target_srgb, weights))
-    elif renderer is not None:
-        outcome.rendered = images.srgb_encode(renderer.render(result.values, seed=verify.SEED))
     outcome.document = document(outcome, settings, model_path, target, mask, init)
     with files.together() as batch:
         write_outputs(outcome, outputs, batch, renderer)
@@ -180,6 +196,16 @@ def document(
         }
     elif outcome.rendered is not None:
         mitsuba = {"mitsuba_rmse": round(float(images.rmse(outcome.rendered, outcome.target)), 3)}
+    if outcome.refined is not None:
+        refined = outcome.refined
+        mitsuba["mitsuba_rmse"] = round(refined.rmse, 3)  # the kept point's acceptance render
+        mitsuba["refinement"] = {
+            "steps": refined.steps,
+            "kept": refined.accepted,
+            "mitsuba_rmse_before": round(refined.rmse_before, 3),
+            "mitsuba_rmse_after": round(refined.rmse_after, 3),
+            "seconds": round(refined.seconds, 3),
+        }
     return params.params_document(
         outcome.values,
         method=settings.method.value,

@@ -129,7 +129,7 @@ def encode(linear: np.ndarray, extension: str, path: str = "the image") -> bytes
 
 @contextlib.contextmanager
 def memory_file(extension: str) -> Iterator[tuple[str, int]]:
-    """Yields (a path OpenImageIO can open, its descriptor) of an anonymous file in memory (a file in /tmp without memfd)."""
+    """Yields (a path OpenImageIO can open, its descriptor) of an anonymous file in memory (without memfd: in /tmp)."""
     if hasattr(os, "memfd_create"):
         handle = os.memfd_create("matfit-image")
         try:
@@ -215,7 +215,8 @@ def load(path: str, max_pixels: int = MAX_PIXELS) -> Loaded:
     width, height, channels, alpha = header(path)
     if width * height > max_pixels:
         raise ImageError(
-            f"{path} is {width}x{height} = {width * height / 1e6:.0f} Mpixel, more than {max_pixels / 1e6:.0f}: scale it down first"
+            f"{path} is {width}x{height} = {width * height / 1e6:.0f} Mpixel, more than {max_pixels / 1e6:.0f}: "
+            "scale it down first"
         )
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # the colour as painted, not multiplied by alpha

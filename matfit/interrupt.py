@@ -1,4 +1,4 @@
-"""Ctrl-C and `kill` end any command within about a second: one `interrupted:` line, exit code 130, no temporary file left.
+"""Ctrl-C and `kill` end any command within about a second: one `interrupted:` line, exit 130, no temporary file left.
 
 Python runs a signal handler only in the main thread, between two bytecodes. A main thread inside
 one long compiled call (a whole XLA fit, a Mitsuba render) gets there only when the call returns,
@@ -69,7 +69,7 @@ def announce() -> None:
 
 
 def exit_now() -> None:
-    """Announces the interruption, removes the registered temporary files and ends the process (130), skipping teardown."""
+    """Announces the interruption, removes the registered temporary files, ends the process (130) skipping teardown."""
     announce()
     for path in list(_temporaries):
         with contextlib.suppress(OSError):
@@ -97,7 +97,7 @@ def install() -> None:
 
 
 def raise_on_signal() -> None:
-    """Makes Ctrl-C and `kill` raise KeyboardInterrupt in the main thread again, for work that must stop children itself.
+    """Makes Ctrl-C and `kill` raise KeyboardInterrupt in the main thread again: for work that stops its children.
 
     A dataset's rendering processes are stopped by the parent's KeyboardInterrupt (`pool.terminate`);
     ended abruptly instead, they print tracebacks from their broken pipes.

@@ -466,7 +466,7 @@ def restore_variables(path: str, description: dict, stored: dict) -> tuple[nn.Mo
 
 
 def load(path: str, resolution: int | None = None, name: str | None = None) -> Network:
-    """Returns the network saved at `path`, checking the parameter table and, if given, the resolution and the network's name."""
+    """Returns the network saved at `path`, checking the parameter table and, if given, the resolution and the name."""
     document = restore_document(path, WEIGHTS_FORMAT, "weights file")
     description = document.get("architecture")
     if not isinstance(description, dict) or "resolution" not in description:
@@ -474,11 +474,13 @@ def load(path: str, resolution: int | None = None, name: str | None = None) -> N
     stored_name = describe_network(description)
     if name is not None and stored_name != name:
         raise WeightsError(
-            f"{path} holds the weights of the {stored_name}, not of the {name}: copy the right file there or train it again"
+            f"{path} holds the weights of the {stored_name}, not of the {name}: "
+            "copy the right file there or train it again"
         )
     if resolution is not None and int(description["resolution"]) != resolution:
         raise WeightsError(
-            f"{path} was trained on {description['resolution']} px images, not {resolution} px: use a model of that resolution"
+            f"{path} was trained on {description['resolution']} px images, not {resolution} px: "
+            "use a model of that resolution"
         )
     module, variables = restore_variables(path, description, document.get("variables"))
     return Network(

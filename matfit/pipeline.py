@@ -40,13 +40,14 @@ def encoder_inputs(data: Dataset) -> np.ndarray:
     side = models.ENCODER_RESOLUTION
     if data.resolution % side:
         raise DatasetError(
-            f"encoders need images whose side is a multiple of {side} px; {data.path} has {data.resolution}: render one at 64 px"
+            f"encoders need images whose side is a multiple of {side} px; {data.path} has {data.resolution}: "
+            "render one at 64 px"
         )
     return convert(data, models.encoder_input, side)
 
 
 def training_arrays(name: str, data: Dataset) -> tuple[np.ndarray, np.ndarray]:
-    """Returns (inputs, targets) of network `name` for every sample: (x, image) for the decoder, (image, x) for encoders."""
+    """Returns (inputs, targets) of network `name` for every sample: (x, image) for the decoder, else (image, x)."""
     unit = data.unit_params()
     if name == models.DECODER:
         return unit, srgb_targets(data)

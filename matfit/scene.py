@@ -126,7 +126,7 @@ def all_lobes_values() -> np.ndarray:
 
 
 def scene(resolution: int, spp: int, values: np.ndarray | None = None, sphere: bool = True) -> dict:
-    """Returns the whole test scene as a plain dictionary for `render.load` (without the sphere: what lies behind it)."""
+    """Returns the whole test scene as a plain dictionary for `render.load` (`sphere` False: what lies behind it)."""
     values = all_lobes_values() if values is None else values
     whole = {
         "type": "scene",

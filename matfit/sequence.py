@@ -89,7 +89,7 @@ def run_settings(settings: fit.Settings, reinit: bool, model: models.Model) -> d
 
 
 def read_finished(path: str, expected: dict) -> tuple[Frame, dict] | None:
-    """Returns a finished frame's result and what it was computed from, if its file exists and was made with the same settings."""
+    """Returns a finished frame's result and what it was computed from, if its file exists with the same settings."""
     if not os.path.exists(path):
         return None
     try:
@@ -112,7 +112,8 @@ def read_finished(path: str, expected: dict) -> tuple[Frame, dict] | None:
         raise SequenceError(f"{path} is damaged ({type(error).__name__}): delete it to fit that frame again") from None
     if stored.get("settings") != expected:
         raise SequenceError(
-            f"{path} was made with other settings or another model ({stored.get('settings')}): use another --out folder or delete it"
+            f"{path} was made with other settings or another model ({stored.get('settings')}): "
+            "use another --out folder or delete it"
         )
     return frame, {"frame_sha256": stored.get("frame_sha256"), "previous": stored.get("previous")}
 
@@ -140,7 +141,8 @@ def check_sizes(frames: list[str]) -> None:
         size = images.header(path)[:2]
         if size != first:
             raise SequenceError(
-                f"{path} is {size[0]}x{size[1]}, the first frame is {first[0]}x{first[1]}: give every frame the same size"
+                f"{path} is {size[0]}x{size[1]}, the first frame is {first[0]}x{first[1]}: "
+                "give every frame the same size"
             )
 
 
@@ -234,10 +236,12 @@ def summary_table(results: list[Frame]) -> str:
     lines = ["| frame | start | start RMSE | RMSE | evaluations | time (s) |", "|---|---|---|---|---|---|"]
     for frame in results:
         lines.append(
-            f"| {os.path.basename(frame.path)} | {frame.start} | {frame.start_rmse:.2f} | {frame.rmse:.2f} | {frame.evaluations} | {frame.seconds:.3f} |"
+            f"| {os.path.basename(frame.path)} | {frame.start} | {frame.start_rmse:.2f} | {frame.rmse:.2f} | "
+            f"{frame.evaluations} | {frame.seconds:.3f} |"
         )
     lines.append(
-        f"| sum | | | {sum(frame.rmse for frame in results):.2f} | {sum(f.evaluations for f in results)} | {sum(f.seconds for f in results):.2f} |"
+        f"| sum | | | {sum(frame.rmse for frame in results):.2f} | {sum(f.evaluations for f in results)} | "
+        f"{sum(f.seconds for f in results):.2f} |"
     )
     return "\n".join(lines) + "\n"
 

@@ -46,7 +46,8 @@ def steps_for_budget(evaluations: int, dimension: int) -> int:
     """Returns the `max_steps` that spends exactly `evaluations` function evaluations."""
     if evaluations < dimension + 2:
         raise ValueError(
-            f"a budget of {evaluations} evaluations is too small for {dimension} dimensions: use at least {dimension + 2}"
+            f"a budget of {evaluations} evaluations is too small for {dimension} dimensions: "
+            f"use at least {dimension + 2}"
         )
     return evaluations - (dimension + 1)
 

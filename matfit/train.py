@@ -270,7 +270,7 @@ class Run:
 
 
 def create_run(name: str, data: Dataset, out: str, config: Config, decoder: models.Decoder | None = None) -> Run:
-    """Returns the run of network `name` on a finished dataset; `decoder` overrides the decoder architecture (tiny in tests)."""
+    """Returns the run of network `name` on a finished dataset; `decoder` replaces the decoder (a tiny one in tests)."""
     if name not in NETWORKS:
         raise TrainingError(f"unknown network {name!r}: use decoder or 1 to 9", field="arch")
     pipeline.check_finished(data)
@@ -358,7 +358,10 @@ def validate(run: Run, weights: dict) -> dict:
 
 
 def finish(run: Run, state: Checkpoint) -> dict:
-    """Rounds the weights to float16 (what ships), validates them, writes `<name>.msgpack` and `<name>.json`; returns the metrics."""
+    """Rounds the weights to float16 (what ships), validates them and saves them; returns the metrics.
+
+    Writes `<name>.msgpack` (the network, with its metrics) and `<name>.json` (the metrics alone).
+    """
     shipped = jax.tree_util.tree_map(lambda leaf: jnp.asarray(leaf, jnp.float16).astype(jnp.float32), state.weights)
     metrics = {
         "network": run.name,
@@ -406,7 +409,7 @@ def train_network(
 
 
 def train_networks(names: list[str], data: Dataset, out: str, config: Config, reporter: Reporter | None = None):
-    """Trains the named networks one after another into model directory `out`; yields (name, metrics) as each finishes."""
+    """Trains the named networks one after another into model directory `out`; yields (name, metrics) for each."""
     if os.path.exists(out) and not os.path.isdir(out):
         raise files.OutputError(f"model directory {out} is a file: give a directory for the model", field="out")
     for name in names:  # every setting checked before the model directory is made

@@ -54,7 +54,8 @@ def candidates(result: fit.Result, count: int = CANDIDATES) -> dict[str, np.ndar
 def verify(
     renderer, result: fit.Result, target: np.ndarray, weights: np.ndarray | None = None, count: int = CANDIDATES
 ) -> Verified:
-    """Returns the candidate whose Mitsuba render is closest to the sRGB `target` (weighted like the fit, if a mask is given).
+    """Returns the candidate whose Mitsuba render is closest to the sRGB `target` (weighted like the fit, if a mask is
+    given).
 
     `renderer` renders at the target's resolution; every candidate uses the same seed and SPP samples.
     """

@@ -21,7 +21,10 @@ def test_compare_and_tables(model):
     targets = bench.Targets(
         np.stack([true_point(1), true_point(2)]), np.stack([decode(model, true_point(1)), decode(model, true_point(2))])
     )
-    configurations = {"nn (best-of-n)": fit.Settings(method="nn"), "hybrid 60": fit.Settings(evaluations=60)}
+    configurations = {
+        "nn (best-of-n)": fit.Settings(method="nn"),
+        "hybrid 60": fit.Settings(method="hybrid", evaluations=60),
+    }
     table = bench.compare(model, targets, configurations)
     assert np.all(
         table["hybrid 60"]["rmse"] <= table["nn (best-of-n)"]["rmse"] + 1e-6

@@ -171,7 +171,7 @@ def test_exported_script_sets_every_input_on_selected_meshes_only(tmp_path, name
 @needs_blender
 def test_cycles_renders_the_scene_like_mitsuba():
     names = ["gold", "blue-rubber"]
-    comparison = blender.compare(names, [presets.preset(name) for name in names], resolution=32, spp=64)
+    comparison = blender.compare(names, [presets.preset(name) for name in names], blender.Setup(resolution=32, spp=64))
     # the lights and the environment are in Mitsuba's units: the exposure factor stays near 1
     assert comparison.exposure == pytest.approx(1.0, abs=0.03)
     assert max(comparison.rmse) < 8.0

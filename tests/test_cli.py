@@ -265,8 +265,8 @@ def test_fit_writes_params_and_report(trained, target, tmp_path):
         out,
         "--model",
         trained,
-        "--evals",
-        60,
+        "--iterations",
+        10,
         "--report",
         report,
         "--mitsuba-xml",
@@ -277,7 +277,8 @@ def test_fit_writes_params_and_report(trained, target, tmp_path):
     assert result.exit_code == 0, result.output
     assert 'id="matfit-material"' in xml.read_text() and "ShaderNodeBsdfPrincipled" in blender.read_text()
     document = json.loads(out.read_text())
-    assert document["evaluations"] == 60 and document["method"] == "hybrid" and document["start"] == "encoder-8"
+    assert document["method"] == "lbfgsb" and document["start"] == "encoder-8"  # the default method
+    assert 0 < document["evaluations"] <= 10 * 2 * 2  # at most 10 steps, 2 starts (the tiny model's 2 encoders)
     assert document["neural_rmse"] <= document["start_rmse"] and document["mitsuba_rmse"] > 0
     assert len(document["target_sha256"]) == 64
     values = params.parse_params_json(out.read_text())
@@ -417,6 +418,24 @@ def test_fit_with_the_gradient_method_an_init_and_verification(trained, target, 
     assert_one_line_error(
         run("fit", target, "-o", out, "--model", trained, "--starts", 0), "--starts 0 is out of range"
     )
+    assert_one_line_error(
+        run("fit", target, "-o", out, "--model", trained, "--refine", -1), "--refine -1 is out of range"
+    )
+
+
+def test_fit_with_physical_refinement(trained, target, tmp_path):
+    out = tmp_path / "params.json"
+    result = run("fit", target, "-o", out, "--model", trained, "--iterations", 5, "--refine", 2)
+    assert result.exit_code == 0, result.output
+    document = json.loads(out.read_text())
+    refinement = document["refinement"]
+    assert refinement["steps"] == 2 and refinement["seconds"] > 0
+    before, after = refinement["mitsuba_rmse_before"], refinement["mitsuba_rmse_after"]
+    assert refinement["kept"] == (after < before)  # kept only when the independent render improves
+    assert document["mitsuba_rmse"] == min(before, after)
+    # refinement starts from the point verification kept: its figure is that point's verification render
+    assert document["verification"]["mitsuba_rmse"][document["verification"]["kept"]] > 0
+    assert "refined 2 steps" in result.output
     (tmp_path / "bad.json").write_text('{"roughness": 3}')
     assert_one_line_error(
         run("fit", target, "-o", tmp_path / "p2.json", "--model", trained, "--init", tmp_path / "bad.json"),

@@ -42,7 +42,7 @@ def frames(tmp_path, model):
 
 
 def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, model, frames, monkeypatch):
-    settings = fit.Settings(evaluations=40)
+    settings = fit.Settings(method="hybrid", evaluations=40)
     whole = sequence.fit_sequence(model, frames, str(tmp_path / "whole"), settings)
     assert len(whole) == 4
     seen = []
@@ -70,7 +70,9 @@ def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, mod
 
 
 def test_no_reinit_never_offers_the_previous_frame(tmp_path, model, frames):
-    results = sequence.fit_sequence(model, frames, str(tmp_path), fit.Settings(evaluations=30), reinit=False)
+    results = sequence.fit_sequence(
+        model, frames, str(tmp_path), fit.Settings(method="hybrid", evaluations=30), reinit=False
+    )
     assert all(frame.start != sequence.PREVIOUS for frame in results)
 
 
@@ -78,12 +80,15 @@ def test_mixed_sizes_and_other_settings_are_refused(tmp_path, model, frames):
     images.write(str(tmp_path / "frames" / "f9.png"), np.zeros((20, 20, 3), np.float32))
     with pytest.raises(SequenceError, match=r"f9\.png is 20x20, the first frame is 32x32"):
         sequence.fit_sequence(
-            model, sequence.list_frames(str(tmp_path / "frames")), str(tmp_path / "out"), fit.Settings(evaluations=30)
+            model,
+            sequence.list_frames(str(tmp_path / "frames")),
+            str(tmp_path / "out"),
+            fit.Settings(method="hybrid", evaluations=30),
         )
     assert not (tmp_path / "out").exists()  # refused before fitting anything
-    sequence.fit_sequence(model, frames[:1], str(tmp_path / "out"), fit.Settings(evaluations=30))
+    sequence.fit_sequence(model, frames[:1], str(tmp_path / "out"), fit.Settings(method="hybrid", evaluations=30))
     with pytest.raises(SequenceError, match="other settings"):
-        sequence.fit_sequence(model, frames, str(tmp_path / "out"), fit.Settings(evaluations=31))
+        sequence.fit_sequence(model, frames, str(tmp_path / "out"), fit.Settings(method="hybrid", evaluations=31))
 
 
 def test_summary_table_sums():
@@ -94,7 +99,7 @@ def test_summary_table_sums():
 
 
 def test_a_changed_frame_and_the_frames_after_it_are_fitted_again(tmp_path, model, frames):
-    settings = fit.Settings(evaluations=40)
+    settings = fit.Settings(method="hybrid", evaluations=40)
     first = sequence.fit_sequence(model, frames, str(tmp_path / "out"), settings)
     again = sequence.fit_sequence(model, frames, str(tmp_path / "out"), settings)
     assert [frame.note for frame in again] == [None] * 4 and all(frame.image is None for frame in again)  # all reused
@@ -113,7 +118,7 @@ def test_a_changed_frame_and_the_frames_after_it_are_fitted_again(tmp_path, mode
 
 
 def test_another_folder_with_the_same_names_is_fitted_again(tmp_path, model, frames):
-    settings = fit.Settings(evaluations=30)
+    settings = fit.Settings(method="hybrid", evaluations=30)
     sequence.fit_sequence(model, frames[:2], str(tmp_path / "out"), settings)
     other = tmp_path / "other"
     other.mkdir()
@@ -124,7 +129,7 @@ def test_another_folder_with_the_same_names_is_fitted_again(tmp_path, model, fra
 
 
 def test_another_model_is_refused_and_a_failed_first_frame_leaves_no_folder(tmp_path, model, frames, monkeypatch):
-    settings = fit.Settings(evaluations=30)
+    settings = fit.Settings(method="hybrid", evaluations=30)
     sequence.fit_sequence(model, frames[:1], str(tmp_path / "out"), settings)
     with pytest.raises(SequenceError, match="another model"):
         sequence.fit_sequence(random_model(seed=1), frames[:1], str(tmp_path / "out"), settings)

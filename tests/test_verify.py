@@ -43,5 +43,6 @@ def test_a_fooled_decoder_never_makes_the_answer_physically_worse_than_the_start
     assert checked.rmse == min(checked.figures.values())
     assert checked.rmse <= checked.start_rmse
     again = images.srgb_encode(renderer32.render(fit.params.from_unit(checked.unit), seed=verify.SEED, spp=verify.SPP))
-    np.testing.assert_allclose(again, checked.rendered)  # the kept render is the chosen candidate's
+    # the kept render is the chosen candidate's (two renders of one material may differ in the last bits)
+    np.testing.assert_allclose(again, checked.rendered, atol=1e-5)
     assert len(checked.figures) >= 2

@@ -1,0 +1,74 @@
+"""The command line's shared options: each option that several commands take, declared once for Typer.
+
+Plain data for `cli`: importing it loads neither JAX nor Mitsuba, so `matfit params` stays fast.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+import typer
+
+from matfit import dataset, params
+from matfit.methods import MAX_EVALUATIONS, MIN_EVALUATIONS, Method
+from matfit.render import VARIANTS
+
+DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "data" / "models" / "default"  # shipped in the repository
+MAX_SIZE = 4096
+
+
+def seed(help: str):
+    """Returns the option of a seed: every seed of matfit is in [0, params.MAX_SEED]."""
+    return typer.Option(min=0, max=params.MAX_SEED, help=help)
+
+
+def output(help: str):
+    """Returns the option of the file a command writes: --output, -o."""
+    return typer.Option("--output", "-o", help=help)
+
+
+def out(help: str):
+    """Returns the option of the folder a command writes into: --out, -o."""
+    return typer.Option("--out", "-o", help=help)
+
+
+def text(path: Path | None) -> str | None:
+    """Returns an optional path as the library takes it: a string, or None."""
+    return None if path is None else str(path)
+
+
+Model = Annotated[
+    Path, typer.Option("--model", help="Model directory (default: the shipped model).", show_default=False)
+]
+Variant = Annotated[Literal[VARIANTS] | None, typer.Option(help="Force a Mitsuba variant.")]
+Spp = Annotated[int, typer.Option(min=1, max=dataset.MAX_SPP, help="Samples per pixel (of the renders).")]
+Size = Annotated[
+    int, typer.Option(min=dataset.MIN_RESOLUTION, max=MAX_SIZE, help="Image side in pixels (of the renders).")
+]
+Evaluations = Annotated[
+    int,
+    typer.Option(
+        "--evals", min=MIN_EVALUATIONS, max=MAX_EVALUATIONS, help="Nelder-Mead budget in objective evaluations."
+    ),
+]
+MAX_REFINE = 10_000
+Refine = Annotated[
+    int,
+    typer.Option(
+        "--refine",
+        min=0,
+        max=MAX_REFINE,
+        help="Steps through Mitsuba's differentiable renderer after the fit (~0.1-1 s each), kept only if better.",
+    ),
+]
+Init = Annotated[Path | None, typer.Option(help="params.json of the source material: joins the candidates.")]
+Fitting = Annotated[
+    Method,
+    typer.Option(
+        "--method",
+        help="lbfgsb (best-of-n, then L-BFGS-B from the best --starts candidates), hybrid (the paper's: best-of-n, "
+        "then Nelder-Mead), nn (best-of-n), optimize (Nelder-Mead from a random start), hybrid-lbfgsb (Nelder-Mead "
+        "with --evals between the two).",
+    ),
+]

@@ -1,0 +1,255 @@
+"""Physical refinement: a few gradient steps on the material through Mitsuba's differentiable renderer.
+
+The fit minimises the decoder's error; refinement then minimises the physical render's error
+directly. The 19 unit-cube coordinates are one Dr.Jit array with gradients; they are mapped onto
+the physical ranges (`physical`, the same affine map as `params.from_unit`) and onto the scene's
+values exactly as `render.Renderer.set_material` writes them (`scene.medium_textures` for the
+medium), the test scene is rendered with `prbvolpath` (path replay with media: the backward pass
+costs about what the forward pass does and stores no path), and the loss is `images.rmse` written
+in Dr.Jit (sRGB encode after clipping, 0-255, optionally mask-weighted). A projected Adam step in
+the unit cube follows; each step renders with its own seed (`seed + step`). The image whose
+residual drives the gradient takes `PRIMAL` times the gradient's samples: sRGB encoding and
+clipping are concave, so a noisy image's typical pixel reads darker than its mean, and at 16
+samples the steps brightened jade (more sheen, scattering) until its render was 14 RMSE away
+instead of 5; Mitsuba decorrelates the primal and adjoint passes itself (`seed_grad`). The point
+returned is the visited point of lowest step loss (the start included), since late steps drift.
+
+What moves: all 19 parameters; none is held fixed by choice. Mitsuba 3.9 marks every scene value
+they set as differentiable (principled `specular` too: it sets eta; `roughness`, `specular` and the
+phase function's `g` are flagged discontinuous, which matters for geometry, not here), and none of
+them recompiles the kernel when it changes: every value written comes out of the one optimised
+array (no Python literal), and the medium's `scale` (a plain float, which would recompile) stays at
+`scene.MEDIUM_SCALE`. Where the derivative is zero a parameter stays where it is (measured):
+`sheen` and `clearcoat` at exactly 0 (Mitsuba evaluates those lobes only where their weight is
+above 0), and with them `sheen_tint` and `clearcoat_gloss`; the medium's colour, scattering and
+`phase_g` while `density` is 0 or `spec_trans` is 0 (no light reaches a medium). The extinction's
+floor (`params.MINIMUM_EXTINCTION`) passes the unfloored gradient, so `density` itself can leave 0:
+a clear glass can become a tinted one. `prbvolpath` samples directions detached, so for a
+near-mirror lobe (roughness near 0) the gradient of `specular` (eta) is valid only in expectation
+and very noisy; it is left free because the acceptance render guards it. What does not move is the
+scene: camera, lights, geometry.
+
+What is kept: the refined point is rendered with the scene's own integrator (`volpathmis`,
+`render.Renderer`) at verification quality (`verify.SPP`) next to the start, both with one
+common seed that no refinement step used, and it is kept only if its render is closer to the
+target. The answer is never physically worse than the input, as that render sees it.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from functools import lru_cache
+
+import numpy as np
+
+from matfit import images, params, render, scene
+from matfit.errors import FitError, RenderError
+
+SPP = 16  # samples per pixel of a refinement step's gradient: noisy, but Adam averages them over steps
+PRIMAL = 4  # the step's image (the residual) takes PRIMAL x SPP samples: see the module docstring
+MAX_DEPTH = 16  # prbvolpath's path length during the steps; acceptance renders with the scene's own depth
+RATE = 0.02  # Adam's step in the unit cube
+SEED = 3_000_017  # step k renders with SEED + k: neither verify.SEED nor ACCEPT_SEED, nor a training image's seed
+ACCEPT_SEED = 2_000_029  # the common seed of the two acceptance renders
+ACCEPT_SPP = 128  # as verify.SPP: enough to rank two materials with common random numbers
+BETAS = (0.9, 0.999)
+EPSILON = 1e-8
+
+
+@dataclass
+class Refined:
+    """What refinement did: the point kept, its render, both Mitsuba RMSEs, whether the refined point was kept."""
+
+    unit: np.ndarray  # the point kept (unit cube): the refined point if accepted, else the input
+    rendered: np.ndarray  # the kept point's acceptance render, sRGB (R, R, 3)
+    rmse_before: float  # Mitsuba RMSE of the input (acceptance render)
+    rmse_after: float  # Mitsuba RMSE of the refined point (acceptance render), kept or not
+    accepted: bool
+    steps: int
+    seconds: float  # in all: steps and acceptance renders
+    descent_seconds: float  # the steps alone (the first one of a process compiles: ~1.5 s more)
+    losses: list[float] = field(default_factory=list)  # each step's loss (its own seed, SPP samples)
+
+    @property
+    def rmse(self) -> float:
+        """Returns the Mitsuba RMSE of the point kept."""
+        return self.rmse_after if self.accepted else self.rmse_before
+
+
+def physical(unit) -> list:
+    """Returns the 19 physical values (Dr.Jit Floats) of a Dr.Jit Float of 19 unit-cube coordinates.
+
+    The map is `params.from_unit`'s, low + u (high - low), with the bounds read from `params`.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    return [
+        low + dr.gather(mi.Float, unit, i) * (high - low)
+        for i, (low, high) in enumerate(zip(params.LOW.tolist(), params.HIGH.tolist(), strict=True))
+    ]
+
+
+def medium_textures(values: list) -> tuple:
+    """Returns (sigma_t / MEDIUM_SCALE, albedo) as Color3f for physical Dr.Jit values: `scene.medium_textures`."""
+    import drjit as dr
+    import mitsuba as mi
+
+    index = params.INDEX
+    colour = values[index["medium_color_r"] : index["medium_color_b"] + 1]
+    density = values[index["density"]]
+    extinction = [density * -dr.log(c) for c in colour]
+    # The value is scene.medium_textures' (floored at MINIMUM_EXTINCTION); the gradient is the unfloored one's, so
+    # that a clear material (density 0, all of it at the floor) can still be given a medium.
+    sigma_t = [(e + dr.detach(dr.maximum(e, params.MINIMUM_EXTINCTION) - e)) / scene.MEDIUM_SCALE for e in extinction]
+    scattering = values[index["scattering"]]
+    return mi.Color3f(*sigma_t), mi.Color3f(scattering, scattering, scattering)
+
+
+def set_material(scene_parameters, values: list) -> None:
+    """Writes physical Dr.Jit values into a loaded test scene, as `render.Renderer.set_material` writes NumPy ones."""
+    import mitsuba as mi
+
+    index, keys = params.INDEX, render.Keys()
+    scene_parameters[keys.base_color] = mi.Color3f(*values[index["base_color_r"] : index["base_color_b"] + 1])
+    for name in render.SCALAR_BSDF_PARAMETERS:
+        scene_parameters[render.Keys.scalar(name)] = values[index[name]]
+    sigma_t, albedo = medium_textures(values)
+    scene_parameters[keys.sigma_t] = sigma_t
+    scene_parameters[keys.albedo] = albedo
+    scene_parameters[keys.phase_g] = values[index["phase_g"]]
+    scene_parameters.update()
+
+
+def srgb_rmse(linear, target, weights):
+    """Returns `images.rmse` of a linear Dr.Jit image (H, W, 3) against an sRGB `target`, as a Dr.Jit Float.
+
+    `weights` (H, W, 3) sum to 1 (`normalised_weights`). sRGB encoding after clipping to [0, 1]; the
+    power branch reads max(x, 0.0031308) so that its derivative stays finite where the linear branch
+    is the one taken.
+    """
+    import drjit as dr
+
+    x = dr.clip(linear, 0.0, 1.0)
+    encoded = dr.select(x <= 0.0031308, 12.92 * x, 1.055 * dr.power(dr.maximum(x, 0.0031308), 1.0 / 2.4) - 0.055)
+    return 255.0 * dr.sqrt(dr.sum(weights * dr.square(encoded - target), axis=None))
+
+
+def normalised_weights(weights: np.ndarray) -> np.ndarray:
+    """Returns per-pixel weights (H, W) as (H, W, 3) weights that sum to 1: `images.rmse`'s normalisation."""
+    weights = np.asarray(weights, np.float64)
+    return np.repeat(weights[..., None] / (3.0 * weights.sum()), 3, axis=-1).astype(np.float32)
+
+
+@lru_cache(maxsize=2)
+def _differentiable_scene(resolution: int):
+    """Returns (mi, scene, traversed parameters) of the test scene under `prbvolpath`, loaded once per resolution."""
+    variant, _ = render.choose_variant(None)
+    if variant != render.LLVM_VARIANT:
+        raise RenderError(
+            f"refinement differentiates with {render.LLVM_VARIANT}, which needs libLLVM >= {render.MINIMUM_LLVM}: "
+            "install Debian's libllvm19 or set DRJIT_LIBLLVM_PATH, or leave refinement off"
+        )
+    mi = render.mitsuba(variant)
+    description = scene.scene(resolution, SPP)
+    description["integrator"] = {"type": "prbvolpath", "max_depth": MAX_DEPTH}
+    loaded = mi.load_dict(render.to_mitsuba(mi, description))
+    return mi, loaded, mi.traverse(loaded)
+
+
+def check(unit: np.ndarray, target: np.ndarray, steps: int, weights: np.ndarray | None, spp: int, renderer) -> None:
+    """Raises FitError naming the value and the fix if refinement cannot run on these inputs."""
+    if isinstance(steps, bool) or not isinstance(steps, int | np.integer) or steps < 0:
+        raise FitError(f"refinement steps {steps!r} must be a whole number >= 0: use 0 to skip refinement", "steps")
+    if isinstance(spp, bool) or not isinstance(spp, int | np.integer) or spp < 1:
+        raise FitError(f"refinement spp {spp!r} must be a whole number >= 1: use {SPP}", "spp")
+    unit = np.asarray(unit)
+    if unit.shape != (params.COUNT,) or not np.all(np.isfinite(unit)) or unit.min() < 0 or unit.max() > 1:
+        raise FitError(f"the start must be {params.COUNT} unit-cube values in [0, 1], got shape {unit.shape}")
+    target = np.asarray(target)
+    if target.ndim != 3 or target.shape[0] != target.shape[1] or target.shape[2] != 3:
+        raise FitError(f"the target must be a square sRGB image (R, R, 3), got shape {target.shape}")
+    if weights is not None and np.asarray(weights).shape != target.shape[:2]:
+        raise FitError(f"the mask must be {target.shape[:2]} like the target, got {np.asarray(weights).shape}")
+    if renderer is not None and renderer.resolution != target.shape[0]:
+        raise FitError(
+            f"the renderer renders {renderer.resolution} px, the target is {target.shape[0]} px: use one size"
+        )
+
+
+def refine(
+    unit: np.ndarray,
+    target: np.ndarray,
+    steps: int,
+    weights: np.ndarray | None = None,
+    renderer: render.Renderer | None = None,
+    spp: int = SPP,
+    seed: int = SEED,
+    rate: float = RATE,
+) -> Refined:
+    """Returns the material after `steps` projected Adam steps on its Mitsuba RMSE, kept only if its render improves.
+
+    `unit`: the start (19 unit-cube values); `target`: the sRGB image (R, R, 3) to match; `weights`:
+    per-pixel weights (R, R), as the fit's mask; `renderer`: a `render.Renderer` at R px for the two
+    acceptance renders (one is made if None). Step k renders with seed `seed + k` and `spp` samples.
+    """
+    check(unit, target, steps, weights, spp, renderer)
+    started = time.perf_counter()
+    start = np.asarray(unit, np.float64)
+    resolution = int(np.asarray(target).shape[0])
+    weights = np.ones((resolution, resolution), np.float32) if weights is None else np.asarray(weights, np.float32)
+    refined, losses = _descend(start, np.asarray(target, np.float32), weights, steps, spp, seed, rate)
+    descended = time.perf_counter() - started
+    renderer = renderer or render.Renderer(resolution, ACCEPT_SPP)
+    renders = {"before": images.srgb_encode(renderer.render(params.from_unit(start), seed=ACCEPT_SEED, spp=ACCEPT_SPP))}
+    # Where the steps found nothing better than the start, its render is reused: two renders of one material differ
+    # in the last bits (the threads' order of summation), and that must not count as an improvement.
+    unchanged = np.array_equal(refined, start)
+    renders["after"] = (
+        renders["before"]
+        if unchanged
+        else images.srgb_encode(renderer.render(params.from_unit(refined), seed=ACCEPT_SEED, spp=ACCEPT_SPP))
+    )
+    before, after = (float(images.rmse(renders[name], target, weights)) for name in ("before", "after"))
+    accepted = after < before
+    return Refined(
+        refined if accepted else start,
+        renders["after" if accepted else "before"],
+        before,
+        after,
+        accepted,
+        steps,
+        time.perf_counter() - started,
+        descended,
+        losses,
+    )
+
+
+def _descend(start, target, weights, steps, spp, seed, rate) -> tuple[np.ndarray, list[float]]:
+    """Returns the point of lowest loss among those that `steps` projected Adam steps from `start` visited, and the
+    losses (step k's loss is that of the point before its update, so the start is a candidate too)."""
+    if steps == 0:
+        return start, []
+    import drjit as dr
+
+    mi, loaded, scene_parameters = _differentiable_scene(target.shape[0])
+    target_tensor = mi.TensorXf(target)
+    weight_tensor = mi.TensorXf(normalised_weights(weights))
+    x, moment, second = start.copy(), np.zeros(params.COUNT), np.zeros(params.COUNT)
+    losses, points = [], []
+    for step in range(steps):
+        points.append(x)
+        unit = mi.Float(x)
+        dr.enable_grad(unit)
+        set_material(scene_parameters, physical(unit))
+        image = mi.render(loaded, scene_parameters, seed=(seed + step) & 0xFFFFFFFF, spp=PRIMAL * spp, spp_grad=spp)
+        loss = srgb_rmse(image, target_tensor, weight_tensor)
+        dr.backward(loss)
+        gradient = np.array(dr.grad(unit), np.float64)
+        losses.append(float(loss.array[0]))
+        moment = BETAS[0] * moment + (1 - BETAS[0]) * gradient
+        second = BETAS[1] * second + (1 - BETAS[1]) * gradient**2
+        corrected = moment / (1 - BETAS[0] ** (step + 1)), second / (1 - BETAS[1] ** (step + 1))
+        x = np.clip(x - rate * corrected[0] / (np.sqrt(corrected[1]) + EPSILON), 0.0, 1.0)
+    return points[int(np.argmin(losses))], losses

@@ -1,0 +1,97 @@
+import numpy as np
+import pytest
+
+from matfit import images, params, presets, refine, render, scene
+from matfit.errors import FitError
+
+
+@pytest.fixture(scope="module")
+def llvm(renderer):
+    if renderer.variant != render.LLVM_VARIANT:
+        pytest.skip("refinement differentiates with llvm_ad_rgb, which needs libLLVM >= 19")
+    import mitsuba as mi
+
+    return mi
+
+
+@pytest.fixture(scope="module")
+def reachable(renderer, llvm):
+    """A red plastic target and a start whose base colour is 0.25 off in every channel."""
+    truth = params.to_unit(presets.preset("red-plastic"))
+    target = images.srgb_encode(renderer.render(params.from_unit(truth), seed=11, spp=64))
+    start = truth.copy()
+    start[:3] = np.clip(start[:3] + np.array([-0.25, 0.25, 0.25]), 0.0, 1.0)
+    return target, start
+
+
+def test_the_drjit_mapping_equals_params_and_scene_on_random_points(llvm):
+    for seed in range(5):
+        unit = np.random.default_rng(seed).random(params.COUNT)
+        unit[params.INDEX["density"]] = 0.0 if seed == 0 else unit[params.INDEX["density"]]  # the extinction's floor
+        values = refine.physical(llvm.Float(unit))
+        got = np.array([v.array[0] for v in values])
+        np.testing.assert_allclose(got, params.from_unit(unit), rtol=1e-6, atol=1e-7)
+        sigma_t, albedo = refine.medium_textures(values)
+        expected_sigma_t, expected_albedo = scene.medium_textures(params.from_unit(unit))
+        np.testing.assert_allclose(np.array(sigma_t).ravel(), expected_sigma_t, rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(np.array(albedo).ravel(), expected_albedo, rtol=1e-6)
+
+
+def test_the_drjit_loss_is_images_rmse_with_and_without_a_mask(llvm):
+    rng = np.random.default_rng(3)
+    linear = rng.uniform(-0.1, 1.3, (8, 8, 3)).astype(np.float32)  # out of range on both sides: clipped
+    target = rng.random((8, 8, 3)).astype(np.float32)
+    for weights in (np.ones((8, 8), np.float32), rng.random((8, 8)).astype(np.float32)):
+        loss = refine.srgb_rmse(
+            llvm.TensorXf(linear), llvm.TensorXf(target), llvm.TensorXf(refine.normalised_weights(weights))
+        )
+        expected = images.rmse(images.srgb_encode(linear), target, weights)
+        assert loss.array[0] == pytest.approx(float(expected), rel=1e-5)
+
+
+def test_refinement_from_a_perturbed_point_lowers_the_mitsuba_loss(renderer, reachable):
+    target, start = reachable
+    result = refine.refine(start, target, 3, renderer=renderer, spp=4, rate=0.05)
+    assert result.accepted and result.steps == 3 and len(result.losses) == 3 and result.losses[-1] < result.losses[0]
+    assert result.rmse_after < result.rmse_before and result.rmse == result.rmse_after
+    # the base colour moved towards the truth (red up, green and blue down)
+    assert result.unit[0] > start[0] and result.unit[1] < start[1] and result.unit[2] < start[2]
+    again = images.srgb_encode(
+        renderer.render(params.from_unit(result.unit), seed=refine.ACCEPT_SEED, spp=refine.ACCEPT_SPP)
+    )
+    np.testing.assert_allclose(result.rendered, again, atol=1e-5)  # the same render, up to float rounding
+    assert images.rmse(again, target) == pytest.approx(result.rmse_after, rel=1e-6)
+
+
+def test_a_refinement_that_does_not_improve_returns_the_input_unchanged(renderer, reachable):
+    target, truth = renderer.render(params.from_unit(reachable[1]), seed=12, spp=256), reachable[1]
+    target = images.srgb_encode(target)  # the start is the truth, and steps of 1 throw the material into the corners
+    result = refine.refine(truth, target, 3, renderer=renderer, spp=4, rate=1.0)
+    assert result.losses[0] < min(result.losses[1:])
+    assert not result.accepted and result.rmse == result.rmse_before and len(result.losses) == 3
+    np.testing.assert_array_equal(result.unit, truth)
+    expected = images.srgb_encode(
+        renderer.render(params.from_unit(truth), seed=refine.ACCEPT_SEED, spp=refine.ACCEPT_SPP)
+    )
+    np.testing.assert_allclose(result.rendered, expected, atol=1e-5)
+    nothing = refine.refine(truth, target, 0, renderer=renderer)
+    assert not nothing.accepted and nothing.losses == [] and nothing.rmse_before == nothing.rmse_after
+    np.testing.assert_array_equal(nothing.unit, truth)
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        ({"steps": -1}, "refinement steps -1 must be a whole number >= 0: use 0 to skip refinement"),
+        ({"steps": 2.5}, "refinement steps 2.5 must be a whole number >= 0"),
+        ({"spp": 0}, "refinement spp 0 must be a whole number >= 1"),
+        ({"unit": np.full(18, 0.5)}, "the start must be 19 unit-cube values in [0, 1], got shape (18,)"),
+        ({"target": np.zeros((16, 8, 3))}, "the target must be a square sRGB image (R, R, 3), got shape (16, 8, 3)"),
+        ({"weights": np.ones((8, 8))}, "the mask must be (16, 16) like the target, got (8, 8)"),
+    ],
+)
+def test_bad_settings_are_one_line_errors_naming_the_value_and_the_fix(arguments, message):
+    call = {"unit": np.full(params.COUNT, 0.5), "target": np.zeros((16, 16, 3)), "steps": 2} | arguments
+    with pytest.raises(FitError) as raised:
+        refine.refine(**call)
+    assert message in str(raised.value) and "\n" not in str(raised.value)
