@@ -4,7 +4,10 @@ from matfit import interrupt
 
 
 def main() -> None:
-    """Console-script entry point: installs the interruption watchdog before any heavy import, then runs the command."""
+    """Console-script entry point: installs the interruption watchdog before any heavy import, then runs the command.
+
+    The process then ends without the interpreter's teardown (`interrupt.leave`).
+    """
     interrupt.install()
     try:
         from matfit.cli import app
@@ -15,6 +18,8 @@ def main() -> None:
     except SystemExit as exit:
         if exit.code == interrupt.EXIT_CODE:
             interrupt.exit_now()
+        if exit.code is None or isinstance(exit.code, int):
+            interrupt.leave(exit.code or 0)
         raise
 
 

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from matfit import gradient, images, models, params, simplex
+from matfit import gradient, images, models, params
 from matfit.errors import FitError
 from matfit.methods import Box, Method, Settings
 
@@ -120,6 +120,8 @@ def _fit(
     ends = candidates[chosen][None]
     evaluations = jnp.array(0, jnp.float32)
     if settings.method.uses_simplex:
+        from matfit import simplex  # optimistix and equinox: imported only for Nelder-Mead (0.2 s of a cold start)
+
         y0 = start if settings.method == Method.optimize else candidates[chosen]
         solver = simplex.NelderMead(adaptive=settings.adaptive, initial_step=settings.initial_step)
 

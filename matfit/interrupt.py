@@ -79,6 +79,19 @@ def exit_now() -> None:
     os._exit(EXIT_CODE)
 
 
+def leave(code: int) -> None:
+    """Ends a finished command's process with `code`, skipping the interpreter's teardown.
+
+    Every output is complete by then (written, fsynced and renamed by `files`), and the teardown is
+    what is left: measured 0.4 s after `matfit fit` (JAX's and Dr.Jit's shutdown), a tenth of the
+    command's whole time. Child processes are stopped by the work that started them.
+    """
+    with contextlib.suppress(Exception):
+        sys.stdout.flush()
+        sys.stderr.flush()
+    os._exit(code)
+
+
 def install() -> None:
     """Makes Ctrl-C and `kill` end the process at the main thread's next bytecode, and starts the watchdog.
 
