@@ -95,6 +95,45 @@ def mitsuba_rmse(renderer, results: list[fit.Result], targets: Targets, spp: int
     return np.array(errors)
 
 
+def rendered_rmse(renderer, unit: np.ndarray, target: np.ndarray, seed: int, spp: int) -> float:
+    """Returns the RMSE of a Mitsuba render of unit-cube parameters against an sRGB target."""
+    return float(images.rmse(images.srgb_encode(renderer.render(params.from_unit(unit), seed, spp)), target))
+
+
+VERIFICATION_SPP = (16, 32, 64, 128)  # verification's spp compared by `verification_table` (verify.SPP among them)
+JUDGE_SPP = 1024  # the independent render that judges what verification kept
+JUDGE_SEED = 977
+
+
+def verification_table(renderer, results: list[fit.Result], targets: Targets, spps=VERIFICATION_SPP) -> str:
+    """Returns how verification's spp decides (Markdown): per spp, its renders' seconds, the Mitsuba RMSE of the
+    candidate it keeps as an independent JUDGE_SPP render sees it, and how often it keeps what the highest spp keeps.
+    """
+    judged, kept, seconds = [], {spp: [] for spp in spps}, {spp: [] for spp in spps}
+    for k, (result, target) in enumerate(zip(results, targets.images, strict=True)):
+        judge = {
+            name: rendered_rmse(renderer, unit, target, JUDGE_SEED + k, JUDGE_SPP)
+            for name, unit in verify.candidates(result).items()
+        }
+        judged.append(judge)
+        for spp in spps:
+            checked = verify.verify(renderer, result, target, spp=spp)
+            kept[spp].append(checked.chosen)
+            seconds[spp].append(checked.seconds)
+    lines = [
+        f"| verification spp | seconds (median) | kept candidate: mean Mitsuba RMSE at {JUDGE_SPP} spp "
+        f"| same choice as {spps[-1]} spp |",
+        "|---|---|---|---|",
+    ]
+    for spp in spps:
+        mean = np.mean([judge[name] for judge, name in zip(judged, kept[spp], strict=True)])
+        same = sum(a == b for a, b in zip(kept[spp], kept[spps[-1]], strict=True))
+        lines.append(f"| {spp} | {np.median(seconds[spp]):.2f} | {mean:.3f} | {same}/{len(judged)} |")
+    oracle, start = np.mean([min(judge.values()) for judge in judged]), np.mean([judge["start"] for judge in judged])
+    lines += [f"| the best candidate (oracle) | | {oracle:.3f} | |", f"| the best-of-n start | | {start:.3f} | |"]
+    return "\n".join(lines)
+
+
 def markdown(table: dict[str, dict], reference: str, mitsuba: dict[str, np.ndarray]) -> str:
     """Returns the comparison as a Markdown table; `reference` is the configuration others are compared to."""
     lines = [
@@ -615,7 +654,9 @@ def fit_comparison(model: models.Model, count: int, evaluations: int, log=print)
     reference = f"hybrid {evaluations}"
     shown = ("nn (best-of-n)", reference, "lbfgsb, 4 starts (default)", "hybrid-lbfgsb 300, 4 starts")
     mitsuba = {label: mitsuba_rmse(renderer, table[label]["results"], targets) for label in shown}
-    return markdown(table, reference, mitsuba)
+    log("verification at each spp, judged by independent renders")
+    verification = verification_table(renderer, table["lbfgsb, 4 starts (default)"]["results"], targets)
+    return f"{markdown(table, reference, mitsuba)}\n\nVerification of the default's candidates:\n\n{verification}"
 
 
 def check_output_folder(path: str, field: str) -> None:

@@ -52,18 +52,23 @@ def candidates(result: fit.Result, count: int = CANDIDATES) -> dict[str, np.ndar
 
 
 def verify(
-    renderer, result: fit.Result, target: np.ndarray, weights: np.ndarray | None = None, count: int = CANDIDATES
+    renderer,
+    result: fit.Result,
+    target: np.ndarray,
+    weights: np.ndarray | None = None,
+    count: int = CANDIDATES,
+    spp: int = SPP,
 ) -> Verified:
     """Returns the candidate whose Mitsuba render is closest to the sRGB `target` (weighted like the fit, if a mask is
     given).
 
-    `renderer` renders at the target's resolution; every candidate uses the same seed and SPP samples.
+    `renderer` renders at the target's resolution; every candidate uses the same seed and `spp` samples.
     """
     started = time.perf_counter()
     weights = np.ones(target.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
     pool = candidates(result, count)
     renders = {
-        name: images.srgb_encode(renderer.render(params.from_unit(unit), seed=SEED, spp=SPP))
+        name: images.srgb_encode(renderer.render(params.from_unit(unit), seed=SEED, spp=spp))
         for name, unit in pool.items()
     }
     figures = {name: float(images.rmse(image, target, weights)) for name, image in renders.items()}

@@ -46,3 +46,23 @@ def test_a_fooled_decoder_never_makes_the_answer_physically_worse_than_the_start
     # the kept render is the chosen candidate's (two renders of one material may differ in the last bits)
     np.testing.assert_allclose(again, checked.rendered, atol=1e-5)
     assert len(checked.figures) >= 2
+
+
+def test_the_verification_table_judges_every_spp_by_one_independent_render(model, renderer32, monkeypatch):
+    from matfit import bench
+
+    monkeypatch.setattr(bench, "JUDGE_SPP", 32)  # a tiny judge: the table's logic, not its figures
+    units = np.stack([np.full(19, 0.3), np.full(19, 0.6)])
+    targets = bench.Targets(
+        units, np.stack([images.srgb_encode(renderer32.render(fit.params.from_unit(u))) for u in units])
+    )
+    results = [
+        fit.fit(model, target, fit.Settings(method="lbfgsb", starts=2, iterations=5)) for target in targets.images
+    ]
+    table = bench.verification_table(renderer32, results, targets, spps=(4, 8))
+    rows = table.splitlines()
+    assert len(rows) == 2 + 2 + 2 and rows[-1].startswith("| the best-of-n start |")
+    assert rows[3].startswith("| 8 |") and rows[3].endswith("| 2/2 |")  # the highest spp agrees with itself
+    kept = {int(row.split("|")[1]): float(row.split("|")[3]) for row in rows[2:4]}
+    oracle, start = (float(row.split("|")[3]) for row in rows[4:6])
+    assert all(oracle <= figure + 1e-9 for figure in kept.values()) and oracle <= start + 1e-9
