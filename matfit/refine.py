@@ -30,7 +30,7 @@ and very noisy; it is left free because the acceptance render guards it. What do
 scene: camera, lights, geometry.
 
 What is kept: the refined point is rendered with the scene's own integrator (`volpathmis`,
-`render.Renderer`) at verification quality (`verify.SPP`) next to the start, both with one
+`render.Renderer`) at ACCEPT_SPP next to the start, both with one
 common seed that no refinement step used, and it is kept only if its render is closer to the
 target. The answer is never physically worse than the input, as that render sees it.
 """
@@ -52,7 +52,7 @@ MAX_DEPTH = 16  # prbvolpath's path length during the steps; acceptance renders 
 RATE = 0.02  # Adam's step in the unit cube
 SEED = 3_000_017  # step k renders with SEED + k: neither verify.SEED nor ACCEPT_SEED, nor a training image's seed
 ACCEPT_SEED = 2_000_029  # the common seed of the two acceptance renders
-ACCEPT_SPP = 128  # as verify.SPP: enough to rank two materials with common random numbers
+ACCEPT_SPP = 128  # enough to rank two materials with common random numbers (verification's 64 and more)
 BETAS = (0.9, 0.999)
 EPSILON = 1e-8
 
