@@ -142,6 +142,8 @@ def run(
     started = time.perf_counter()
     settings.check()
     outputs.check()
+    if refine_steps < 0:
+        raise FitError(f"refine steps {refine_steps} must be >= 0: use 0 to skip refinement", field="refine")
     for path, name in ((target, "target"), (mask, "mask")):
         if path is not None and not os.path.isfile(path):
             raise ImageError(f"{name} {path} is not a file: give the picture's path", field=name)
@@ -152,8 +154,6 @@ def run(
     result = fit.fit(model, target_srgb, settings, weights, extra=extra, seed=seed)
     outcome = Outcome(result, target_srgb, result.unit, result.image, result.rmse, notices=notices)
     renderer = None
-    if refine_steps < 0:
-        raise FitError(f"refine steps {refine_steps} must be >= 0: use 0 to skip refinement", field="refine")
     if verified or refine_steps or outputs.needs_render:
         from matfit.render import Renderer
 
