@@ -77,15 +77,10 @@ def presets_sheet(
 def blender_check(
     out: Annotated[Path, options.out("Folder for blender-check.md and blender-check.png.")] = Path("blender-check"),
     preset: Annotated[list[str] | None, typer.Option(help="A preset to compare (repeat it; default: all).")] = None,
-    params_file: Annotated[
-        list[Path] | None, typer.Option("--params", help="A params.json to compare too (repeat it).")
-    ] = None,
+    params_file: options.ParamsFiles = None,
     size: Annotated[int, typer.Option(min=16, max=512, help="Image side in pixels.")] = 64,
     spp: Annotated[int, typer.Option(min=1, max=dataset.MAX_SPP, help="Samples per pixel, in both renderers.")] = 256,
-    blender: Annotated[
-        str | None,
-        typer.Option(help="Python with bpy 4.5, or Blender 4.5 (default: .venv-blender, `make blender`)."),
-    ] = None,
+    blender: options.BlenderPython = None,
     variant: options.Variant = None,
 ) -> None:
     """Render materials through the exported Blender script in Cycles and with Mitsuba, and compare them."""
@@ -102,6 +97,19 @@ def parameters() -> None:
     """List the 19 shader parameters: name, range, default, unit and meaning."""
     for p in params.PARAMETERS:
         typer.echo(f"{p.name:16} [{p.low:g}, {p.high:g}]  default {p.default:g}  {p.unit:14} {p.meaning}")
+
+
+@command(interrupted="the server stopped; nothing was written")
+def serve(
+    model: options.Model = options.DEFAULT_MODEL,
+    host: options.Host = "127.0.0.1",
+    port: options.Port = 8765,
+    watch: options.Watch = None,
+) -> None:
+    """Serve a local page that fits edited pictures as you save them (--watch), with sliders and a Mitsuba render."""
+    from matfit import serve as studio
+
+    studio.serve(str(model), host, port, options.text(watch), ready=lambda url: log(f"open {url} (Ctrl-C stops)"))
 
 
 @command(interrupted="finished samples are saved; run the same command to resume")

@@ -140,21 +140,52 @@ def run(
     end (`files.together`), so a failure leaves none of them.
     """
     started = time.perf_counter()
-    settings.check()
     outputs.check()
+    init_values = params.read_file(init) if init is not None else None
+    outcome, renderer = fit_file(
+        target, model, settings, mask, seed, init_values, verified, refine_steps, outputs.needs_render, source=init
+    )
+    with files.together() as batch:
+        write_outputs(outcome, outputs, batch, renderer)
+        outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
+        files.write_text(batch.path(outputs.params), params_text(outcome))
+    return outcome
+
+
+def fit_file(
+    target: str,
+    model: models.Model | str,
+    settings: fit.Settings,
+    mask: str | None = None,
+    seed: int = 0,
+    init_values: np.ndarray | None = None,
+    verified: bool = True,
+    refine_steps: int = 0,
+    needs_render: bool = False,
+    renderer=None,
+    source: str | None = None,
+) -> tuple[Outcome, object]:
+    """Returns (what a fit of the image file `target` found, with its params.json document; the renderer used).
+
+    Writes nothing: `run` writes the CLI's files, `serve` offers the same ones for download.
+    `init_values`: the source material's physical parameters (joining best-of-n's candidates), read
+    from the file `source` (recorded in the document); `renderer`: a loaded `render.Renderer` at the
+    model's resolution to reuse, or None (one is made when verification, refinement or a render
+    output needs it).
+    """
+    settings.check()
     if refine_steps < 0:
         raise FitError(f"refine steps {refine_steps} must be >= 0: use 0 to skip refinement", field="refine")
     for path, name in ((target, "target"), (mask, "mask")):
         if path is not None and not os.path.isfile(path):
             raise ImageError(f"{name} {path} is not a file: give the picture's path", field=name)
-    extra = params.to_unit(params.read_file(init))[None] if init is not None else None
+    extra = params.to_unit(init_values)[None] if init_values is not None else None
     model_path = model if isinstance(model, str) else model.path
     model = load_model(model) if isinstance(model, str) else model
     target_srgb, weights, notices = read_target(target, model.resolution, mask)
     result = fit.fit(model, target_srgb, settings, weights, extra=extra, seed=seed)
     outcome = Outcome(result, target_srgb, result.unit, result.image, result.rmse, notices=notices)
-    renderer = None
-    if verified or refine_steps or outputs.needs_render:
+    if renderer is None and (verified or refine_steps or needs_render):
         from matfit.render import Renderer
 
         renderer = Renderer(model.resolution, verify.SPP)
@@ -170,12 +201,13 @@ def run(
     if verified or refine_steps:
         outcome.image = model.decode(outcome.unit)[0]
         outcome.neural_rmse = float(images.rmse(outcome.image, target_srgb, weights))
-    outcome.document = document(outcome, settings, model_path, target, mask, init)
-    with files.together() as batch:
-        write_outputs(outcome, outputs, batch, renderer)
-        outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
-        files.write_text(batch.path(outputs.params), json.dumps(outcome.document, indent=2) + "\n")
-    return outcome
+    outcome.document = document(outcome, settings, model_path, target, mask, source)
+    return outcome, renderer
+
+
+def params_text(outcome: Outcome) -> str:
+    """Returns the params.json of a fit, as written."""
+    return json.dumps(outcome.document, indent=2) + "\n"
 
 
 def document(

@@ -72,3 +72,12 @@ Fitting = Annotated[
         "with --evals between the two).",
     ),
 ]
+Host = Annotated[str, typer.Option(help="Address to listen on: 127.0.0.1 is this machine only; 0.0.0.0 every network.")]
+Port = Annotated[int, typer.Option(min=1, max=65535, help="Port to listen on.")]
+Watch = Annotated[
+    Path | None, typer.Option(help="A picture your editor saves (or a folder of them): refitted on every save.")
+]
+ParamsFiles = Annotated[list[Path] | None, typer.Option("--params", help="A params.json to compare too (repeat it).")]
+BlenderPython = Annotated[
+    str | None, typer.Option(help="Python with bpy 4.5, or Blender 4.5 (default: .venv-blender, `make blender`).")
+]

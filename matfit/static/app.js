@@ -1,0 +1,218 @@
+// matfit serve: the page. Talks to the JSON API of matfit/serve.py; no library, nothing from the internet.
+"use strict";
+const $ = (id) => document.getElementById(id);
+const state = { parameters: [], presets: {}, values: [], init: null, lastFit: null, renderJob: null };
+
+function showError(message) {
+  $("error").textContent = message;
+  $("error").hidden = !message;
+}
+function setStatus(text) { $("status").textContent = text; }
+
+async function api(path, options) {
+  const response = await fetch(path, options);
+  const body = await response.json().catch(() => ({ error: `the server answered ${response.status}` }));
+  if (!response.ok && body.state !== "error") throw new Error(body.error || `the server answered ${response.status}`);
+  return body;
+}
+
+// --- fitting -------------------------------------------------------------------------------------
+async function fitFile(file) {
+  showError("");
+  const form = new FormData();
+  form.append("image", file, file.name);
+  if (state.init) form.append("init", JSON.stringify(state.init));
+  setStatus(`uploading ${file.name}`);
+  try {
+    const { job } = await api("/api/fit", { method: "POST", body: form });
+    await follow(job, file.name);
+  } catch (error) {
+    setStatus("ready");
+    showError(error.message);
+  }
+}
+
+async function follow(job, name) {
+  for (;;) {
+    const answer = await api(`/api/jobs/${job}`);
+    $("bar").style.width = `${Math.round(100 * answer.progress)}%`;
+    if (answer.state === "done") return showFit(job, answer.result, name);
+    if (answer.state === "error") { setStatus("ready"); return showError(answer.error); }
+    if (answer.state === "superseded" || answer.state === "cancelled") return;
+    setStatus(`${name}: ${answer.stage}`);
+    await new Promise((resolve) => setTimeout(resolve, 60));
+  }
+}
+
+function showFit(job, result, name) {
+  for (const key of ["target", "start", "neural", "mitsuba", "difference"]) $(`pic-${key}`).src = result.pictures[key];
+  $("figures").textContent =
+    `${name}: neural RMSE ${result.neural_rmse.toFixed(2)}, Mitsuba RMSE ${result.mitsuba_rmse.toFixed(2)} ` +
+    `(start ${result.start} ${result.start_rmse.toFixed(2)}; kept ${result.kept}), ${result.seconds.toFixed(2)} s`;
+  $("figures").dataset.job = job;
+  const links = { "dl-params": "params.json", "dl-xml": "material.xml", "dl-blender": "material.py", "dl-report": "report.png" };
+  for (const [id, file] of Object.entries(links)) $(id).href = `/api/jobs/${job}/files/${file}`;
+  $("result").hidden = false;
+  $("bar").style.width = "100%";
+  setStatus(`fitted ${name}`);
+  state.lastFit = result.values;
+  setValues(result.values);
+  addOption("last fit", "__last");
+}
+
+// --- adjusting -----------------------------------------------------------------------------------
+function addOption(label, value) {
+  if ([...$("start").options].some((o) => o.value === value)) return;
+  const option = document.createElement("option");
+  option.value = value;
+  option.textContent = label;
+  $("start").append(option);
+}
+
+function buildSliders() {
+  const box = $("sliders");
+  state.parameters.forEach((p, i) => {
+    if (p.name.endsWith("_r")) {
+      const picker = document.createElement("label");
+      picker.className = "colour";
+      const input = document.createElement("input");
+      input.type = "color";
+      input.id = `colour-${p.name.slice(0, -2)}`;
+      input.addEventListener("input", () => {
+        const hex = input.value;
+        [0, 1, 2].forEach((k) => { state.values[i + k] = parseInt(hex.slice(1 + 2 * k, 3 + 2 * k), 16) / 255; });
+        setValues(state.values);
+        preview();
+      });
+      picker.append(`${p.name.slice(0, -2)} `, input);
+      box.append(picker);
+    }
+    const label = document.createElement("label");
+    label.textContent = p.name;
+    label.title = p.meaning;
+    label.htmlFor = `slider-${p.name}`;
+    const slider = document.createElement("input");
+    Object.assign(slider, { type: "range", id: `slider-${p.name}`, min: p.low, max: p.high, step: (p.high - p.low) / 1000 });
+    slider.addEventListener("input", () => { state.values[i] = Number(slider.value); showValue(i); preview(); });
+    const output = document.createElement("output");
+    output.id = `value-${p.name}`;
+    const unit = document.createElement("span");
+    unit.className = "unit";
+    unit.textContent = p.unit;
+    box.append(label, slider, output, unit);
+  });
+}
+
+function showValue(i) {
+  const p = state.parameters[i];
+  $(`value-${p.name}`).textContent = state.values[i].toFixed(3);
+  const base = p.name.slice(0, -2);
+  if (/_[rgb]$/.test(p.name) && $(`colour-${base}`)) {  // a colour's channel (phase_g is not one)
+    const first = state.parameters.findIndex((q) => q.name === `${base}_r`);
+    const hex = [0, 1, 2].map((k) => Math.round(255 * Math.min(1, Math.max(0, state.values[first + k]))).toString(16).padStart(2, "0"));
+    $(`colour-${base}`).value = `#${hex.join("")}`;
+  }
+}
+
+function setValues(values) {
+  state.values = values.map(Number);
+  state.parameters.forEach((p, i) => { $(`slider-${p.name}`).value = state.values[i]; showValue(i); });
+  preview();
+}
+
+let previewBusy = false, previewAgain = false;
+async function preview() {
+  if (previewBusy) { previewAgain = true; return; }
+  previewBusy = true;
+  const started = performance.now();
+  try {
+    const response = await fetch("/api/preview", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ values: state.values }) });
+    if (!response.ok) throw new Error((await response.json()).error);
+    const old = $("preview").src;
+    $("preview").src = URL.createObjectURL(await response.blob());
+    if (old.startsWith("blob:")) URL.revokeObjectURL(old);
+    $("preview-ms").textContent = Math.round(performance.now() - started);
+    $("preview").dataset.count = String(Number($("preview").dataset.count || 0) + 1);
+  } catch (error) {
+    showError(error.message);
+  } finally {
+    previewBusy = false;
+    if (previewAgain) { previewAgain = false; preview(); }
+  }
+}
+
+async function render() {
+  showError("");
+  const body = { values: state.values, size: Number($("render-size").value), spp: Number($("render-spp").value) };
+  try {
+    const { job } = await api("/api/render", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });
+    state.renderJob = job;
+    $("render-cancel").disabled = false;
+    for (;;) {
+      const answer = await api(`/api/jobs/${job}`);
+      $("render-bar").style.width = `${Math.round(100 * answer.progress)}%`;
+      if (answer.state === "done") {
+        $("render").src = answer.result.picture;
+        $("render-note").textContent = `${answer.result.size} px, ${answer.result.spp} spp, ${answer.result.seconds.toFixed(1)} s`;
+        break;
+      }
+      if (answer.state === "cancelled") { $("render-note").textContent = "cancelled"; break; }
+      if (answer.state === "error") { showError(answer.error); break; }
+      $("render-note").textContent = answer.stage;
+      await new Promise((resolve) => setTimeout(resolve, 100));
+    }
+  } catch (error) {
+    showError(error.message);
+  } finally {
+    $("render-cancel").disabled = true;
+    state.renderJob = null;
+  }
+}
+
+async function loadParams(file) {
+  showError("");
+  const form = new FormData();
+  form.append("params", file, file.name);
+  try {
+    const { values } = await api("/api/params", { method: "POST", body: form });
+    state.init = values;
+    $("init-note").textContent = `${file.name}: joins the candidates of the next fits`;
+    setValues(values);
+  } catch (error) {
+    showError(error.message);
+  }
+}
+
+// --- start-up ------------------------------------------------------------------------------------
+async function main() {
+  const info = await api("/api/parameters");
+  state.parameters = info.parameters;
+  state.presets = info.presets;
+  buildSliders();
+  for (const name of Object.keys(info.presets)) addOption(name, name);
+  setValues(info.parameters.map((p) => p.default));
+  $("start").addEventListener("change", () => {
+    const choice = $("start").value;
+    if (choice === "__last" && state.lastFit) setValues(state.lastFit);
+    else if (state.presets[choice]) setValues(state.presets[choice]);
+  });
+  $("picture").addEventListener("change", () => { if ($("picture").files[0]) fitFile($("picture").files[0]); $("picture").value = ""; });
+  $("params-file").addEventListener("change", () => { if ($("params-file").files[0]) loadParams($("params-file").files[0]); $("params-file").value = ""; });
+  const drop = $("drop");
+  drop.addEventListener("dragover", (event) => { event.preventDefault(); drop.classList.add("over"); });
+  drop.addEventListener("dragleave", () => drop.classList.remove("over"));
+  drop.addEventListener("drop", (event) => { event.preventDefault(); drop.classList.remove("over"); if (event.dataTransfer.files[0]) fitFile(event.dataTransfer.files[0]); });
+  $("render-button").addEventListener("click", render);
+  $("render-cancel").addEventListener("click", () => { if (state.renderJob) fetch(`/api/jobs/${state.renderJob}/cancel`, { method: "POST" }); });
+  if (info.watch) {
+    $("watching").textContent = `watching ${info.watch}`;
+    const events = new EventSource("/api/watch");
+    events.onmessage = (event) => {
+      const message = JSON.parse(event.data);
+      showError("");
+      follow(message.job, message.file);
+    };
+  }
+  document.body.dataset.ready = "yes";
+}
+main().catch((error) => showError(error.message));

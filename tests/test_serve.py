@@ -1,0 +1,359 @@
+"""`matfit serve`: the JSON API through a real server, then the page in a real browser (headless Chromium).
+
+The server runs in a thread (`serve.running`) with a tiny random model; the browser tests skip with
+the reason where Debian's Chromium or Playwright is not installed (CI installs both).
+"""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+import uuid
+
+import numpy as np
+import pytest
+from helpers import random_model
+
+from matfit import fit, images, params, presets, serve
+
+EXAMPLE = os.path.join(os.path.dirname(__file__), "..", "data", "examples", "recoloured.png")
+OTHER = os.path.join(os.path.dirname(__file__), "..", "data", "examples", "desaturated.png")
+CHROMIUM = "/usr/bin/chromium"
+
+
+def request(url: str, data: bytes | None = None, headers: dict | None = None) -> tuple[int, bytes]:
+    """Returns (status, body) of a GET, or of a POST when `data` is given; 4xx and 5xx are answers too."""
+    try:
+        with urllib.request.urlopen(urllib.request.Request(url, data=data, headers=headers or {}), timeout=60) as reply:
+            return reply.status, reply.read()
+    except urllib.error.HTTPError as error:
+        return error.code, error.read()
+
+
+def multipart(fields: dict[str, tuple[str, bytes] | str]) -> tuple[bytes, dict]:
+    """Returns a multipart/form-data body and its headers: a tuple is a file (name, bytes), a string a field."""
+    boundary = uuid.uuid4().hex
+    parts = []
+    for key, value in fields.items():
+        if isinstance(value, tuple):
+            head = f'Content-Disposition: form-data; name="{key}"; filename="{value[0]}"\r\n'
+            head += "Content-Type: application/octet-stream\r\n\r\n"
+            parts.append(f"--{boundary}\r\n{head}".encode() + value[1] + b"\r\n")
+        else:
+            parts.append(f'--{boundary}\r\nContent-Disposition: form-data; name="{key}"\r\n\r\n{value}\r\n'.encode())
+    body = b"".join(parts) + f"--{boundary}--\r\n".encode()
+    return body, {"Content-Type": f"multipart/form-data; boundary={boundary}"}
+
+
+def post_json(url: str, document: dict) -> tuple[int, bytes]:
+    return request(url, json.dumps(document).encode(), {"Content-Type": "application/json"})
+
+
+def post_job(url: str, document: dict) -> tuple[int, dict]:
+    code, answer = post_json(url, document)
+    return code, json.loads(answer)
+
+
+def start_fit(url: str, path: str, name: str | None = None, **fields) -> tuple[int, dict]:
+    with open(path, "rb") as file:
+        body, headers = multipart({"image": (name or os.path.basename(path), file.read()), **fields})
+    status, answer = request(url + "api/fit", body, headers)
+    return status, json.loads(answer)
+
+
+def wait(url: str, job: str, seconds: float = 120) -> tuple[int, dict]:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        status, answer = request(f"{url}api/jobs/{job}")
+        answer = json.loads(answer)
+        if answer["state"] not in ("queued", "running"):
+            return status, answer
+        time.sleep(0.05)
+    raise AssertionError(f"job {job} did not finish")
+
+
+@pytest.fixture(scope="module")
+def studio(tmp_path_factory):
+    studio = serve.Studio(random_model(), "memory", fit.Settings(iterations=10))
+    studio.worker.submit(studio.warm_up).result()
+    yield studio
+    studio.close()
+
+
+@pytest.fixture(scope="module")
+def watched(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("watched")
+    path = folder / "edit.png"
+    shutil.copy(EXAMPLE, path)
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def url(studio, watched):
+    with serve.running(studio, watched) as address:
+        yield address
+
+
+def test_a_fit_through_the_api_is_the_fit_the_library_makes(url, studio):
+    status, answer = start_fit(url, EXAMPLE)
+    assert status == 202
+    status, done = wait(url, answer["job"])
+    assert status == 200 and done["state"] == "done", done
+    result = done["result"]
+    assert set(result["pictures"]) == {"target", "start", "neural", "mitsuba", "difference"}
+    assert all(picture.startswith("data:image/png;base64,") for picture in result["pictures"].values())
+    expected = fit.fit(studio.model, studio_target(studio), studio.settings)
+    assert result["start"] == expected.chosen and result["start_rmse"] == pytest.approx(expected.start_rmse, abs=1e-3)
+    assert result["mitsuba_rmse"] <= result["start_rmse"] + 50  # a figure, not a placeholder
+    document = json.loads(request(f"{url}api/jobs/{answer['job']}/files/params.json")[1])
+    np.testing.assert_allclose(params.from_mapping(document["params"]), result["values"], atol=1e-6)
+    assert document["target"] == "recoloured.png" and document["model"] == "memory"
+    status, xml = request(f"{url}api/jobs/{answer['job']}/files/material.xml")
+    assert status == 200 and b"matfit-material" in xml
+    status, script = request(f"{url}api/jobs/{answer['job']}/files/material.py")
+    assert status == 200 and b"bpy" in script
+    status, report = request(f"{url}api/jobs/{answer['job']}/files/report.png")
+    assert status == 200 and report.startswith(b"\x89PNG")
+
+
+def studio_target(studio):
+    target, _, _ = serve.fitfile.read_target(EXAMPLE, studio.model.resolution)
+    return target
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "status", "message"),
+    [
+        ("broken.png", b"\x89PNG\r\n\x1a\n this is not the rest of a PNG", 400, "the uploaded picture"),
+        ("notes.txt", b"hello", 400, "upload a PNG, JPEG, TIFF or EXR"),
+        ("empty.png", b"", 400, "is empty"),
+    ],
+)
+def test_bad_uploads_are_4xx_with_a_message_and_the_next_upload_works(url, tmp_path, name, content, status, message):
+    body, headers = multipart({"image": (name, content)})
+    code, answer = request(url + "api/fit", body, headers)
+    assert code == status and message in json.loads(answer)["error"]
+    code, answer = start_fit(url, EXAMPLE)
+    assert code == 202 and wait(url, answer["job"])[1]["state"] == "done"
+
+
+def test_a_picture_with_too_many_pixels_is_refused_before_it_is_decoded(url, tmp_path, monkeypatch):
+    monkeypatch.setattr(serve, "MAX_UPLOAD_PIXELS", 100)
+    code, answer = start_fit(url, EXAMPLE)
+    assert code == 413 and "the picture is 256x256, more than" in answer["error"]
+
+
+def test_params_json_uploads_are_checked_and_join_the_fit(url):
+    good = json.dumps(params.params_document(presets.preset("gold"))).encode()
+    body, headers = multipart({"params": ("gold.json", good)})
+    code, answer = request(url + "api/params", body, headers)
+    assert code == 200
+    np.testing.assert_allclose(json.loads(answer)["values"], presets.preset("gold"), atol=1e-6)
+    body, headers = multipart({"params": ("bad.json", b'{"params": {"roughness": 7}}')})
+    code, answer = request(url + "api/params", body, headers)
+    assert code == 400 and "roughness" in json.loads(answer)["error"]
+    code, answer = start_fit(url, EXAMPLE, init=json.dumps(presets.preset("gold").tolist()))
+    assert code == 202
+    _, done = wait(url, answer["job"])
+    document = json.loads(request(f"{url}api/jobs/{answer['job']}/files/params.json")[1])
+    assert done["state"] == "done" and document["init"] == "uploaded params.json"
+
+
+def test_the_preview_is_the_decoders_picture_and_follows_the_values(url, studio):
+    values = presets.preset("gold")
+    code, png = post_json(url + "api/preview", {"values": values.tolist()})
+    assert code == 200 and png.startswith(b"\x89PNG")
+    path = os.path.join(studio.folder, "preview.png")
+    with open(path, "wb") as file:
+        file.write(png)
+    shown = images.srgb_encode(images.read(path))
+    np.testing.assert_allclose(shown, studio.model.decode(params.to_unit(values))[0], atol=1 / 255 + 1e-6)
+    other = post_json(url + "api/preview", {"values": presets.preset("red-plastic").tolist()})[1]
+    assert other != png
+    code, answer = post_json(url + "api/preview", {"values": [0.5] * 18})
+    assert code == 400 and "list of 19 numbers" in json.loads(answer)["error"]
+
+
+def test_a_mitsuba_render_reports_progress_and_can_be_cancelled(url):
+    code, answer = post_job(url + "api/render", {"values": presets.preset("gold").tolist(), "size": 16, "spp": 16})
+    assert code == 202
+    _, done = wait(url, answer["job"])
+    assert done["state"] == "done" and done["progress"] == 1.0 and done["result"]["spp"] == 16
+    code, answer = post_job(url + "api/render", {"values": presets.preset("jade").tolist(), "size": 64, "spp": 4096})
+    job = answer["job"]
+    deadline = time.monotonic() + 60
+    while json.loads(request(f"{url}api/jobs/{job}")[1])["progress"] == 0 and time.monotonic() < deadline:
+        time.sleep(0.02)
+    request(f"{url}api/jobs/{job}/cancel", b"")
+    _, stopped = wait(url, job)
+    assert stopped["state"] == "cancelled" and 0 < stopped["progress"] < 1
+    code, answer = post_job(url + "api/render", {"values": presets.preset("gold").tolist(), "size": 5000, "spp": 4})
+    assert code == 400 and "render size 5000 is out of range" in answer["error"]
+
+
+def test_two_fits_at_once_each_get_their_own_result(url):
+    answers = [{}, {}]
+
+    def run(k, path):
+        answers[k] = wait(url, start_fit(url, path)[1]["job"])[1]
+
+    threads = [threading.Thread(target=run, args=(k, path)) for k, path in enumerate((EXAMPLE, OTHER))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    alone = [wait(url, start_fit(url, path)[1]["job"])[1] for path in (EXAMPLE, OTHER)]
+    for together, single in zip(answers, alone, strict=True):
+        assert together["state"] == "done"
+        assert together["result"]["values"] == single["result"]["values"]
+        assert together["result"]["pictures"]["target"] == single["result"]["pictures"]["target"]
+    assert answers[0]["result"]["values"] != answers[1]["result"]["values"]
+
+
+def watch_events(url: str, received: list, stop: threading.Event) -> None:
+    with urllib.request.urlopen(url + "api/watch", timeout=30) as stream:
+        for line in stream:
+            if stop.is_set():
+                return
+            if line.startswith(b"data: "):
+                received.append(json.loads(line[6:]))
+
+
+def test_saving_the_watched_file_refits_it_and_deleting_it_is_a_410(url, watched):
+    received, stop = [], threading.Event()
+    threading.Thread(target=watch_events, args=(url, received, stop), daemon=True).start()
+    time.sleep(0.5)
+    shutil.copy(OTHER, watched)
+    deadline = time.monotonic() + 30
+    while not received and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert received and received[0]["file"] == "edit.png"
+    _, done = wait(url, received[0]["job"])
+    expected = wait(url, start_fit(url, OTHER, name="edit.png")[1]["job"])[1]
+    assert done["state"] == "done" and done["result"]["values"] == expected["result"]["values"]
+    os.unlink(watched)
+    deadline = time.monotonic() + 30
+    while len(received) < 2 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    status, gone = wait(url, received[-1]["job"])
+    stop.set()
+    assert status == 410 and "was deleted: save it again" in gone["error"]
+    shutil.copy(EXAMPLE, watched)
+
+
+def test_a_half_written_watched_file_is_waited_for_not_reported(tmp_path):
+    path = str(tmp_path / "edit.png")
+    with open(EXAMPLE, "rb") as file:
+        data = file.read()
+    with open(path, "wb") as file:
+        file.write(data[: len(data) // 2])
+
+    def finish():
+        time.sleep(0.5)
+        with open(path, "wb") as file:
+            file.write(data)
+
+    threading.Thread(target=finish).start()
+    assert serve.asyncio.run(serve.settled(path)) is None
+
+
+def test_bad_watch_paths_are_refused_with_the_fix(tmp_path):
+    with pytest.raises(serve.ImageError, match="is not a picture or a folder"):
+        serve.check_watch(str(tmp_path / "notes.txt"))
+    with pytest.raises(serve.ImageError, match="its folder does not exist"):
+        serve.check_watch(str(tmp_path / "missing" / "edit.png"))
+
+
+# --- the page in a real browser ---------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def browser():
+    if not os.path.exists(CHROMIUM):
+        pytest.skip(f"no browser: {CHROMIUM} is missing (apt-get install chromium; CI installs it)")
+    playwright_api = pytest.importorskip(
+        "playwright.sync_api", reason="Playwright is a dev extra: pip install -e .[dev]"
+    )
+    with playwright_api.sync_playwright() as playwright:
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=["--no-sandbox"])
+        yield browser
+        browser.close()
+
+
+def open_page(browser, url):
+    page = browser.new_page()
+    page.goto(url)
+    page.wait_for_selector("body[data-ready=yes]", timeout=30_000)
+    return page
+
+
+def fit_in_page(page, path):
+    page.set_input_files("#picture", path)
+    page.wait_for_function("document.getElementById('figures').textContent.includes('Mitsuba RMSE')", timeout=60_000)
+
+
+def test_the_page_fits_an_upload_and_its_params_json_renders(browser, url, tmp_path):
+    page = open_page(browser, url)
+    fit_in_page(page, EXAMPLE)
+    figures = page.text_content("#figures")
+    assert figures.startswith("recoloured.png: neural RMSE") and "kept" in figures
+    for name in ("target", "start", "neural", "mitsuba", "difference"):
+        assert page.eval_on_selector(f"#pic-{name}", "img => img.complete && img.naturalWidth") == 32
+    with page.expect_download() as download:
+        page.click("#dl-params")
+    saved = tmp_path / "params.json"
+    download.value.save_as(saved)
+    render = [sys.executable, "-m", "matfit", "render", str(saved), "--size", "16", "--spp", "4"]
+    finished = subprocess.run([*render, "-o", str(tmp_path / "r.png")], capture_output=True, text=True, check=False)
+    assert finished.returncode == 0, finished.stderr
+    assert images.read(str(tmp_path / "r.png")).shape == (16, 16, 3)
+    page.close()
+
+
+def test_moving_a_slider_changes_the_preview(browser, url):
+    page = open_page(browser, url)
+    page.wait_for_function("Number(document.getElementById('preview').dataset.count || 0) >= 1")
+    before = page.get_attribute("#preview", "src")
+    count = int(page.get_attribute("#preview", "data-count"))
+    page.fill("#slider-metallic", "1")  # fires `input`, as dragging does
+    page.wait_for_function(f"Number(document.getElementById('preview').dataset.count) > {count}")
+    assert page.get_attribute("#preview", "src") != before
+    assert page.text_content("#value-metallic") == "1.000"
+    page.close()
+
+
+def test_the_page_follows_the_watched_file(browser, url, watched):
+    page = open_page(browser, url)
+    assert "watching" in page.text_content("#watching")
+    shutil.copy(OTHER, watched)
+    page.wait_for_function("document.getElementById('figures').textContent.startsWith('edit.png')", timeout=60_000)
+    shutil.copy(EXAMPLE, watched)
+    page.close()
+
+
+def test_a_broken_upload_shows_its_message_and_the_next_one_works(browser, url, tmp_path):
+    page = open_page(browser, url)
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(b"\x89PNG\r\n\x1a\n not a picture")
+    page.set_input_files("#picture", str(broken))
+    page.wait_for_selector("#error:not([hidden])")
+    assert "the uploaded picture" in page.text_content("#error")
+    fit_in_page(page, EXAMPLE)
+    assert page.is_hidden("#error")
+    page.close()
+
+
+def test_two_pages_fitting_at_once_each_show_their_own(browser, url):
+    pages = [open_page(browser, url), open_page(browser, url)]
+    pages[0].set_input_files("#picture", EXAMPLE)
+    pages[1].set_input_files("#picture", OTHER)
+    for page, name in zip(pages, ("recoloured.png", "desaturated.png"), strict=True):
+        page.wait_for_function(f"document.getElementById('figures').textContent.startsWith('{name}')", timeout=60_000)
+    assert pages[0].text_content("#figures") != pages[1].text_content("#figures")
+    for page in pages:
+        page.close()
