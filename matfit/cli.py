@@ -148,12 +148,8 @@ def fit_command(
     method: options.Fitting = Method.lbfgsb,
     evaluations: options.Evaluations = 1500,
     seed: Annotated[int, options.seed("Seed of the random start of --method optimize.")] = 0,
-    mask: Annotated[
-        Path | None, typer.Option(help="Per-pixel weights, the target's size: white = match here, black = ignore.")
-    ] = None,
-    box: Annotated[
-        Box, typer.Option(help="Keeping inside the parameter box: clip (clip + penalty) or barrier (the paper's).")
-    ] = Box.clip,
+    mask: options.Mask = None,
+    box: options.BoxOption = Box.clip,
     polish_steps: Annotated[
         int, typer.Option("--polish", min=0, max=MAX_POLISH, help="Projected-Adam steps after Nelder-Mead.")
     ] = 0,
@@ -308,9 +304,7 @@ def bench_model(
 @command
 def bench_fit(
     model_path: options.Model = options.DEFAULT_MODEL,
-    count: Annotated[
-        int, typer.Option(min=1, max=10_000, help="Reachable targets (256-spp renders of held-out parameters).")
-    ] = 20,
+    count: options.TargetCount = 20,
     evaluations: options.Evaluations = 1500,
 ) -> None:
     """Compare the fitting methods on reachable targets: neural and Mitsuba RMSE, warm fit time."""
@@ -323,9 +317,7 @@ def bench_fit(
 def bench_sequence(
     model_path: options.Model = options.DEFAULT_MODEL,
     frames: Annotated[int, typer.Option(min=2, max=100_000, help="Frames of the built-in black-level sequence.")] = 120,
-    frames_out: Annotated[
-        Path | None, typer.Option("--write-frames", help="Also write the sequence's frames to this folder.")
-    ] = None,
+    frames_out: options.FramesOut = None,
 ) -> None:
     """Reinitialisation against per-frame fitting on a built-in sequence (a rising black level), as in the paper."""
     from matfit import bench, fitfile
@@ -337,9 +329,7 @@ def bench_sequence(
 def bench(
     out: Annotated[Path, options.out("Output folder: report.md, report.json, cases/*.png.")] = Path("data/bench"),
     model_path: options.Model = options.DEFAULT_MODEL,
-    full: Annotated[
-        bool, typer.Option("--full", help="10 seeds, 60 s basin-hopping, 120 frames (quick: 5, 5 s, 40).")
-    ] = False,
+    full: options.Full = False,
 ) -> None:
     """Reproduce the paper's evaluation tables on the built-in edit suite (quick version by default)."""
     from matfit import bench as bench_module
@@ -348,3 +338,12 @@ def bench(
     model = fitfile.load_model(str(model_path))
     label = fitfile.display_path(str(model_path))
     typer.echo(bench_module.run_suite(model, label, str(out), full, log=log))
+
+
+@command
+def bench_serve(model_path: options.Model = options.DEFAULT_MODEL, fits: options.Fits = 100) -> None:
+    """Time the page: a saved file to its result, a slider to its preview; memory after 10 fits and after --fits."""
+    from matfit import bench, fitfile
+
+    model = fitfile.load_model(str(model_path))
+    typer.echo(bench.serve_speed(model, fitfile.display_path(str(model_path)), fits, log=log))

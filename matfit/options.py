@@ -11,7 +11,7 @@ from typing import Annotated, Literal
 import typer
 
 from matfit import dataset, params
-from matfit.methods import MAX_EVALUATIONS, MIN_EVALUATIONS, Method
+from matfit.methods import MAX_EVALUATIONS, MIN_EVALUATIONS, Box, Method
 from matfit.render import VARIANTS
 
 DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "data" / "models" / "default"  # shipped in the repository
@@ -81,3 +81,17 @@ ParamsFiles = Annotated[list[Path] | None, typer.Option("--params", help="A para
 BlenderPython = Annotated[
     str | None, typer.Option(help="Python with bpy 4.5, or Blender 4.5 (default: .venv-blender, `make blender`).")
 ]
+TargetCount = Annotated[
+    int, typer.Option("--count", min=1, max=10_000, help="Reachable targets (256-spp renders of held-out parameters).")
+]
+FramesOut = Annotated[
+    Path | None, typer.Option("--write-frames", help="Also write the sequence's frames to this folder.")
+]
+Full = Annotated[bool, typer.Option("--full", help="10 seeds, 60 s basin-hopping, 120 frames (quick: 5, 5 s, 40).")]
+Mask = Annotated[
+    Path | None, typer.Option(help="Per-pixel weights, the target's size: white = match here, black = ignore.")
+]
+BoxOption = Annotated[
+    Box, typer.Option("--box", help="Keeping inside the parameter box: clip (clip + penalty) or barrier (the paper's).")
+]
+Fits = Annotated[int, typer.Option(min=10, max=100_000, help="Fits through the page before memory is read again.")]

@@ -357,3 +357,19 @@ def test_two_pages_fitting_at_once_each_show_their_own(browser, url):
     assert pages[0].text_content("#figures") != pages[1].text_content("#figures")
     for page in pages:
         page.close()
+
+
+def test_the_page_benchmark_reports_every_figure():
+    from matfit import bench
+
+    table = bench.serve_speed(random_model(), "memory", fits=10, previews=20, log=lambda _: None)
+    rows = table.splitlines()[2:]
+    assert [row.split(" | ")[0] for row in rows] == [
+        "| warm fit through the library, the CLI's path (median of 10)",
+        "| watched file saved -> result read by the page's client (median of 10)",
+        "| slider -> neural preview round trip (median of 20)",
+        "| resident memory after 10 fits / after 10",
+    ]
+    warm, latency = (float(row.split(" | ")[1].split()[0]) for row in rows[:2])
+    assert 0 < warm < latency  # the page's path is the library's fit plus the watching
+    assert rows[3].endswith("(+0.0%) |")  # the same reading twice
