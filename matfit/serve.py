@@ -40,7 +40,7 @@ from importlib import resources
 
 import numpy as np
 
-from matfit import export, files, fit, fitfile, images, models, params, presets, verify
+from matfit import export, files, fit, fitfile, images, interrupt, models, params, presets, verify
 from matfit.errors import ImageError, MatfitError, OutputError, ParameterError
 
 MAX_UPLOAD_BYTES = 50 * 1024 * 1024  # an upload larger than this is refused before it is read
@@ -161,6 +161,7 @@ class Studio:
         with contextlib.suppress(OSError):
             for name in os.listdir(self.folder):
                 os.unlink(os.path.join(self.folder, name))
+                interrupt.unregister(os.path.join(self.folder, name))
             os.rmdir(self.folder)
 
     def renderer(self, size: int):
@@ -200,6 +201,7 @@ class Studio:
                 f"({', '.join(IMAGE_EXTENSIONS)})"
             )
         handle, path = tempfile.mkstemp(suffix=extension, dir=self.folder)
+        interrupt.register(path)  # removed even when Ctrl-C ends the process without its teardown
         with os.fdopen(handle, "wb") as file:
             file.write(data)
         self.check_picture(path, kind)
