@@ -557,6 +557,21 @@ def check_watch(watch: str | None) -> None:
         raise ImageError(f"watch {watch}: its folder does not exist: give the file your editor saves")
 
 
+def check_listen(host: str, port: int) -> None:
+    """Raises OutputError unless this process can listen on host:port (checked before the model is loaded)."""
+    import socket
+
+    try:
+        with socket.create_server((host, port)):
+            pass
+    except OSError as error:
+        raise OutputError(
+            f"cannot listen on {host}:{port} ({os.strerror(error.errno) if error.errno else error}): "
+            "choose another --port or --host",
+            field="port",
+        ) from None
+
+
 @contextlib.contextmanager
 def running(studio: Studio, watch: str | None = None, host: str = "127.0.0.1", port: int = 0):
     """Runs the page's server in a thread for the block (tests, benchmarks); yields its URL."""
@@ -584,6 +599,7 @@ def serve(model_path: str, host: str = "127.0.0.1", port: int = 8765, watch: str
     import uvicorn
 
     check_watch(watch)
+    check_listen(host, port)
     model = fitfile.load_model(model_path)
     studio = Studio(model, fitfile.display_path(model_path))
     studio.worker.submit(studio.warm_up).result()

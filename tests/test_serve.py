@@ -262,6 +262,12 @@ def test_a_half_written_watched_file_is_waited_for_not_reported(tmp_path):
     assert serve.asyncio.run(serve.settled(path)) is None
 
 
+def test_a_port_in_use_is_refused_with_the_fix(url):
+    port = int(url.rsplit(":", 1)[1].strip("/"))
+    with pytest.raises(serve.OutputError, match=f"cannot listen on 127.0.0.1:{port} .*choose another --port"):
+        serve.check_listen("127.0.0.1", port)
+
+
 def test_bad_watch_paths_are_refused_with_the_fix(tmp_path):
     with pytest.raises(serve.ImageError, match="is not a picture or a folder"):
         serve.check_watch(str(tmp_path / "notes.txt"))
