@@ -119,6 +119,7 @@ def fit_result(outcome: fitfile.Outcome) -> dict:
             "difference": png_data_url(report.difference(outcome.rendered, outcome.target)),
         },
         "notices": outcome.notices,
+        "mask": document.get("mask"),
     }
 
 

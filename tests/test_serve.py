@@ -379,3 +379,29 @@ def test_the_page_benchmark_reports_every_figure():
     warm, latency = (float(row.split(" | ")[1].split()[0]) for row in rows[:2])
     assert 0 < warm < latency  # the page's path is the library's fit plus the watching
     assert rows[3].endswith("(+0.0%) |")  # the same reading twice
+
+
+def test_a_mask_painted_in_the_page_weights_the_fit(browser, url):
+    page = open_page(browser, url)
+    fit_in_page(page, EXAMPLE)
+    unmasked = page.text_content("#figures")
+    page.click("#masking summary")
+    box = page.locator("#mask-view").bounding_box()
+    page.mouse.move(box["x"] + 20, box["y"] + 20)
+    page.mouse.down()
+    page.mouse.move(box["x"] + 230, box["y"] + 230, steps=20)
+    page.mouse.up()
+    page.click("#mask-fit")
+    page.wait_for_function("document.getElementById('figures').textContent.endsWith(', masked')", timeout=60_000)
+    assert page.text_content("#figures") != unmasked + ", masked"  # other weights, other figures
+    page.close()
+
+
+def test_a_mask_of_another_size_is_a_422_naming_the_fix(url):
+    with open(EXAMPLE, "rb") as file:
+        picture = file.read()
+    small = images.encode(np.full((8, 8, 3), 1.0, np.float32), ".png")
+    body, headers = multipart({"image": ("edit.png", picture), "mask": ("mask.png", small)})
+    code, answer = request(url + "api/fit", body, headers)
+    status, done = wait(url, json.loads(answer)["job"])
+    assert code == 202 and status == 422 and "make the mask the same size as the target" in done["error"]

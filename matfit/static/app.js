@@ -17,10 +17,13 @@ async function api(path, options) {
 }
 
 // --- fitting -------------------------------------------------------------------------------------
-async function fitFile(file) {
+async function fitFile(file, mask) {
   showError("");
+  if (file !== state.file) startMask(file);
+  state.file = file;
   const form = new FormData();
   form.append("image", file, file.name);
+  if (mask) form.append("mask", mask, "mask.png");
   if (state.init) form.append("init", JSON.stringify(state.init));
   setStatus(`uploading ${file.name}`);
   try {
@@ -48,7 +51,8 @@ function showFit(job, result, name) {
   for (const key of ["target", "start", "neural", "mitsuba", "difference"]) $(`pic-${key}`).src = result.pictures[key];
   $("figures").textContent =
     `${name}: neural RMSE ${result.neural_rmse.toFixed(2)}, Mitsuba RMSE ${result.mitsuba_rmse.toFixed(2)} ` +
-    `(start ${result.start} ${result.start_rmse.toFixed(2)}; kept ${result.kept}), ${result.seconds.toFixed(2)} s`;
+    `(start ${result.start} ${result.start_rmse.toFixed(2)}; kept ${result.kept}), ${result.seconds.toFixed(2)} s` +
+    (result.mask ? ", masked" : "");
   $("figures").dataset.job = job;
   const links = { "dl-params": "params.json", "dl-xml": "material.xml", "dl-blender": "material.py", "dl-report": "report.png" };
   for (const [id, file] of Object.entries(links)) $(id).href = `/api/jobs/${job}/files/${file}`;
@@ -58,6 +62,55 @@ function showFit(job, result, name) {
   state.lastFit = result.values;
   setValues(result.values);
   addOption("last fit", "__last");
+}
+
+// --- the mask: white = fit here, black = ignore; the size of the uploaded picture ----------------------------------
+const mask = { canvas: document.createElement("canvas"), picture: new Image(), painting: false };
+
+function startMask(file) {
+  mask.picture.onload = () => {
+    mask.canvas.width = mask.picture.naturalWidth;
+    mask.canvas.height = mask.picture.naturalHeight;
+    clearMask();
+  };
+  mask.picture.src = URL.createObjectURL(file);
+}
+
+function clearMask() {
+  const context = mask.canvas.getContext("2d");
+  context.fillStyle = "#fff";
+  context.fillRect(0, 0, mask.canvas.width, mask.canvas.height);
+  mask.painted = false;
+  drawMask();
+}
+
+function drawMask() {
+  const view = $("mask-view").getContext("2d");
+  view.globalCompositeOperation = "source-over";
+  view.globalAlpha = 1;
+  view.drawImage(mask.picture, 0, 0, 256, 256);
+  view.globalCompositeOperation = "multiply";
+  view.globalAlpha = 0.7;
+  view.drawImage(mask.canvas, 0, 0, 256, 256);
+}
+
+function paint(event) {
+  if (!mask.painting || !mask.canvas.width) return;
+  const box = $("mask-view").getBoundingClientRect();
+  const scale = mask.canvas.width / box.width;
+  const context = mask.canvas.getContext("2d");
+  context.fillStyle = document.querySelector("input[name=brush]:checked").value === "fit" ? "#fff" : "#000";
+  context.beginPath();
+  context.arc((event.clientX - box.left) * scale, (event.clientY - box.top) * mask.canvas.height / box.height,
+    Number($("brush-size").value) * scale / 2, 0, 2 * Math.PI);
+  context.fill();
+  mask.painted = true;
+  drawMask();
+}
+
+function fitWithMask() {
+  if (!state.file) return showError("choose a picture first: the mask is painted on it");
+  mask.canvas.toBlob((blob) => fitFile(state.file, blob), "image/png");
 }
 
 // --- adjusting -----------------------------------------------------------------------------------
@@ -203,6 +256,12 @@ async function main() {
   drop.addEventListener("dragleave", () => drop.classList.remove("over"));
   drop.addEventListener("drop", (event) => { event.preventDefault(); drop.classList.remove("over"); if (event.dataTransfer.files[0]) fitFile(event.dataTransfer.files[0]); });
   $("render-button").addEventListener("click", render);
+  const view = $("mask-view");
+  view.addEventListener("pointerdown", (event) => { mask.painting = true; view.setPointerCapture(event.pointerId); paint(event); });
+  view.addEventListener("pointermove", paint);
+  view.addEventListener("pointerup", () => { mask.painting = false; });
+  $("mask-clear").addEventListener("click", clearMask);
+  $("mask-fit").addEventListener("click", fitWithMask);
   $("render-cancel").addEventListener("click", () => { if (state.renderJob) fetch(`/api/jobs/${state.renderJob}/cancel`, { method: "POST" }); });
   if (info.watch) {
     $("watching").textContent = `watching ${info.watch}`;
