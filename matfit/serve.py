@@ -47,6 +47,7 @@ MAX_UPLOAD_BYTES = 50 * 1024 * 1024  # an upload larger than this is refused bef
 MAX_UPLOAD_PIXELS = 16_000_000  # and one with more pixels before they are decoded
 MAX_RENDER_SIZE = 1024
 MAX_RENDER_SPP = 4096
+TOO_LARGE = "upload size"  # the `field` of an upload refused for its size: answered 413, other bad uploads 400
 RENDER_PASSES = 8  # a Mitsuba render from the page: spp split into passes, for progress and cancellation
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr")
 SETTLE_SECONDS = 0.15  # a watched file must keep its size this long before it is read
@@ -191,7 +192,8 @@ class Studio:
         """Returns the path of a private temporary copy of an uploaded picture; only the name's extension is kept."""
         if len(data) > MAX_UPLOAD_BYTES:
             raise ImageError(
-                f"the {kind} is {len(data) / 1e6:.0f} MB, more than {MAX_UPLOAD_BYTES / 1e6:.0f} MB: scale it down"
+                f"the {kind} is {len(data) / 1e6:.0f} MB, more than {MAX_UPLOAD_BYTES / 1e6:.0f} MB: scale it down",
+                field=TOO_LARGE,
             )
         if not data:
             raise ImageError(f"the {kind} is empty: choose the picture again")
@@ -217,7 +219,8 @@ class Studio:
             raise ImageError(str(error).replace(path, f"the uploaded {kind}")) from None
         if width * height > MAX_UPLOAD_PIXELS:
             raise ImageError(
-                f"the {kind} is {width}x{height}, more than {MAX_UPLOAD_PIXELS / 1e6:.0f} Mpixel: scale it down"
+                f"the {kind} is {width}x{height}, more than {MAX_UPLOAD_PIXELS / 1e6:.0f} Mpixel: scale it down",
+                field=TOO_LARGE,
             )
 
     def submit_fit(self, target: str, label: str, mask: str | None = None, init: np.ndarray | None = None) -> Job:
@@ -355,6 +358,7 @@ def watched_picture(watch: str, changed: set[str]) -> str | None:
 def create_app(studio: Studio, watch: str | None = None):
     """Returns the Starlette application of a studio (and of the watched file or folder, if any)."""
     from starlette.applications import Starlette
+    from starlette.exceptions import HTTPException
     from starlette.requests import Request
     from starlette.responses import FileResponse, JSONResponse, Response, StreamingResponse
     from starlette.routing import Route
@@ -409,9 +413,9 @@ def create_app(studio: Studio, watch: str | None = None):
                 init_values = check_values(json.loads(init)) if isinstance(init, str) and init else None
                 label = getattr(form.get("image"), "filename", None) or "upload"
         except MatfitError as problem:
-            return error(str(problem), 413 if "MB" in str(problem) or "Mpixel" in str(problem) else 400)
-        except (ValueError, json.JSONDecodeError) as problem:
-            return error(f"the upload could not be read ({problem}): choose the file again")
+            return error(str(problem), 413 if problem.field == TOO_LARGE else 400)
+        except (ValueError, HTTPException) as problem:  # a malformed form: Starlette raises HTTPException
+            return error(f"the upload could not be read ({getattr(problem, 'detail', problem)}): choose the file again")
         job = studio.submit_fit(target, os.path.basename(label), mask, init_values)
         return JSONResponse({"job": job.id}, status_code=202)
 
@@ -477,6 +481,8 @@ def create_app(studio: Studio, watch: str | None = None):
             values = params.parse_params_json(text, upload.filename or "params.json")
         except UnicodeDecodeError:
             return error("the params.json is not UTF-8 text: choose a params.json that matfit wrote")
+        except HTTPException as problem:
+            return error(f"the upload could not be read ({problem.detail}): choose the file again")
         except MatfitError as problem:
             return error(str(problem))
         return JSONResponse({"values": values.tolist()})

@@ -405,3 +405,16 @@ def test_a_mask_of_another_size_is_a_422_naming_the_fix(url):
     code, answer = request(url + "api/fit", body, headers)
     status, done = wait(url, json.loads(answer)["job"])
     assert code == 202 and status == 422 and "make the mask the same size as the target" in done["error"]
+
+
+def test_an_upload_over_the_byte_cap_is_a_413(url, monkeypatch):
+    monkeypatch.setattr(serve, "MAX_UPLOAD_BYTES", 1000)
+    code, answer = start_fit(url, EXAMPLE)
+    assert code == 413 and "more than 0 MB: scale it down" in answer["error"]
+
+
+def test_a_malformed_form_is_a_400_and_the_server_carries_on(url):
+    headers = {"Content-Type": "multipart/form-data; boundary=xyz"}
+    code, answer = request(url + "api/fit", b"--nonsense without an end", headers)
+    assert code == 400 and "could not be read" in json.loads(answer)["error"]
+    assert start_fit(url, EXAMPLE)[0] == 202
