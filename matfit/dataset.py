@@ -45,9 +45,13 @@ MAX_COUNT = 10_000_000
 MAX_WORKERS = 64
 CHUNK = 16
 ARRAYS = ("params.npy", "images.npy", "done.npy")
-# The scene without its sphere, for the refracting decoder: rendered once, clean.
+# The scene without its sphere: rendered once, clean.
 SCENE_FILE = "scene.npy"
 SCENE_SPP = 4096
+# The refracting decoder's clear-glass basis (`scene.glass_basis_materials`): rendered on first use,
+# one file per grid point while under way (resumable), then one array per grid shape.
+GLASS_FILE = "glass-{specular}x{roughness}.npy"
+GLASS_SPP = 1024
 
 
 @dataclass(frozen=True)
@@ -112,6 +116,38 @@ class Dataset:
         """Returns the linear float32 (R, R, 3) render of the scene without its sphere, or None if not rendered."""
         path = os.path.join(self.path, SCENE_FILE)
         return np.load(path).astype(np.float32) if os.path.isfile(path) else None
+
+    def glass_basis(self, shape: tuple[int, int], progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+        """Returns the clear-glass basis (S, G, R, R, 3), linear float32, rendering what is missing first.
+
+        Each grid point is rendered at GLASS_SPP with a seed no sample has and kept in a file of
+        its own until all are there, so an interrupted call loses at most one render;
+        `progress(done, total)` after each one.
+        """
+        path = os.path.join(self.path, GLASS_FILE.format(specular=shape[0], roughness=shape[1]))
+        if os.path.isfile(path):
+            return np.load(path)
+        from matfit.render import Renderer
+
+        parts = path[: -len(".npy")] + ".parts"
+        os.makedirs(parts, exist_ok=True)
+        materials = scene.glass_basis_materials(shape)
+        basis = np.zeros((*shape, self.resolution, self.resolution, 3), np.float32)
+        renderer = None
+        for done, (i, j) in enumerate(np.ndindex(*shape)):
+            part = os.path.join(parts, f"{i}-{j}.npy")
+            if not os.path.isfile(part):
+                renderer = renderer or Renderer(self.resolution, GLASS_SPP, self.meta["variant"])
+                seed = image_seed(int(self.meta["seed"]), 2**32 - 2 - done)  # indices no sample has
+                with files.atomic_path(part) as temporary, open(temporary, "wb") as file:
+                    np.save(file, renderer.render(materials[i, j], seed=seed))
+            basis[i, j] = np.load(part)
+            if progress is not None:
+                progress(done + 1, shape[0] * shape[1])
+        with files.atomic_path(path) as temporary, open(temporary, "wb") as file:
+            np.save(file, basis)
+        shutil.rmtree(parts, ignore_errors=True)
+        return basis
 
     def unit_params(self) -> np.ndarray:
         """Returns every sample's parameters on the unit cube, float32 (count, 19)."""

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from matfit import files, images, params
+from matfit import files, images, params, scene
 from matfit.errors import WeightsError
 
 ENCODER_RESOLUTION = 32
@@ -107,51 +107,51 @@ def srgb_decode(encoded: jax.Array) -> jax.Array:
     return jnp.where(encoded <= 0.04045, encoded / 12.92, ((jnp.maximum(encoded, 0.04045) + 0.055) / 1.055) ** 2.4)
 
 
-def bilinear(images: jax.Array, position: jax.Array) -> jax.Array:
-    """Returns images (L, H, W, C) sampled bilinearly at pixel positions (N, H', W', 2) as (N, H', W', L, C).
+def interpolate_glass(basis: jax.Array, specular: jax.Array, roughness: jax.Array) -> jax.Array:
+    """Returns the clear-glass basis (S, G, H, W, C) interpolated bilinearly at unit-cube specular and roughness (N,).
 
-    Positions are (x, y) in pixels (pixel centres at integers), clamped to the image; the result is
-    differentiable in the positions (the images are constants). One row gather per corner from the
-    images laid out as (H W, L C): on CPU, XLA gathers whole rows far faster than single values.
+    The grid is `scene.glass_grid_values`: uniform in specular, uniform in the square root of
+    roughness. The result (N, H, W, C) is differentiable in both. One row gather per corner from the
+    basis laid out as (S G, H W C): on CPU, XLA gathers whole rows far faster than single values.
     """
-    levels, height, width, channels = images.shape
-    table = jnp.moveaxis(images, 0, 2).reshape(height * width, levels * channels)
-    x = jnp.clip(position[..., 0], 0.0, width - 1.0)
-    y = jnp.clip(position[..., 1], 0.0, height - 1.0)
-    left = jnp.clip(jnp.floor(x), 0, width - 2)
-    top_row = jnp.clip(jnp.floor(y), 0, height - 2)
-    x0, y0 = left.astype(jnp.int32), top_row.astype(jnp.int32)
-    wx = (x - left)[..., None]
-    wy = (y - top_row)[..., None]
+    specular_count, roughness_count = basis.shape[:2]
+    table = basis.reshape(specular_count * roughness_count, -1)
+    s = jnp.clip(specular, 0.0, 1.0) * (specular_count - 1)
+    r = jnp.sqrt(jnp.clip(roughness, 1e-6, 1.0)) * (roughness_count - 1)
+    s0 = jnp.clip(jnp.floor(s), 0, specular_count - 2)
+    r0 = jnp.clip(jnp.floor(r), 0, roughness_count - 2)
+    ws, wr = (s - s0)[:, None], (r - r0)[:, None]
+    i, j = s0.astype(jnp.int32), r0.astype(jnp.int32)
 
-    def at(row, column):
-        return jnp.take(table, row * width + column, axis=0)  # (N, H', W', L C)
+    def at(i, j):
+        return jnp.take(table, i * roughness_count + j, axis=0)  # (N, H W C)
 
-    top = at(y0, x0) * (1 - wx) + at(y0, x0 + 1) * wx
-    bottom = at(y0 + 1, x0) * (1 - wx) + at(y0 + 1, x0 + 1) * wx
-    return (top * (1 - wy) + bottom * wy).reshape(*position.shape[:-1], levels, channels)
+    low = at(i, j) * (1 - wr) + at(i, j + 1) * wr
+    high = at(i + 1, j) * (1 - wr) + at(i + 1, j + 1) * wr
+    return (low * (1 - ws) + high * ws).reshape(-1, *basis.shape[2:])
 
 
-def blur_pyramid(linear: np.ndarray, sigmas: Sequence[float]) -> np.ndarray:
-    """Returns a linear image (H, W, C) blurred by Gaussians of each `sigmas` (pixels) as (L, H, W, C).
+def medium_features(unit: jax.Array) -> jax.Array:
+    """Returns 10 physical features of the interior medium (N, 10) from unit-cube parameters (N, 19).
 
-    Sigma 0 is the image itself; edges repeat the border pixels.
+    What a medium looks like depends on its parameters through steep functions that a few dense
+    layers learn poorly from samples: a dense white medium (milk) turns grey as the scattering
+    albedo drops from 1 to 0.9. Per colour channel, with the optical thickness tau = density x
+    -ln(colour) per radius and albedo a: the opacity of a diameter 1 - exp(-2 tau), its
+    absorption-only transmittance exp(-2 tau (1 - a)) and its scattered share 1 - exp(-2 tau a);
+    and the diffuse reflectance of a half-space of albedo a (van de Hulst's similarity relation,
+    s = sqrt(1 - a): (1 - s)(1 - 0.139 s) / (1 + 1.17 s)).
     """
-    linear = np.asarray(linear, np.float32)
-    levels = []
-    for sigma in sigmas:
-        if sigma <= 0:
-            levels.append(linear)
-            continue
-        radius = int(np.ceil(3 * sigma))
-        taps = np.exp(-0.5 * (np.arange(-radius, radius + 1) / sigma) ** 2)
-        taps /= taps.sum()
-        image = linear
-        for axis in (0, 1):
-            padded = np.pad(image, [(radius, radius) if a == axis else (0, 0) for a in range(3)], mode="edge")
-            image = sum(t * np.take(padded, np.arange(k, k + image.shape[axis]), axis=axis) for k, t in enumerate(taps))
-        levels.append(image.astype(np.float32))
-    return np.stack(levels)
+    physical = params.LOW.astype(np.float32)[None] + unit * (params.HIGH - params.LOW).astype(np.float32)[None]
+    colour = physical[:, params.INDEX["medium_color_r"] : params.INDEX["medium_color_b"] + 1]
+    density = physical[:, params.INDEX["density"], None]
+    albedo = physical[:, params.INDEX["scattering"], None]
+    tau = 2.0 * density * -jnp.log(jnp.clip(colour, 1e-3, 1.0))  # through a diameter
+    s = jnp.sqrt(jnp.clip(1.0 - albedo, 1e-6, 1.0))
+    reflectance = (1.0 - s) * (1.0 - 0.139 * s) / (1.0 + 1.17 * s)
+    return jnp.concatenate(
+        [1.0 - jnp.exp(-tau), jnp.exp(-tau * (1.0 - albedo)), 1.0 - jnp.exp(-tau * albedo), reflectance], axis=-1
+    )
 
 
 class Decoder(nn.Module):
@@ -166,13 +166,16 @@ class Decoder(nn.Module):
     sigmoid: the scene around the object hardly changes with the material, so the convolutions
     only learn what does.
 
-    With `blur_levels` (Gaussian sigmas in pixels), the decoder draws refraction: the scene is
-    fixed, so what lies behind the sphere is known. The constant `scene` image (the test scene
-    rendered without the sphere, linear, blurred to each level; set it with `with_scene`) is
-    sampled per pixel at a predicted screen-space offset (up to `max_offset` pixels), blurred by a
-    predicted mix of levels (roughness), multiplied by a predicted transmittance (absorption) and
-    added in linear light to the direct layer (reflection, scattering, shadows):
-    image = sRGB(direct + transmittance x scene(pixel + offset)).
+    With `glass_grid` (S, G), the decoder draws refraction: the scene is fixed, so what a clear
+    glass sphere shows (the checkers bent and turned upside down, blurred by roughness, the caustic
+    in its shadow) depends only on its index of refraction and roughness. A basis of Mitsuba
+    renders of clear glass on an S x G grid of specular and roughness (`scene.glass_basis_materials`;
+    a constant, set with `with_glass`) is interpolated at the material's values and multiplied per
+    pixel by a predicted full-resolution transmittance (spec_trans, absorption tint, light lost to
+    scattering), then added in linear light to the direct layer (reflection, diffuse, scattering):
+    image = sRGB(direct + transmittance x glass(specular, roughness)).
+
+    With `medium_inputs`, the dense layers also see `medium_features` of the parameters.
     """
 
     resolution: int = 64
@@ -181,8 +184,8 @@ class Decoder(nn.Module):
     stage_channels: Sequence[int] = (64, 48, 32)
     convs_per_stage: int = 1
     coordinates: bool = False
-    blur_levels: Sequence[float] = ()
-    max_offset: float = 32.0
+    glass_grid: Sequence[int] = ()
+    medium_inputs: bool = False
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -192,7 +195,9 @@ class Decoder(nn.Module):
                 f"decoder resolution must be 4 times a power of two (8, 16, ..., 256), got {self.resolution}"
             )
         batch_shape = x.shape[:-1]
-        x = x.reshape(-1, x.shape[-1])
+        inputs = x = x.reshape(-1, x.shape[-1])
+        if self.medium_inputs:
+            x = jnp.concatenate([x, medium_features(x)], axis=-1)
         x = nn.gelu(nn.Dense(self.hidden)(x))
         x = nn.gelu(nn.Dense(self.hidden)(x))
         x = nn.gelu(nn.Dense(4 * 4 * self.base_channels)(x)).reshape(-1, 4, 4, self.base_channels)
@@ -204,33 +209,25 @@ class Decoder(nn.Module):
         features = coordinate_channels(x) if self.coordinates else x
         background = self.param("background", nn.initializers.zeros, (self.resolution, self.resolution, 3))
         direct = nn.sigmoid(depth_to_space(nn.Conv(4 * 3, (3, 3))(features)) + background[None])
-        levels = len(self.blur_levels)
-        if levels:
-            scene = self.variable("constants", "scene", jnp.zeros, (levels, self.resolution, self.resolution, 3)).value
-            # Transmittance, offset and blur mix are smooth: made at half resolution, upsampled. They
-            # start at zero (offset 0, transmittance 0.5, an even mix): the scene shows through
-            # unmoved, not scrambled by random offsets.
-            field = upsample_bilinear(nn.Conv(3 + 2 + levels, (3, 3), kernel_init=nn.initializers.zeros)(features))
-            transmittance = nn.sigmoid(field[..., :3])
-            side = jnp.arange(self.resolution, dtype=x.dtype)
-            pixel = jnp.stack(jnp.meshgrid(side, side, indexing="xy"), axis=-1)
-            seen = bilinear(scene, pixel[None] + self.max_offset * jnp.tanh(field[..., 3:5]))  # (N, R, R, L, 3)
-            # An einsum, not sum(mix * seen): XLA's CPU fusion of the broadcast product and the
-            # reduction made the whole forward pass four times slower.
-            blurred = jnp.einsum("nhwl,nhwlc->nhwc", nn.softmax(field[..., 5:], axis=-1), seen)
-            direct = srgb_encode(srgb_decode(direct) + transmittance * blurred)
+        if self.glass_grid:
+            shape = (*self.glass_grid, self.resolution, self.resolution, 3)
+            basis = self.variable("constants", "glass", jnp.zeros, shape).value
+            glass = interpolate_glass(basis, inputs[:, params.INDEX["specular"]], inputs[:, params.INDEX["roughness"]])
+            # Starts near 0 (sigmoid(-3) = 0.05): the direct layer first learns the opaque scene.
+            logit = nn.Conv(4 * 3, (3, 3), kernel_init=nn.initializers.zeros, bias_init=nn.initializers.constant(-3.0))
+            transmittance = 1.5 * nn.sigmoid(depth_to_space(logit(features)))
+            direct = srgb_encode(srgb_decode(direct) + transmittance * glass)
         return direct.reshape(*batch_shape, self.resolution, self.resolution, 3)
 
 
-def with_scene(decoder: Decoder, variables: dict, scene_linear: np.ndarray) -> dict:
-    """Returns decoder variables holding the scene without the sphere (linear (R, R, 3)) blurred to its levels."""
-    if not decoder.blur_levels:
+def with_glass(decoder: Decoder, variables: dict, basis: np.ndarray) -> dict:
+    """Returns decoder variables holding the clear-glass basis (linear (S, G, R, R, 3)); unchanged without one."""
+    if not decoder.glass_grid:
         return variables
-    pyramid = blur_pyramid(scene_linear, decoder.blur_levels)
-    expected = (len(decoder.blur_levels), decoder.resolution, decoder.resolution, 3)
-    if pyramid.shape != expected:
-        raise ValueError(f"Shape mismatch: the scene image gives {pyramid.shape}, the decoder needs {expected}.")
-    return {**variables, "constants": {"scene": jnp.asarray(pyramid)}}
+    expected = (*decoder.glass_grid, decoder.resolution, decoder.resolution, 3)
+    if tuple(basis.shape) != expected:
+        raise ValueError(f"Shape mismatch: the glass basis is {tuple(basis.shape)}, the decoder needs {expected}.")
+    return {**variables, "constants": {"glass": jnp.asarray(basis, jnp.float32)}}
 
 
 @dataclass(frozen=True)
@@ -344,14 +341,15 @@ def architecture(name: str, resolution: int, decoder: Decoder | None = None) -> 
     always read ENCODER_RESOLUTION pixels.
     """
     if name == DECODER:
-        decoder = decoder or Decoder(resolution=resolution)
+        # what `matfit train` trains
+        decoder = decoder or Decoder(resolution=resolution, glass_grid=scene.GLASS_GRID, medium_inputs=True)
         fields = {
             field.name: getattr(decoder, field.name)
             for field in dataclasses.fields(Decoder)
             if field.name not in ("parent", "name")
         }
         fields["stage_channels"] = list(fields["stage_channels"])
-        fields["blur_levels"] = list(fields["blur_levels"])
+        fields["glass_grid"] = list(fields["glass_grid"])
         return {"kind": DECODER, **fields}
     if name not in ENCODER_NAMES:
         raise WeightsError(f"unknown network {name!r}: use decoder or encoder-1 to encoder-9")
@@ -364,7 +362,7 @@ def build(description: dict) -> nn.Module:
     kind = fields.pop("kind")
     if kind == DECODER:
         fields["stage_channels"] = tuple(fields["stage_channels"])
-        fields["blur_levels"] = tuple(fields.get("blur_levels", ()))
+        fields["glass_grid"] = tuple(fields.get("glass_grid", ()))
         return Decoder(**fields)
     return encoder(fields["arch"])
 

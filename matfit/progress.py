@@ -94,6 +94,12 @@ class TrainingProgress(Progress):
         """Called after training steps."""
         self.update(step, f"loss {loss:.5f}  {samples_per_second:.0f} samples/s")
 
+    def rendering(self, done: int, total: int) -> None:
+        """Called after each render of the clear-glass basis."""
+        if done == 1:
+            self.start("rendering the clear-glass basis", total)
+        self.update(done, "")
+
     def end_epoch(self, record: dict) -> None:
         """Called after each epoch with its history record."""
         figures = "  ".join(f"{key} {value:.5g}" for key, value in record.items() if key not in ("epoch", "seconds"))

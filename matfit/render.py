@@ -230,7 +230,7 @@ def render_file(
 def render_without_sphere(resolution: int, spp: int, variant: str | None = None, seed: int = 0) -> np.ndarray:
     """Returns the linear float32 (H, W, 3) image of the test scene without its sphere.
 
-    The refracting decoder looks this image up where a transmissive sphere shows what is behind it.
+    Datasets keep it (clean) as the picture of what lies behind the sphere.
     """
     chosen, _ = choose_variant(variant)
     mi = mitsuba(chosen)

@@ -115,6 +115,35 @@ def medium(values: np.ndarray) -> dict:
     }
 
 
+# The clear-glass basis of the refracting decoder: the sphere as clear, colourless glass (white
+# base colour, spec_trans 1, no medium) rendered on a grid of `specular` (which sets the index of
+# refraction) and `roughness`. The decoder interpolates it at a material's specular and roughness and
+# tints it per pixel, so refraction (the checkers bent and turned upside down through the sphere,
+# blurred by roughness) is drawn by Mitsuba, not learned. Roughness is gridded uniformly in its
+# square root: the microfacet alpha is roughness squared, so most of the change is near 0.
+GLASS_GRID = (17, 6)
+
+
+def glass_grid_values(shape: tuple[int, int] = GLASS_GRID) -> tuple[np.ndarray, np.ndarray]:
+    """Returns the (specular, roughness) values of the glass basis grid: (S,) and (G,)."""
+    specular_count, roughness_count = shape
+    if specular_count < 2 or roughness_count < 2:
+        raise ValueError(f"a glass basis grid needs at least 2 x 2 points, got {specular_count} x {roughness_count}")
+    return np.linspace(0.0, 1.0, specular_count), np.linspace(0.0, 1.0, roughness_count) ** 2
+
+
+def glass_basis_materials(shape: tuple[int, int] = GLASS_GRID) -> np.ndarray:
+    """Returns the physical parameter vectors of the glass basis, (S, G, 19): clear glass at each grid point."""
+    specular, roughness = glass_grid_values(shape)
+    clear = params.from_unit(np.zeros(params.COUNT))  # every lobe off, no medium (density 0)
+    for name in ("base_color_r", "base_color_g", "base_color_b", "spec_trans"):
+        clear[params.INDEX[name]] = 1.0
+    materials = np.repeat(np.repeat(clear[None, None], len(specular), 0), len(roughness), 1)
+    materials[..., params.INDEX["specular"]] = specular[:, None]
+    materials[..., params.INDEX["roughness"]] = roughness[None, :]
+    return materials
+
+
 def all_lobes_values() -> np.ndarray:
     """Returns a vector with every principled lobe and the medium switched on.
 

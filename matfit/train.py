@@ -119,7 +119,7 @@ def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool):
     """Returns the jitted train_step(state, constants, x, y, key) -> (state, loss) of a module.
 
     state = (weights, optimiser state); constants: the module's untrained variables (the refracting
-    decoder's scene image), passed in rather than captured so that they are not compiled in.
+    decoder's clear-glass basis), passed in rather than captured so that they are not compiled in.
     """
 
     def loss_fn(weights, constants, x, y, key):
@@ -143,13 +143,22 @@ def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool):
     return train_step
 
 
-def validation_metrics(name: str, predictions: np.ndarray, targets: np.ndarray) -> dict:
-    """Returns the validation figures of a network: image RMSE (0-255 sRGB) or parameter RMSE."""
+def validation_metrics(name: str, predictions: np.ndarray, targets: np.ndarray, inputs: np.ndarray) -> dict:
+    """Returns the validation figures of a network: image RMSE (0-255 sRGB) or parameter RMSE.
+
+    The decoder's are also given for its transmissive samples alone (spec_trans >= 0.5, `inputs`
+    being its unit-cube parameters), so that the third of the space with glass and media is seen.
+    """
     targets = np.asarray(targets, np.float64)
     error = predictions.astype(np.float64) - targets
     if name == models.DECODER:
         per_image = images.rmse(predictions.astype(np.float64), targets)
-        return {"validation_loss": float(np.mean(error**2)), "validation_rmse": float(per_image.mean())}
+        transmissive = np.asarray(inputs)[:, params.INDEX["spec_trans"]] >= 0.5
+        return {
+            "validation_loss": float(np.mean(error**2)),
+            "validation_rmse": float(per_image.mean()),
+            "validation_rmse_transmissive": float(per_image[transmissive].mean()) if transmissive.any() else 0.0,
+        }
     per_parameter = np.sqrt(np.mean(error**2, axis=0))
     return {
         "validation_loss": float(np.mean(error**2)),
@@ -239,6 +248,9 @@ class Reporter:
     def end_epoch(self, record: dict) -> None:
         """Called after each epoch, once its checkpoint is written, with its history record."""
 
+    def rendering(self, done: int, total: int) -> None:
+        """Called after each render of a refracting decoder's clear-glass basis."""
+
 
 @dataclass(frozen=True)
 class Run:
@@ -257,7 +269,7 @@ class Run:
     identity: dict
     checkpoint_file: str
     weights_file: str
-    constants: dict  # untrained variables: the refracting decoder's scene image, else none
+    constants: dict  # untrained variables: the refracting decoder's clear-glass basis, else none
 
     def variables(self, weights: dict) -> dict:
         """Returns the module's whole variables for trained `weights`."""
@@ -269,8 +281,18 @@ class Run:
         return NETWORKS.index(self.name)
 
 
-def create_run(name: str, data: Dataset, out: str, config: Config, decoder: models.Decoder | None = None) -> Run:
-    """Returns the run of network `name` on a finished dataset; `decoder` replaces the decoder (a tiny one in tests)."""
+def create_run(
+    name: str,
+    data: Dataset,
+    out: str,
+    config: Config,
+    decoder: models.Decoder | None = None,
+    reporter: Reporter | None = None,
+) -> Run:
+    """Returns the run of network `name` on a finished dataset; `decoder` replaces the decoder (a tiny one in tests).
+
+    A refracting decoder's clear-glass basis is rendered into the dataset first if it is not there.
+    """
     if name not in NETWORKS:
         raise TrainingError(f"unknown network {name!r}: use decoder or 1 to 9", field="arch")
     pipeline.check_finished(data)
@@ -286,14 +308,9 @@ def create_run(name: str, data: Dataset, out: str, config: Config, decoder: mode
     root = jax.random.fold_in(jax.random.key(config.seed), NETWORKS.index(name))
     module = models.build(description)
     constants = {}
-    if name == models.DECODER and module.blur_levels:
-        scene_image = data.scene_image()
-        if scene_image is None:
-            raise TrainingError(
-                f"{data.path} has no render of the scene without its sphere, which the refracting decoder needs: "
-                f"run the `matfit render-dataset {data.path}` command that made it once more to add it"
-            )
-        constants = models.with_scene(module, {}, scene_image)
+    if name == models.DECODER and module.glass_grid:
+        basis = data.glass_basis(tuple(module.glass_grid), reporter.rendering if reporter else None)
+        constants = models.with_glass(module, {}, basis)
     return Run(
         name,
         description,
@@ -354,7 +371,8 @@ def train_epoch(run: Run, train_step, state: Checkpoint, reporter: Reporter) -> 
 def validate(run: Run, weights: dict) -> dict:
     """Returns the validation figures of `weights` on the held-out samples."""
     predictions = models.apply_in_batches(run.module, run.variables(weights), run.inputs[run.training_samples :])
-    return validation_metrics(run.name, predictions, run.targets[run.training_samples :])
+    held_out = slice(run.training_samples, None)
+    return validation_metrics(run.name, predictions, run.targets[held_out], run.inputs[held_out])
 
 
 def finish(run: Run, state: Checkpoint) -> dict:
@@ -396,7 +414,7 @@ def train_network(
     exception from the reporter) loses at most the epoch under way.
     """
     reporter = reporter or Reporter()
-    run = create_run(name, data, out, config, decoder)
+    run = create_run(name, data, out, config, decoder, reporter)
     state = create_train_state(run)
     if state.epoch == config.epochs and os.path.exists(run.weights_file):
         return models.load(run.weights_file).info["metrics"]

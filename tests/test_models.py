@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from matfit import models
+from matfit import models, params, presets, scene
 
 # The paper's Appendix A as (conv filters in order, FC neurons, dropout), written out independently.
 APPENDIX_A = {
@@ -173,57 +173,95 @@ def test_bilinear_sampling_matches_a_reference_and_clamps_at_the_border():
         )
 
 
-def test_bilinear_sampling_is_differentiable_in_the_position():
-    image = jnp.asarray(np.random.default_rng(1).uniform(size=(1, 6, 6, 3)).astype(np.float32))
-    position = jnp.array([[[[2.3, 3.6]]]])
-    gradient = jax.grad(lambda p: models.bilinear(image, p).sum())(position)
-    step = 1e-2
-    for axis in range(2):
-        shift = jnp.zeros((1, 1, 1, 2)).at[..., axis].set(step)
-        finite = (models.bilinear(image, position + shift).sum() - models.bilinear(image, position - shift).sum()) / (
-            2 * step
-        )
-        np.testing.assert_allclose(gradient[0, 0, 0, axis], finite, rtol=1e-3)
+def test_glass_interpolation_hits_grid_points_and_blends_between_them():
+    shape = (5, 3)
+    basis = jnp.asarray(np.random.default_rng(0).uniform(size=(*shape, 4, 4, 3)).astype(np.float32))
+    specular, roughness = scene.glass_grid_values(shape)  # roughness 0, 0.25, 1
+    at = models.interpolate_glass(basis, jnp.asarray([specular[2], specular[4]]), jnp.asarray([roughness[1], 1.0]))
+    np.testing.assert_allclose(at[0], basis[2, 1], atol=1e-5)
+    np.testing.assert_allclose(at[1], basis[4, 2], atol=1e-5)
+    # halfway in specular, and halfway in the square root of roughness (0.5 ** 2)
+    between = models.interpolate_glass(basis, jnp.asarray([0.125]), jnp.asarray([0.25]))
+    np.testing.assert_allclose(between[0], 0.5 * (basis[0, 1] + basis[1, 1]), atol=1e-5)
+    between = models.interpolate_glass(basis, jnp.asarray([0.0]), jnp.asarray([0.75**2]))  # root halfway 0.5 to 1
+    np.testing.assert_allclose(between[0], 0.5 * (basis[0, 1] + basis[0, 2]), atol=1e-5)
+
+    def brightness(s, r):
+        return jnp.sum(models.interpolate_glass(basis, s, r))
+
+    grad_s, grad_r = jax.grad(brightness, argnums=(0, 1))(jnp.asarray([0.3]), jnp.asarray([0.4]))
+    # specular 0.3 lies between grid points 1 and 2 (spacing 1/4); roughness 0.4 between 1 and 2 in its root
+    wr = np.sqrt(0.4) * 2 - 1
+    step = (basis[2, 1] - basis[1, 1]) * (1 - wr) + (basis[2, 2] - basis[1, 2]) * wr
+    assert float(grad_s[0]) == pytest.approx(4 * float(jnp.sum(step)), rel=1e-3)
+    assert np.isfinite(float(grad_r[0])) and float(grad_r[0]) != 0.0
 
 
-def test_blur_pyramid_keeps_level_zero_and_the_mean_of_a_delta():
-    image = np.zeros((21, 21, 1), np.float32)
-    image[10, 10] = 1.0
-    pyramid = models.blur_pyramid(image, (0.0, 1.0, 2.0))
-    assert pyramid.shape == (3, 21, 21, 1)
-    np.testing.assert_array_equal(pyramid[0], image)
-    np.testing.assert_allclose(pyramid.sum(axis=(1, 2, 3)), [1.0, 1.0, 1.0], rtol=1e-5)
-    taps = np.exp(-0.5 * (np.arange(-3, 4) / 1.0) ** 2)
-    np.testing.assert_allclose(pyramid[1, 10, 7:14, 0], taps * taps[3] / taps.sum() ** 2, rtol=1e-5)
+def test_glass_basis_materials_are_clear_glass_on_the_grid():
+    materials = scene.glass_basis_materials((3, 2))
+    assert materials.shape == (3, 2, params.COUNT)
+    unit = params.to_unit(materials)
+    index = params.INDEX
+    np.testing.assert_allclose(materials[:, 0, index["specular"]], [0.0, 0.5, 1.0])
+    np.testing.assert_allclose(materials[0, :, index["roughness"]], [0.0, 1.0])
+    assert np.all(materials[..., index["spec_trans"]] == 1.0) and np.all(materials[..., index["density"]] == 0.0)
+    assert np.all(materials[..., index["metallic"]] == 0.0) and np.all(unit >= 0) and np.all(unit <= 1)
 
 
 def tiny_refracting_decoder():
-    return models.Decoder(
-        resolution=16, hidden=16, base_channels=8, stage_channels=(8,), coordinates=True, blur_levels=(0.0, 2.0)
-    )
+    return models.Decoder(resolution=16, hidden=16, base_channels=8, stage_channels=(8,), glass_grid=(3, 2))
 
 
-def test_refracting_decoder_shows_the_scene_through_and_round_trips_with_it(tmp_path):
+def test_refracting_decoder_adds_the_glass_basis_and_round_trips_with_it(tmp_path):
     model = tiny_refracting_decoder()
-    scene = np.random.default_rng(2).uniform(0.0, 0.5, size=(16, 16, 3)).astype(np.float32)
-    variables = models.with_scene(model, dict(models.initialise(model, jax.random.key(0), (19,))), scene)
-    np.testing.assert_allclose(variables["constants"]["scene"], models.blur_pyramid(scene, (0.0, 2.0)))
+    basis = np.random.default_rng(2).uniform(0.0, 0.5, size=(3, 2, 16, 16, 3)).astype(np.float32)
+    variables = models.with_glass(model, dict(models.initialise(model, jax.random.key(0), (19,))), basis)
+    np.testing.assert_array_equal(variables["constants"]["glass"], basis)
     x = jax.random.uniform(jax.random.key(1), (2, 19))
     out = models.apply(model, variables, x)
     assert out.shape == (2, 16, 16, 3) and float(out.min()) >= 0.0 and float(out.max()) <= 1.0
-    darker = models.apply(model, models.with_scene(model, variables, scene * 0.0), x)
-    assert float(jnp.mean(out - darker)) > 0.01  # the scene behind adds light
+    darker = models.apply(model, models.with_glass(model, variables, basis * 0.0), x)
+    assert float(jnp.mean(out - darker)) > 0.002  # the glass layer adds light
+    with pytest.raises(ValueError, match="glass basis"):
+        models.with_glass(model, variables, basis[:2])
     description = models.architecture("decoder", 16, model)
+    assert description["glass_grid"] == [3, 2]
     path = str(tmp_path / "decoder.msgpack")
     models.save(path, models.Network("decoder", description, model, variables, {}))
     loaded = models.load(path)
     assert loaded.module == model
-    np.testing.assert_allclose(loaded.variables["constants"]["scene"], variables["constants"]["scene"], atol=1e-3)
+    np.testing.assert_allclose(loaded.variables["constants"]["glass"], basis, atol=1e-3)
     np.testing.assert_allclose(models.apply(loaded.module, loaded.variables, x), out, atol=1e-2)
 
 
 def test_decoder_descriptions_without_refraction_fields_still_build():
     description = models.architecture("decoder", 64)
-    for key in ("coordinates", "blur_levels", "max_offset"):
+    for key in ("coordinates", "glass_grid"):
         description.pop(key)
     assert models.build(description) == models.Decoder()
+
+
+def test_medium_features_follow_the_physics_of_the_presets():
+    names = ("milk", "glass", "amber-glass")
+    unit = jnp.asarray(params.to_unit(np.stack([presets.preset(name) for name in names])), jnp.float32)
+    opacity, transmittance, scattered, reflectance = np.split(np.asarray(models.medium_features(unit)), [3, 6, 9], 1)
+    milk, glass, amber = range(3)
+    # milk: opaque, nothing absorbed, everything scattered, a white half-space (albedo 1)
+    np.testing.assert_allclose(np.stack([opacity[milk], transmittance[milk], scattered[milk]]), 1.0, atol=1e-3)
+    assert reflectance[milk, 0] == pytest.approx(1.0, abs=0.01)
+    # clear glass: no medium at all
+    np.testing.assert_allclose(np.concatenate([opacity[glass], scattered[glass], reflectance[glass]]), 0.0, atol=1e-6)
+    np.testing.assert_allclose(transmittance[glass], 1.0)
+    # amber: absorbs blue most, scatters nothing
+    colour = presets.preset("amber-glass")[params.INDEX["medium_color_r"] : params.INDEX["medium_color_b"] + 1]
+    density = presets.preset("amber-glass")[params.INDEX["density"]]
+    np.testing.assert_allclose(transmittance[amber], colour ** (2 * density), rtol=1e-4)
+    assert transmittance[amber, 2] < transmittance[amber, 0] and reflectance[amber, 0] == 0.0
+
+
+def test_a_decoder_with_medium_inputs_has_finite_gradients_everywhere_in_the_box():
+    model = models.Decoder(resolution=16, hidden=16, base_channels=8, stage_channels=(8,), medium_inputs=True)
+    variables = models.initialise(model, jax.random.key(0), (19,))
+    corners = jnp.asarray(np.stack([np.zeros(19), np.ones(19), np.full(19, 0.5)]), jnp.float32)
+    gradient = jax.grad(lambda x: jnp.sum(models.apply(model, variables, x)))(corners)
+    assert np.all(np.isfinite(np.asarray(gradient)))

@@ -53,34 +53,57 @@ def test_training_reduces_the_loss(tmp_path, data, name):
     assert network.info["metrics"]["validation_loss"] == pytest.approx(metrics["validation_loss"])
 
 
-def test_refracting_decoder_trains_with_the_datasets_scene_and_ships_it(tmp_path, data):
-    decoder = models.Decoder(
-        resolution=32, hidden=32, base_channels=16, stage_channels=(16, 8, 8), coordinates=True, blur_levels=(0.0, 2.0)
-    )
-    metrics = train.train_network(
-        "decoder", data, str(tmp_path), Config(epochs=4, batch_size=8, learning_rate=3e-3), decoder=decoder
-    )
-    losses = [record["train_loss"] for record in metrics["history"]]
-    assert losses[-1] < 0.7 * losses[0]
-    network = models.load(models.weights_path(str(tmp_path), "decoder"), resolution=32)
-    np.testing.assert_allclose(
-        network.variables["constants"]["scene"], models.blur_pyramid(data.scene_image(), (0.0, 2.0)), atol=2e-3
-    )
+class Renders(train.Reporter):
+    def __init__(self):
+        self.calls = []
+
+    def rendering(self, done: int, total: int) -> None:
+        self.calls.append((done, total))
 
 
-def test_refracting_decoder_needs_the_scene_image(tmp_path, data):
+def test_refracting_decoder_renders_its_glass_basis_once_and_ships_it(tmp_path, data):
     copy = tmp_path / "data"
     shutil.copytree(data.path, copy)
-    os.remove(copy / dataset.SCENE_FILE)
-    decoder = models.Decoder(resolution=32, hidden=16, base_channels=8, stage_channels=(8,), blur_levels=(0.0,))
-    with pytest.raises(TrainingError, match="render-dataset"):
-        train.train_network(
-            "decoder",
-            dataset.open_dataset(str(copy)),
-            str(tmp_path / "model"),
-            Config(epochs=1, batch_size=8),
-            decoder=decoder,
-        )
+    copied = dataset.open_dataset(str(copy))
+    decoder = models.Decoder(resolution=32, hidden=32, base_channels=16, stage_channels=(16, 8, 8), glass_grid=(2, 2))
+    reporter = Renders()
+    metrics = train.train_network(
+        "decoder",
+        copied,
+        str(tmp_path / "model"),
+        Config(epochs=4, batch_size=8, learning_rate=3e-3),
+        reporter,
+        decoder,
+    )
+    assert reporter.calls == [(1, 4), (2, 4), (3, 4), (4, 4)]
+    losses = [record["train_loss"] for record in metrics["history"]]
+    assert losses[-1] < 0.85 * losses[0]  # 4 epochs on 46 samples: the loss falls
+    assert "validation_rmse_transmissive" in metrics
+    basis = np.load(copy / dataset.GLASS_FILE.format(specular=2, roughness=2))
+    assert basis.shape == (2, 2, 32, 32, 3) and not (copy / "glass-2x2.parts").exists()
+    # specular 0 is glass of index 1: the sphere vanishes, the floor and backdrop show through unbent
+    np.testing.assert_allclose(basis[0, 0].mean(), copied.scene_image().mean(), rtol=0.1)
+    assert np.abs(basis[1, 0] - basis[0, 0]).mean() > 0.01  # index 1.79 bends the checkers
+    network = models.load(models.weights_path(str(tmp_path / "model"), "decoder"), resolution=32)
+    np.testing.assert_allclose(network.variables["constants"]["glass"], basis, atol=2e-3)
+    assert copied.glass_basis((2, 2)) is not None and len(reporter.calls) == 4  # kept: not rendered again
+
+
+def test_an_interrupted_glass_basis_keeps_its_renders(tmp_path, data):
+    copy = tmp_path / "data"
+    shutil.copytree(data.path, copy)
+    copied = dataset.open_dataset(str(copy))
+
+    def stop_after_two(done, total):
+        if done == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        copied.glass_basis((2, 2), stop_after_two)
+    assert sorted(os.listdir(copy / "glass-2x2.parts")) == ["0-0.npy", "0-1.npy"]
+    first = np.load(copy / "glass-2x2.parts" / "0-0.npy")
+    basis = copied.glass_basis((2, 2))
+    np.testing.assert_array_equal(basis[0, 0], first)
 
 
 @pytest.mark.parametrize("arch", [1, 3])
