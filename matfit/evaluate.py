@@ -149,6 +149,24 @@ def evaluate(model: models.Model, references: Dataset, preset_spp: int = PRESET_
     return result
 
 
+def describe_decoder(description: dict) -> str:
+    """Returns a sentence saying how the decoder draws: its layers and whether it refracts through a glass basis."""
+    stages = ", ".join(str(channels) for channels in description.get("stage_channels", []))
+    sentence = (
+        f"Decoder: two dense layers of {description.get('hidden')} to a 4 x 4 x {description.get('base_channels')} map, "
+        f"upsampling stages of {stages} filters, a sub-pixel output convolution and a learned background"
+    )
+    grid = description.get("glass_grid") or []
+    if grid:
+        sentence += (
+            f"; it draws refraction from a {grid[0]} x {grid[1]} basis of clear-glass Mitsuba renders (specular x "
+            "roughness), tinted per pixel by a predicted transmittance"
+        )
+    if description.get("medium_inputs"):
+        sentence += "; its dense layers also see 10 physical features of the medium"
+    return sentence + "."
+
+
 def card(model: models.Model, evaluation: dict) -> str:
     """Returns the model card (Markdown) from the networks' training metrics and an evaluation."""
     decoder = model.decoder.info.get("metrics", {})
@@ -160,6 +178,8 @@ def card(model: models.Model, evaluation: dict) -> str:
         f"{data.get('spp', '?')} spp, {data.get('variant', '?')}, sampling seed {data.get('seed', '?')}); the last "
         f"{decoder.get('validation_samples', '?')} were held out for validation. Weights are stored as float16 "
         f"({weights_megabytes(model.path):.1f} MB for all networks).",
+        "",
+        describe_decoder(model.decoder.description),
         "",
         "## Training",
         "",

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from matfit import dataset, evaluate, params, presets, render
+from matfit import dataset, evaluate, models, params, presets, render
 
 
 def test_subsets_split_the_parameter_space_into_thirds():
@@ -39,3 +39,10 @@ def test_preset_references_are_rendered_once_and_kept(tiny_dataset, monkeypatch)
     np.testing.assert_array_equal(again["jade"], first["jade"])
     with pytest.raises(AssertionError, match="rendered again"):
         evaluate.preset_references(references, spp=3)  # other settings: rendered anew
+
+
+def test_the_card_says_how_the_decoder_draws_glass():
+    shipped = evaluate.describe_decoder(models.architecture("decoder", 64))
+    assert "17 x 6 basis of clear-glass Mitsuba renders" in shipped and "features of the medium" in shipped
+    plain = evaluate.describe_decoder(models.architecture("decoder", 64, models.Decoder()))
+    assert "stages of 64, 48, 32 filters" in plain and "glass" not in plain and "medium" not in plain
