@@ -39,7 +39,7 @@ _lock = threading.Lock()
 
 
 def register(path: str) -> None:
-    """Marks a temporary file to be removed if the process is ended by an interruption."""
+    """Marks a temporary file, or folder (removed once its registered files are), to be removed on an interruption."""
     _temporaries.add(path)
 
 
@@ -71,9 +71,9 @@ def announce() -> None:
 def exit_now() -> None:
     """Announces the interruption, removes the registered temporary files, ends the process (130) skipping teardown."""
     announce()
-    for path in list(_temporaries):
+    for path in sorted(_temporaries, key=len, reverse=True):  # a folder's files before the folder
         with contextlib.suppress(OSError):
-            os.unlink(path)
+            os.rmdir(path) if os.path.isdir(path) else os.unlink(path)
     with contextlib.suppress(Exception):
         sys.stdout.flush()
     os._exit(EXIT_CODE)

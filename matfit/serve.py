@@ -149,6 +149,7 @@ class Studio:
         self.model_label = model_label
         self.settings = settings or fit.Settings()
         self.folder = tempfile.mkdtemp(prefix="matfit-serve-")
+        interrupt.register(self.folder)  # a Ctrl-C that skips `close` still removes it
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="matfit-fit")
         self.jobs: dict[str, Job] = {}
         self.counter = itertools.count(1)
@@ -165,6 +166,7 @@ class Studio:
                 os.unlink(os.path.join(self.folder, name))
                 interrupt.unregister(os.path.join(self.folder, name))
             os.rmdir(self.folder)
+        interrupt.unregister(self.folder)
 
     def renderer(self, size: int):
         """Returns the Mitsuba renderer of a size, loaded once (on the worker thread)."""

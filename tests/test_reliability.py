@@ -218,3 +218,20 @@ def test_an_interruption_that_cannot_wait_removes_the_temporary_files(tmp_path):
     result = subprocess.run([sys.executable, "-c", STRAY, str(tmp_path)], capture_output=True, text=True, check=False)
     assert result.returncode == 130 and result.stderr == "interrupted: nothing was written\n"
     assert os.listdir(tmp_path) == []
+
+
+def test_an_interruption_removes_registered_temporaries_and_their_folder(tmp_path):
+    folder, kept = tmp_path / "matfit-serve-x", tmp_path / "result.png"
+    script = f"""
+import os
+from matfit import interrupt
+os.mkdir({str(folder)!r})
+open(os.path.join({str(folder)!r}, "upload.png"), "wb").write(b"x")
+open({str(kept)!r}, "wb").write(b"done")
+interrupt.register({str(folder)!r})
+interrupt.register(os.path.join({str(folder)!r}, "upload.png"))
+interrupt.exit_now()
+"""
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 130 and result.stderr.startswith("interrupted:")
+    assert not folder.exists() and kept.read_bytes() == b"done"
