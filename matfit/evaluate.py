@@ -153,8 +153,8 @@ def describe_decoder(description: dict) -> str:
     """Returns a sentence saying how the decoder draws: its layers and whether it refracts through a glass basis."""
     stages = ", ".join(str(channels) for channels in description.get("stage_channels", []))
     sentence = (
-        f"Decoder: two dense layers of {description.get('hidden')} to a 4 x 4 x {description.get('base_channels')} map, "
-        f"upsampling stages of {stages} filters, a sub-pixel output convolution and a learned background"
+        f"Decoder: two dense layers of {description.get('hidden')} to a 4 x 4 x {description.get('base_channels')} "
+        f"map, upsampling stages of {stages} filters, a sub-pixel output convolution and a learned background"
     )
     grid = description.get("glass_grid") or []
     if grid:
