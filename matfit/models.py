@@ -62,25 +62,6 @@ def max_pool(x: jax.Array) -> jax.Array:
     return x.reshape(n, h // 2, 2, w // 2, 2, c).max(axis=(2, 4))
 
 
-def upsample_bilinear(x: jax.Array) -> jax.Array:
-    """Returns (N, H, W, C) maps doubled to (N, 2H, 2W, C) by bilinear interpolation (edges repeated).
-
-    Slices and sums only: cheap, and its gradient is as cheap.
-    """
-
-    def double(x: jax.Array, axis: int) -> jax.Array:
-        size = x.shape[axis]
-        padded = jnp.concatenate(
-            [jax.lax.slice_in_dim(x, 0, 1, axis=axis), x, jax.lax.slice_in_dim(x, size - 1, size, axis=axis)], axis=axis
-        )
-        before = jax.lax.slice_in_dim(padded, 0, size, axis=axis)
-        after = jax.lax.slice_in_dim(padded, 2, size + 2, axis=axis)
-        even, odd = 0.75 * x + 0.25 * before, 0.75 * x + 0.25 * after
-        return jnp.stack([even, odd], axis=axis + 1).reshape(*x.shape[:axis], 2 * size, *x.shape[axis + 1 :])
-
-    return double(double(x, 1), 2)
-
-
 def depth_to_space(x: jax.Array) -> jax.Array:
     """Returns (N, H, W, 4C) feature maps rearranged to (N, 2H, 2W, C) (a sub-pixel convolution's shuffle)."""
     n, h, w, c = x.shape

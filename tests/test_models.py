@@ -133,44 +133,11 @@ def test_a_weights_file_of_another_network_is_refused(tmp_path):
     assert models.load_model(str(tmp_path / "elsewhere")).identity() == first.identity()  # the weights, not the place
 
 
-def test_bilinear_upsampling_matches_jax_image_resize():
-    x = jax.random.normal(jax.random.key(0), (2, 4, 6, 3))
-    expected = jax.image.resize(x, (2, 8, 12, 3), "linear")
-    np.testing.assert_allclose(models.upsample_bilinear(x), expected, atol=1e-6)
-
-
 def test_coordinate_channels_are_pixel_centres_in_the_unit_square():
     out = models.coordinate_channels(jnp.zeros((1, 2, 4, 1)))
     assert out.shape == (1, 2, 4, 3)
     np.testing.assert_allclose(out[0, 0, :, 1], [-0.75, -0.25, 0.25, 0.75])  # x along a row
     np.testing.assert_allclose(out[0, :, 0, 2], [-0.5, 0.5])  # y down a column
-
-
-def reference_bilinear(image, x, y):
-    """Bilinear lookup of one (H, W, C) image at one (x, y), clamped, written independently."""
-    height, width = image.shape[:2]
-    x, y = min(max(x, 0.0), width - 1.0), min(max(y, 0.0), height - 1.0)
-    x0, y0 = min(int(np.floor(x)), width - 2), min(int(np.floor(y)), height - 2)
-    fx, fy = x - x0, y - y0
-    return (
-        image[y0, x0] * (1 - fx) * (1 - fy)
-        + image[y0, x0 + 1] * fx * (1 - fy)
-        + image[y0 + 1, x0] * (1 - fx) * fy
-        + image[y0 + 1, x0 + 1] * fx * fy
-    )
-
-
-def test_bilinear_sampling_matches_a_reference_and_clamps_at_the_border():
-    rng = np.random.default_rng(0)
-    levels = rng.uniform(size=(2, 5, 7, 3)).astype(np.float32)
-    position = rng.uniform(-2.0, 8.0, size=(3, 4, 4, 2)).astype(np.float32)
-    out = np.asarray(models.bilinear(jnp.asarray(levels), jnp.asarray(position)))
-    assert out.shape == (3, 4, 4, 2, 3)
-    for n, i, j, level in [(0, 0, 0, 0), (1, 2, 3, 1), (2, 3, 1, 0), (2, 1, 2, 1)]:
-        x, y = position[n, i, j]
-        np.testing.assert_allclose(
-            out[n, i, j, level], reference_bilinear(levels[level], float(x), float(y)), rtol=1e-5, atol=1e-6
-        )
 
 
 def test_glass_interpolation_hits_grid_points_and_blends_between_them():
@@ -236,7 +203,7 @@ def test_refracting_decoder_adds_the_glass_basis_and_round_trips_with_it(tmp_pat
 
 def test_decoder_descriptions_without_refraction_fields_still_build():
     description = models.architecture("decoder", 64)
-    for key in ("coordinates", "glass_grid"):
+    for key in ("coordinates", "glass_grid", "medium_inputs"):
         description.pop(key)
     assert models.build(description) == models.Decoder()
 
