@@ -127,6 +127,7 @@ def render_dataset(
         str | None,
         typer.Option(help="Render on Ray (.[cluster]): 'local' (--workers CPUs, for this run), 'auto' or HOST:PORT."),
     ] = None,
+    sampler: options.Sampler = "uniform",
 ) -> None:
     """Render a training set of sampled materials; run it again to resume or to grow it."""
     from matfit.progress import Progress
@@ -134,7 +135,7 @@ def render_dataset(
     with Progress(f"rendering {out}") as progress:
         counter = progress.counter()
         data, rendered, notices = dataset.render_dataset(
-            str(out), count, resolution, spp, seed, workers, variant, counter, ray_address=ray
+            str(out), count, resolution, spp, seed, workers, variant, counter, ray_address=ray, sampler=sampler
         )
     echo_lines(notices)
     log(f"{out}: {count}/{count} samples ({rendered} rendered now, {resolution} px, {spp} spp, {data.meta['variant']})")
@@ -224,7 +225,10 @@ def train(
         str,
         typer.Option(help="decoder, 1 to 9 (one encoder), 1..9 (all nine), all (decoder and nine), or a comma list."),
     ],
-    dataset_path: Annotated[Path, typer.Option("--dataset", help="A finished `matfit render-dataset` directory.")],
+    dataset_paths: Annotated[
+        list[Path],
+        typer.Option("--dataset", help="A finished `matfit render-dataset` directory; repeat it to train on several."),
+    ],
     out: Annotated[Path, options.out("Model directory: weights, metrics, and checkpoints/ for resuming.")] = Path(
         "runs/model"
     ),
@@ -241,7 +245,7 @@ def train(
 
     names = train_module.parse_arch(arch)
     config = train_module.Config(epochs, batch_size, learning_rate, seed=seed)
-    data = dataset.open_dataset(str(dataset_path))
+    data = [dataset.open_dataset(str(path)) for path in dataset_paths]
     with TrainingProgress() as progress:
         for name, metrics in train_module.train_networks(names, data, str(out), config, progress):
             progress.note(f"{train_module.summary(name, metrics)} -> {out}")

@@ -62,6 +62,7 @@ class Settings:
     spp: int
     seed: int
     variant: str
+    sampler: str = "uniform"  # `params.SAMPLERS`: how the parameters are drawn
 
     def check(self) -> None:
         """Raises DatasetError for values no dataset should be made with."""
@@ -74,6 +75,10 @@ class Settings:
             raise DatasetError(f"spp {self.spp} is out of range: use 1 to {MAX_SPP} samples per pixel", field="spp")
         if not 0 <= self.seed <= params.MAX_SEED:
             raise DatasetError(f"seed {self.seed} is out of range: use 0 to {params.MAX_SEED}", field="seed")
+        if self.sampler not in params.SAMPLERS:
+            raise DatasetError(
+                f"sampler {self.sampler!r} is unknown: use {' or '.join(params.SAMPLERS)}", field="sampler"
+            )
 
 
 def check_count(count: int) -> None:
@@ -163,6 +168,7 @@ def _meta(settings: Settings, count: int, versions: dict) -> dict:
         "spp": settings.spp,
         "seed": settings.seed,
         "variant": settings.variant,
+        "sampler": settings.sampler,
         "integrator": scene.INTEGRATOR["type"],
         "versions": versions,
         "image_dtype": np.dtype(IMAGE_DTYPE).name,
@@ -249,8 +255,14 @@ def _check_disk(path: str, settings: Settings, count: int) -> None:
         )
 
 
-def _sampled_params(seed: int, start: int, stop: int) -> np.ndarray:
-    return np.stack([params.from_unit(params.sample_index(seed, i)) for i in range(start, stop)]).astype(np.float32)
+def sampler_of(meta: dict) -> str:
+    """Returns the sampler a dataset was drawn with (datasets made before samplers existed: uniform)."""
+    return meta.get("sampler", "uniform")
+
+
+def _sampled_params(settings: Settings, start: int, stop: int) -> np.ndarray:
+    samples = [params.sample_index(settings.seed, i, settings.sampler) for i in range(start, stop)]
+    return np.stack([params.from_unit(unit) for unit in samples]).astype(np.float32)
 
 
 def _write_arrays(directory: str, settings: Settings, count: int, old: Dataset | None) -> None:
@@ -267,7 +279,7 @@ def _write_arrays(directory: str, settings: Settings, count: int, old: Dataset |
         if old is not None:
             array[:start] = getattr(old, name.removesuffix(".npy"))
         if name == "params.npy":
-            array[start:] = _sampled_params(settings.seed, start, count)
+            array[start:] = _sampled_params(settings, start, count)
         array.flush()
         del array
     for name in shapes:
@@ -297,6 +309,11 @@ def prepare(path: str, settings: Settings, count: int, versions: dict) -> Datase
                     f"{path} was rendered with {field} {theirs}, not {ours}: "
                     f"pass {flag} to add to it, or choose a new directory"
                 )
+        if sampler_of(old.meta) != settings.sampler:
+            raise DatasetError(
+                f"{path} was drawn with sampler {sampler_of(old.meta)}, not {settings.sampler}: "
+                f"pass --sampler {sampler_of(old.meta)} to add to it, or choose a new directory"
+            )
         if old.meta.get("integrator") != scene.INTEGRATOR["type"]:
             raise DatasetError(
                 f"{path} was rendered with integrator {old.meta.get('integrator')}, this matfit renders with "
@@ -464,6 +481,7 @@ def render_dataset(
     variant: str | None = None,
     progress: Callable[[int, int, float], None] | None = None,
     ray_address: str | None = None,
+    sampler: str = "uniform",
 ) -> tuple[Dataset, int, list[str]]:
     """Creates, resumes or grows the dataset at `path` to `count` rendered samples.
 
@@ -480,7 +498,7 @@ def render_dataset(
 
         cluster.check(ray_address)
     chosen, notice = render.choose_variant(variant)
-    settings = Settings(resolution, spp, seed, chosen)
+    settings = Settings(resolution, spp, seed, chosen, sampler)
     settings.check()
     check_count(count)
     render.mitsuba(chosen)

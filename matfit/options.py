@@ -42,6 +42,10 @@ Model = Annotated[
     Path, typer.Option("--model", help="Model directory (default: the shipped model).", show_default=False)
 ]
 Variant = Annotated[Literal[VARIANTS] | None, typer.Option(help="Force a Mitsuba variant.")]
+Sampler = Annotated[
+    Literal[tuple(params.SAMPLERS)],
+    typer.Option(help="How parameters are drawn: the training distribution, or its dense-media corner (a supplement)."),
+]
 Spp = Annotated[int, typer.Option(min=1, max=dataset.MAX_SPP, help="Samples per pixel (of the renders).")]
 Size = Annotated[
     int, typer.Option(min=dataset.MIN_RESOLUTION, max=MAX_SIZE, help="Image side in pixels (of the renders).")

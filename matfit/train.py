@@ -22,6 +22,7 @@ import hashlib
 import json
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 
 import jax
@@ -86,6 +87,37 @@ class Config:
 def validation_count(samples: int, fraction: float) -> int:
     """Returns how many of the last samples are held out for validation (at least one)."""
     return max(1, round(samples * fraction))
+
+
+def as_datasets(data: Dataset | Sequence[Dataset]) -> list[Dataset]:
+    """Returns one dataset or several as a non-empty list, checking that their images are of one size."""
+    datasets = [data] if isinstance(data, Dataset) else list(data)
+    if not datasets:
+        raise TrainingError("no dataset to train on: give at least one --dataset", field="dataset")
+    for other in datasets[1:]:
+        if other.resolution != datasets[0].resolution:
+            raise TrainingError(
+                f"{other.path} holds {other.resolution} px images, {datasets[0].path} {datasets[0].resolution} px: "
+                "train on datasets of one resolution",
+                field="dataset",
+            )
+    return datasets
+
+
+def split(name: str, datasets: list[Dataset], fraction: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """Returns (inputs, targets, training samples) of network `name` over several datasets.
+
+    The last `fraction` of each dataset is held out, and the held-out samples are placed after every
+    training sample: `inputs[:training]` is what trains, the rest what validates. For one dataset
+    this is its own order, as before several were allowed.
+    """
+    parts = [pipeline.training_arrays(name, data) for data in datasets]
+    kept = [data.count - validation_count(data.count, fraction) for data in datasets]
+    order = [(x[:n], y[:n]) for (x, y), n in zip(parts, kept, strict=True)]
+    order += [(x[n:], y[n:]) for (x, y), n in zip(parts, kept, strict=True)]
+    inputs = np.concatenate([x for x, _ in order]) if len(parts) > 1 else parts[0][0]
+    targets = np.concatenate([y for _, y in order]) if len(parts) > 1 else parts[0][1]
+    return inputs, targets, sum(kept)
 
 
 def dataset_identity(data: Dataset) -> dict:
@@ -183,7 +215,9 @@ def checkpoint_path(out: str, name: str) -> str:
     return os.path.join(out, "checkpoints", name + ".ckpt")
 
 
-def save_checkpoint(path: str, name: str, description: dict, config: Config, identity: dict, state: Checkpoint) -> None:
+def save_checkpoint(
+    path: str, name: str, description: dict, config: Config, identity: dict | list, state: Checkpoint
+) -> None:
     """Writes the whole training state atomically (float32, exact)."""
     document = {
         "format": CHECKPOINT_FORMAT,
@@ -203,7 +237,7 @@ def save_checkpoint(path: str, name: str, description: dict, config: Config, ide
 
 
 def load_checkpoint(
-    path: str, name: str, description: dict, config: Config, identity: dict, template: Checkpoint
+    path: str, name: str, description: dict, config: Config, identity: dict | list, template: Checkpoint
 ) -> Checkpoint:
     """Returns the checkpoint at `path` if it belongs to this very run; refuses any other."""
     document = models.restore_document(path, CHECKPOINT_FORMAT, "checkpoint")
@@ -220,10 +254,13 @@ def load_checkpoint(
         raise TrainingError(f"{path} was made with other settings ({different}): {fix}")
     if document.get("dataset") != identity:
         stored = document.get("dataset") or {}
-        different = ", ".join(
-            f"{key} {stored.get(key)!r}" for key, value in identity.items() if stored.get(key) != value
-        )
-        raise TrainingError(f"{path} was trained on another dataset ({different}): {fix}")
+        if isinstance(stored, dict) and isinstance(identity, dict):
+            different = ", ".join(
+                f"{key} {stored.get(key)!r}" for key, value in identity.items() if stored.get(key) != value
+            )
+        else:
+            different = "another list of datasets, or another content"
+        raise TrainingError(f"{path} was trained on other datasets ({different}): {fix}")
     try:
         weights = serialization.from_state_dict(template.weights, document["weights"])
         opt_state = serialization.from_state_dict(template.opt_state, document["opt_state"])
@@ -266,7 +303,7 @@ class Run:
     tx: optax.GradientTransformation
     root: jax.Array  # the network's PRNG key; epochs and steps fold into it
     config: Config
-    identity: dict
+    identity: dict | list  # the dataset's identity, or a list of them
     checkpoint_file: str
     weights_file: str
     constants: dict  # untrained variables: the refracting decoder's clear-glass basis, else none
@@ -283,33 +320,34 @@ class Run:
 
 def create_run(
     name: str,
-    data: Dataset,
+    data: Dataset | Sequence[Dataset],
     out: str,
     config: Config,
     decoder: models.Decoder | None = None,
     reporter: Reporter | None = None,
 ) -> Run:
-    """Returns the run of network `name` on a finished dataset; `decoder` replaces the decoder (a tiny one in tests).
+    """Returns the run of network `name` on finished datasets; `decoder` replaces the decoder (a tiny one in tests).
 
-    A refracting decoder's clear-glass basis is rendered into the dataset first if it is not there.
+    A refracting decoder's clear-glass basis is rendered into the first dataset if it is not there.
     """
     if name not in NETWORKS:
         raise TrainingError(f"unknown network {name!r}: use decoder or 1 to 9", field="arch")
-    pipeline.check_finished(data)
-    config.check(data.count)
-    description = models.architecture(name, data.resolution, decoder)
+    datasets = as_datasets(data)
+    for each in datasets:
+        pipeline.check_finished(each)
+    config.check(sum(each.count for each in datasets))
+    description = models.architecture(name, datasets[0].resolution, decoder)
     weights_file = models.weights_path(out, name)
     checkpoint_file = checkpoint_path(out, name)
     os.makedirs(os.path.dirname(checkpoint_file), exist_ok=True)
     files.check_writable(weights_file)
-    inputs, targets = pipeline.training_arrays(name, data)
-    training_samples = data.count - validation_count(data.count, config.validation_fraction)
+    inputs, targets, training_samples = split(name, datasets, config.validation_fraction)
     steps = training_samples // config.batch_size
     root = jax.random.fold_in(jax.random.key(config.seed), NETWORKS.index(name))
     module = models.build(description)
     constants = {}
     if name == models.DECODER and module.glass_grid:
-        basis = data.glass_basis(tuple(module.glass_grid), reporter.rendering if reporter else None)
+        basis = datasets[0].glass_basis(tuple(module.glass_grid), reporter.rendering if reporter else None)
         constants = models.with_glass(module, {}, basis)
     return Run(
         name,
@@ -322,7 +360,7 @@ def create_run(
         optimiser(config, steps),
         root,
         config,
-        dataset_identity(data),
+        dataset_identity(datasets[0]) if len(datasets) == 1 else [dataset_identity(each) for each in datasets],
         checkpoint_file,
         weights_file,
         constants,
@@ -402,7 +440,7 @@ def finish(run: Run, state: Checkpoint) -> dict:
 
 def train_network(
     name: str,
-    data: Dataset,
+    data: Dataset | Sequence[Dataset],
     out: str,
     config: Config,
     reporter: Reporter | None = None,
@@ -426,12 +464,14 @@ def train_network(
     return finish(run, state)
 
 
-def train_networks(names: list[str], data: Dataset, out: str, config: Config, reporter: Reporter | None = None):
+def train_networks(
+    names: list[str], data: Dataset | Sequence[Dataset], out: str, config: Config, reporter: Reporter | None = None
+):
     """Trains the named networks one after another into model directory `out`; yields (name, metrics) for each."""
     if os.path.exists(out) and not os.path.isdir(out):
         raise files.OutputError(f"model directory {out} is a file: give a directory for the model", field="out")
     for name in names:  # every setting checked before the model directory is made
-        config.for_network(name).check(data.count)
+        config.for_network(name).check(sum(each.count for each in as_datasets(data)))
     os.makedirs(out, exist_ok=True)
     for name in names:
         yield name, train_network(name, data, out, config.for_network(name), reporter)

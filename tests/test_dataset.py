@@ -148,6 +148,20 @@ def test_other_settings_are_refused(reference, settings, change, message):
         dataset.prepare(str(reference), other, 40, VERSIONS)
 
 
+def test_a_dataset_records_its_sampler_and_refuses_another(tmp_path, reference, settings):
+    assert json.loads((reference / "meta.json").read_text())["sampler"] == "uniform"
+    media = Settings(**{**settings.__dict__, "sampler": "dense-media"})
+    data = dataset.prepare(str(tmp_path / "media"), media, 6, VERSIONS)
+    assert data.meta["sampler"] == "dense-media"
+    expected = np.stack([params.from_unit(params.sample_index(3, i, "dense-media")) for i in range(6)])
+    np.testing.assert_allclose(data.params, expected, rtol=1e-6)
+    with pytest.raises(DatasetError, match="drawn with sampler uniform, not dense-media: pass --sampler uniform"):
+        dataset.prepare(str(reference), media, 40, VERSIONS)
+    with pytest.raises(DatasetError, match="sampler 'milk' is unknown: use uniform or dense-media"):
+        dataset.prepare(str(tmp_path / "other"), Settings(**{**settings.__dict__, "sampler": "milk"}), 6, VERSIONS)
+    assert not (tmp_path / "other").exists()
+
+
 def test_other_parameter_table_is_refused(tmp_path, reference):
     for name in ("meta.json", *dataset.ARRAYS):
         (tmp_path / name).write_bytes((reference / name).read_bytes())

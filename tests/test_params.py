@@ -52,6 +52,36 @@ def test_sampling_covers_the_corners():
     assert np.mean(samples[:, params.INDEX["phase_g"]] < 0.5) == pytest.approx(0.5, abs=0.04)
 
 
+def test_dense_media_sampler_draws_dense_transmissive_nearly_lossless_media():
+    unit = np.stack([params.sample_index(0, i, "dense-media") for i in range(2000)])
+    assert unit.min() >= 0.0 and unit.max() <= 1.0
+    physical = params.from_unit(unit)
+    assert physical[:, params.INDEX["spec_trans"]].min() >= 0.95
+    density = physical[:, params.INDEX["density"]]
+    assert density.min() >= 0.5 and density.max() <= 4.0
+    assert np.mean(density) == pytest.approx(2.25, abs=0.1)  # uniform in [0.5, 4]
+    albedo = physical[:, params.INDEX["scattering"]]
+    assert albedo.min() >= 0.85
+    assert np.mean(albedo >= 0.99) == pytest.approx((0.01 / 0.15) ** (1 / 3), abs=0.04)  # 1 - 0.15 u^3 >= 0.99
+    # the uniform sampler draws such materials a fraction of a percent of the time
+    uniform = params.from_unit(np.stack([params.sample_index(0, i) for i in range(2000)]))
+    milky = (
+        (uniform[:, params.INDEX["spec_trans"]] >= 0.95)
+        & (uniform[:, params.INDEX["density"]] >= 0.5)
+        & (uniform[:, params.INDEX["scattering"]] >= 0.99)
+    )
+    assert np.mean(milky) < 0.02
+    # the other parameters are drawn as the training distribution draws them
+    roughness = unit[:, params.INDEX["roughness"]]
+    assert np.mean(roughness < 0.1) > 0.3
+    np.testing.assert_array_equal(params.sample_index(0, 5, "dense-media"), params.sample_index(0, 5, "dense-media"))
+
+
+def test_unknown_sampler_is_refused():
+    with pytest.raises(ParameterError, match="unknown sampler 'milk': use uniform or dense-media"):
+        params.sample_index(0, 0, "milk")
+
+
 def test_params_json_partial_files_take_defaults_in_both_layouts():
     flat = params.parse_params_json('{"roughness": 0.2, "metallic": 1}')
     nested = params.parse_params_json(json.dumps({"params": {"roughness": 0.2, "metallic": 1}, "method": "hybrid"}))

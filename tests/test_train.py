@@ -37,6 +37,35 @@ def test_split_holds_out_the_last_samples():
     assert train.validation_count(22000, 0.05) == 1100
 
 
+def test_several_datasets_train_together_and_each_holds_out_its_own_last_samples(tmp_path, data):
+    second = tmp_path / "second"
+    shutil.copytree(data.path, second)
+    other = dataset.open_dataset(str(second))
+    inputs, targets, training = train.split("decoder", [data, other], 0.05)
+    unit = data.unit_params()
+    assert training == 92 and len(inputs) == 96
+    np.testing.assert_array_equal(inputs[:46], unit[:46])
+    np.testing.assert_array_equal(inputs[46:92], unit[:46])
+    np.testing.assert_array_equal(inputs[92:], np.concatenate([unit[46:], unit[46:]]))
+    np.testing.assert_array_equal(targets[92:94], pipeline.srgb_targets(data)[46:])
+    alone = train.split("decoder", [data], 0.05)
+    assert alone[2] == 46 and np.array_equal(alone[0], unit)
+    metrics = train.train_network(
+        "decoder", [data, other], str(tmp_path / "m"), Config(epochs=1, batch_size=8), decoder=TINY_DECODER
+    )
+    assert metrics["training_samples"] == 92 and metrics["validation_samples"] == 4
+    assert [each["count"] for each in metrics["dataset"]] == [48, 48]
+
+
+def test_datasets_of_two_resolutions_are_refused(tmp_path, data, renderer):
+    small = dataset.prepare(str(tmp_path / "small"), dataset.Settings(16, 1, 5, renderer.variant), 4, {})
+    dataset.render_missing(small, 0)
+    with pytest.raises(TrainingError, match=r"16 px images, .* 32 px: train on datasets of one resolution"):
+        train.create_run("decoder", [data, dataset.open_dataset(str(tmp_path / "small"))], str(tmp_path), Config(1))
+    with pytest.raises(TrainingError, match="no dataset to train on: give at least one --dataset"):
+        train.create_run("decoder", [], str(tmp_path), Config(1))
+
+
 @pytest.mark.parametrize("name", ["decoder", "encoder-8"])
 def test_training_reduces_the_loss(tmp_path, data, name):
     metrics = train.train_network(
