@@ -95,10 +95,11 @@ class RendererProcess:
         self.close()
 
     def close(self) -> None:
-        """Ends the child (it also ends by itself when this process does)."""
+        """Ends the child now, whatever it is doing (it holds nothing to save; it also ends when this process does)."""
         for stream in (self._requests, self._replies):
             with contextlib.suppress(OSError):
                 stream.close()
+        self._process.kill()
         self._process.wait()
 
     def _send(self, message: tuple) -> None:
