@@ -7,27 +7,54 @@ child at once that imports Mitsuba on the other core while the parent works; `op
 model's resolution is known) has it load the scene and render once, so that the kernels are loaded
 too; `render` then answers like `Renderer.render`.
 
-The child is private to its parent: requests and replies are pickles over two pipes (the child's
-own stdout and stderr stay closed, so nothing of Mitsuba's reaches the terminal), it ignores Ctrl-C
-(the parent handles it) and ends when its request pipe closes, which happens however the parent
-ends (normally, `os._exit` after Ctrl-C, kill -9). A failure in the child reaches the parent as
-the same `RenderError` an in-process renderer would raise.
+The child is private to its parent: requests and replies are JSON headers (and an image's raw
+float32 bytes) over two pipes; its own stdout and stderr stay closed, so nothing of Mitsuba's
+reaches the terminal. It ignores Ctrl-C (the parent handles it) and ends when its request pipe
+closes, which happens however the parent ends (normally, `os._exit` after Ctrl-C, kill -9). A
+failure in the child reaches the parent as the same `RenderError` an in-process renderer raises.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
-import pickle
 import signal
+import struct
 import subprocess
 import sys
+from typing import BinaryIO
 
 import numpy as np
 
 from matfit.errors import RenderError
 
 WARM_UP_SPP = 1
+HEADER = struct.Struct("<I")  # a message: its JSON header's length, the header, then the payload it announces
+
+
+def write_message(stream: BinaryIO, header: dict, payload: bytes = b"") -> None:
+    """Writes one message (a JSON header and optional raw bytes) and flushes it."""
+    text = json.dumps(header).encode()
+    stream.write(HEADER.pack(len(text)) + text + payload)
+    stream.flush()
+
+
+def _read_exactly(stream: BinaryIO, size: int) -> bytes:
+    data = stream.read(size)
+    if len(data) != size:
+        raise EOFError("the pipe closed")
+    return data
+
+
+def read_message(stream: BinaryIO) -> dict:
+    """Reads one message's header, with an image's array under "image" when it announces one."""
+    header = json.loads(_read_exactly(stream, HEADER.unpack(_read_exactly(stream, HEADER.size))[0]))
+    if "shape" in header:
+        shape = tuple(header["shape"])
+        data = _read_exactly(stream, int(np.prod(shape)) * 4)
+        header["image"] = np.frombuffer(data, np.float32).reshape(shape).copy()
+    return header
 
 
 class RendererProcess:
@@ -58,14 +85,15 @@ class RendererProcess:
                 raise RenderError(f"this renderer renders {self.resolution} px; it cannot switch to {resolution} px")
             return
         self.resolution, self.spp = resolution, spp
-        self._send(("open", resolution, spp))
+        self._send({"op": "open", "resolution": int(resolution), "spp": int(spp)})
 
     def _opened_reply(self) -> tuple[str, str | None]:
         if self.resolution is None:
             raise RenderError("the renderer process was not opened: call open(resolution, spp) first")
         if self._opened is None:
             try:
-                self._opened = self._receive()
+                reply = self._receive()
+                self._opened = (reply["variant"], reply["notice"])
             except RenderError as error:
                 self._opened = error
         if isinstance(self._opened, RenderError):
@@ -85,8 +113,9 @@ class RendererProcess:
     def render(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> np.ndarray:
         """Returns the linear float32 (H, W, 3) image of a material rendered with `seed`, as `Renderer.render`."""
         self._opened_reply()
-        self._send(("render", np.asarray(values, np.float64), int(seed), spp))
-        return self._receive()
+        values = [float(value) for value in np.asarray(values, np.float64).reshape(-1)]
+        self._send({"op": "render", "values": values, "seed": int(seed), "spp": None if spp is None else int(spp)})
+        return self._receive()["image"]
 
     def __enter__(self) -> RendererProcess:
         return self
@@ -102,21 +131,20 @@ class RendererProcess:
         self._process.kill()
         self._process.wait()
 
-    def _send(self, message: tuple) -> None:
+    def _send(self, message: dict) -> None:
         try:
-            pickle.dump(message, self._requests, protocol=pickle.HIGHEST_PROTOCOL)
-            self._requests.flush()
+            write_message(self._requests, message)
         except (BrokenPipeError, ValueError):
             self._stopped()
 
-    def _receive(self):
+    def _receive(self) -> dict:
         try:
-            kind, value = pickle.load(self._replies)
-        except (EOFError, OSError, pickle.UnpicklingError):
+            reply = read_message(self._replies)
+        except (EOFError, OSError, ValueError):
             self._stopped()
-        if kind == "error":
-            raise RenderError(value)
-        return value
+        if "error" in reply:
+            raise RenderError(reply["error"])
+        return reply
 
     def _stopped(self):
         code = self._process.poll()
@@ -130,11 +158,6 @@ def serve(request_fd: int, reply_fd: int, variant: str | None) -> None:
     """The child's loop: load Mitsuba, then answer `open` and `render` requests until the request pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C; closing the pipe ends this process
     with os.fdopen(request_fd, "rb") as requests, os.fdopen(reply_fd, "wb") as replies:
-
-        def reply(kind: str, value: object) -> None:
-            pickle.dump((kind, value), replies, protocol=pickle.HIGHEST_PROTOCOL)
-            replies.flush()
-
         renderer, failure = None, None
         try:
             from matfit import render
@@ -144,26 +167,28 @@ def serve(request_fd: int, reply_fd: int, variant: str | None) -> None:
             failure = str(error)
         while True:
             try:
-                request = pickle.load(requests)
-            except (EOFError, OSError):
+                request = read_message(requests)
+            except (EOFError, OSError, ValueError):
                 return
             try:
                 if failure is not None:
                     raise RenderError(failure)
-                if request[0] == "open":
+                if request["op"] == "open":
                     from matfit import params
                     from matfit.render import Renderer
 
-                    renderer = Renderer(request[1], request[2], variant)
+                    renderer = Renderer(request["resolution"], request["spp"], variant)
                     renderer.render(params.DEFAULTS, seed=0, spp=WARM_UP_SPP)  # loads the kernels
-                    reply("opened", (renderer.variant, renderer.notice))
+                    write_message(replies, {"variant": renderer.variant, "notice": renderer.notice})
                 else:
-                    _, values, seed, spp = request
-                    reply("image", renderer.render(values, seed=seed, spp=spp))
+                    image = renderer.render(np.array(request["values"]), seed=request["seed"], spp=request["spp"])
+                    image = np.ascontiguousarray(image, np.float32)
+                    write_message(replies, {"shape": list(image.shape)}, image.tobytes())
             except BrokenPipeError:
                 return
             except Exception as error:  # reported to the parent, which raises it
-                reply("error", str(error) if isinstance(error, RenderError) else f"Mitsuba could not render: {error}")
+                message = str(error) if isinstance(error, RenderError) else f"Mitsuba could not render: {error}"
+                write_message(replies, {"error": message})
 
 
 if __name__ == "__main__":
