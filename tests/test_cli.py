@@ -102,6 +102,7 @@ def test_bad_params_files(tmp_path, content, fragments):
         (("render-dataset", "{tmp}/d", "--count", "5", "--spp", "0"), ("spp 0 is out of range",)),
         (("render-dataset", "{tmp}/missing/d", "--count", "5"), ("does not exist",)),
         (("render-dataset", "/proc/d", "--count", "5"), ("read-only",)),
+        (("render-dataset", "{tmp}/d", "--count", "5", "--sampler", "milk"), ("--sampler milk", "dense-media")),
     ],
 )
 def test_bad_arguments_give_one_line_errors(tmp_path, arguments, fragments):
@@ -114,6 +115,27 @@ def test_dataset_with_other_settings_is_refused(tmp_path):
     assert run("render-dataset", tmp_path / "d", "--count", 4, "--resolution", 16, "--spp", 2).exit_code == 0
     result = run("render-dataset", tmp_path / "d", "--count", 4, "--resolution", 32, "--spp", 2)
     assert_one_line_error(result, "rendered with resolution 16, not 32")
+    result = run(
+        "render-dataset", tmp_path / "d", "--count", 6, "--resolution", 16, "--spp", 2, "--sampler", "dense-media"
+    )
+    assert_one_line_error(result, "drawn with sampler uniform, not dense-media: pass --sampler uniform")
+
+
+def test_a_dense_media_supplement_trains_beside_the_training_set(tmp_path, tiny_dataset):
+    supplement = tmp_path / "media"
+    arguments = ("--count", 8, "--resolution", 32, "--spp", 1, "--seed", 2, "--sampler", "dense-media")
+    assert run("render-dataset", supplement, *arguments).exit_code == 0
+    assert json.loads((supplement / "meta.json").read_text())["sampler"] == "dense-media"
+    spec_trans = np.load(supplement / "params.npy")[:, params.INDEX["spec_trans"]]
+    assert spec_trans.min() >= 0.95
+    result = run(
+        "train", "--arch", "decoder", "--dataset", tiny_dataset, "--dataset", supplement, "--epochs", 1,
+        "--batch-size", 8, "--out", tmp_path / "m",
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((tmp_path / "m" / "decoder.json").read_text())
+    assert metrics["training_samples"] == 46 + 7 and metrics["validation_samples"] == 2 + 1
+    assert [each["count"] for each in metrics["dataset"]] == [48, 8]
 
 
 @pytest.mark.skipif(
