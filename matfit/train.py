@@ -31,7 +31,7 @@ import numpy as np
 import optax
 from flax import serialization
 
-from matfit import files, images, models, params, pipeline
+from matfit import dataset, files, images, models, params, pipeline
 from matfit.dataset import Dataset
 from matfit.errors import TrainingError
 from matfit.models import NETWORKS
@@ -130,6 +130,7 @@ def dataset_identity(data: Dataset) -> dict:
         "spp": int(meta["spp"]),
         "seed": int(meta["seed"]),
         "variant": meta.get("variant"),
+        "sampler": dataset.sampler_of(meta),
         "params_sha256": digest,
     }
 
