@@ -167,17 +167,39 @@ def describe_decoder(description: dict) -> str:
     return sentence + "."
 
 
+def training_sets(metrics: dict) -> list[dict]:
+    """Returns the identities of the datasets a network trained on (one, or a list of them)."""
+    datasets = metrics.get("dataset", {})
+    return datasets if isinstance(datasets, list) else [datasets]
+
+
+def describe_training(decoder: dict) -> str:
+    """Returns the model card's sentence on what the decoder (and the encoders) trained on, from its metrics."""
+    datasets = training_sets(decoder)
+    data = datasets[0]
+    sentence = (
+        f"Trained on {data.get('count', '?')} Mitsuba renders ({data.get('resolution', '?')} px, "
+        f"{data.get('spp', '?')} spp, {data.get('variant', '?')}, sampling seed {data.get('seed', '?')})"
+    )
+    for extra in datasets[1:]:
+        sentence += (
+            f", the decoder also on {extra.get('count', '?')} drawn by the {extra.get('sampler', '?')} sampler "
+            f"(seed {extra.get('seed', '?')}; the encoders on the first set alone)"
+        )
+    fraction = decoder.get("config", {}).get("validation_fraction", 0.05)
+    held_out = decoder.get("validation_samples", "?")
+    return f"{sentence}; the last {100 * fraction:.0f}% of each set ({held_out} renders) were held out for validation."
+
+
 def card(model: models.Model, evaluation: dict) -> str:
     """Returns the model card (Markdown) from the networks' training metrics and an evaluation."""
     decoder = model.decoder.info.get("metrics", {})
-    data = decoder.get("dataset", {})
+    data = training_sets(decoder)[0]
     lines = [
         "# matfit model card",
         "",
-        f"Trained on {data.get('count', '?')} Mitsuba renders ({data.get('resolution', '?')} px, "
-        f"{data.get('spp', '?')} spp, {data.get('variant', '?')}, sampling seed {data.get('seed', '?')}); the last "
-        f"{decoder.get('validation_samples', '?')} were held out for validation. Weights are stored as float16 "
-        f"({weights_megabytes(model.path):.1f} MB for all networks).",
+        f"{describe_training(decoder)} Weights are stored as float16 ({weights_megabytes(model.path):.1f} MB for "
+        "all networks).",
         "",
         describe_decoder(model.decoder.description),
         "",

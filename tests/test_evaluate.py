@@ -46,3 +46,20 @@ def test_the_card_says_how_the_decoder_draws_glass():
     assert "17 x 6 basis of clear-glass Mitsuba renders" in shipped and "features of the medium" in shipped
     plain = evaluate.describe_decoder(models.architecture("decoder", 64, models.Decoder()))
     assert "stages of 64, 48, 32 filters" in plain and "glass" not in plain and "medium" not in plain
+
+
+def test_the_card_says_what_the_decoder_trained_on():
+    first = {"count": 22000, "resolution": 64, "spp": 16, "variant": "llvm_ad_rgb", "seed": 0, "sampler": "uniform"}
+    one = {"dataset": first, "validation_samples": 1100, "config": {"validation_fraction": 0.05}}
+    assert evaluate.describe_training(one) == (
+        "Trained on 22000 Mitsuba renders (64 px, 16 spp, llvm_ad_rgb, sampling seed 0); "
+        "the last 5% of each set (1100 renders) were held out for validation."
+    )
+    media = {**first, "count": 4000, "seed": 2, "sampler": "dense-media"}
+    two = {**one, "dataset": [first, media], "validation_samples": 1300}
+    sentence = evaluate.describe_training(two)
+    assert (
+        "the decoder also on 4000 drawn by the dense-media sampler (seed 2; the encoders on the first set alone)"
+        in (sentence)
+    )
+    assert "(1300 renders)" in sentence
