@@ -134,6 +134,36 @@ def verification_table(renderer, results: list[fit.Result], targets: Targets, sp
     return "\n".join(lines)
 
 
+def judged_table(renderer, answers: dict[str, list[np.ndarray]], targets: Targets, start: str) -> str:
+    """Returns the answers' physical quality (Markdown): per label, the mean Mitsuba RMSE of its unit-cube answers
+    as independent JUDGE_SPP renders see them (one seed per target for every answer), the share of that above the
+    judge's noise floor (the target's true parameters so rendered), and on how many targets it is no worse than the
+    answers labelled `start`.
+    """
+    floor = [rendered_rmse(renderer, unit, target, JUDGE_SEED + k, JUDGE_SPP) for k, (unit, target) in
+             enumerate(zip(targets.unit, targets.images, strict=True))]  # fmt: skip
+    judged = {
+        label: np.array(
+            [
+                rendered_rmse(renderer, unit, target, JUDGE_SEED + k, JUDGE_SPP)
+                for k, (unit, target) in enumerate(zip(units, targets.images, strict=True))
+            ]
+        )
+        for label, units in answers.items()
+    }
+    lines = [
+        f"| answer | mean Mitsuba RMSE ({JUDGE_SPP} spp judge) | above the noise floor | no worse than the {start} |",
+        "|---|---|---|---|",
+        f"| the true parameters (the judge's noise floor) | {np.mean(floor):.3f} | | |",
+    ]
+    for label, errors in judged.items():
+        no_worse = int(np.sum(errors <= judged[start] + 1e-9))
+        lines.append(
+            f"| {label} | {errors.mean():.3f} | {errors.mean() - np.mean(floor):.3f} | {no_worse}/{len(errors)} |"
+        )
+    return "\n".join(lines)
+
+
 def markdown(table: dict[str, dict], reference: str, mitsuba: dict[str, np.ndarray]) -> str:
     """Returns the comparison as a Markdown table; `reference` is the configuration others are compared to."""
     lines = [
@@ -654,9 +684,23 @@ def fit_comparison(model: models.Model, count: int, evaluations: int, log=print)
     reference = f"hybrid {evaluations}"
     shown = ("nn (best-of-n)", reference, "lbfgsb, 4 starts (default)", "hybrid-lbfgsb 300, 4 starts")
     mitsuba = {label: mitsuba_rmse(renderer, table[label]["results"], targets) for label in shown}
+    default = table["lbfgsb, 4 starts (default)"]["results"]
     log("verification at each spp, judged by independent renders")
-    verification = verification_table(renderer, table["lbfgsb, 4 starts (default)"]["results"], targets)
-    return f"{markdown(table, reference, mitsuba)}\n\nVerification of the default's candidates:\n\n{verification}"
+    verification = verification_table(renderer, default, targets)
+    log(f"every answer judged by an independent {JUDGE_SPP}-spp render")
+    answers = {
+        "best-of-n start": [result.start for result in default],
+        reference: [result.unit for result in table[reference]["results"]],
+        "default, not verified": [result.unit for result in default],
+        "default, verified (what `matfit fit` answers)": [
+            verify.verify(renderer, result, target).unit for result, target in zip(default, targets.images, strict=True)
+        ],
+    }
+    judged = judged_table(renderer, answers, targets, "best-of-n start")
+    return (
+        f"{markdown(table, reference, mitsuba)}\n\nVerification of the default's candidates:\n\n{verification}"
+        f"\n\nThe answers as the user keeps them, in Mitsuba:\n\n{judged}"
+    )
 
 
 def check_output_folder(path: str, field: str) -> None:

@@ -66,3 +66,21 @@ def test_the_verification_table_judges_every_spp_by_one_independent_render(model
     kept = {int(row.split("|")[1]): float(row.split("|")[3]) for row in rows[2:4]}
     oracle, start = (float(row.split("|")[3]) for row in rows[4:6])
     assert all(oracle <= figure + 1e-9 for figure in kept.values()) and oracle <= start + 1e-9
+
+
+def test_the_judged_table_compares_answers_under_one_independent_render(renderer32, monkeypatch):
+    from matfit import bench
+
+    monkeypatch.setattr(bench, "JUDGE_SPP", 8)
+    units = np.stack([np.full(19, 0.3), np.full(19, 0.6)]).astype(np.float32)
+    targets = bench.Targets(
+        units, np.stack([images.srgb_encode(renderer32.render(fit.params.from_unit(u), spp=64)) for u in units])
+    )
+    far = [np.full(19, 0.9), np.full(19, 0.05)]
+    table = bench.judged_table(renderer32, {"start": far, "truth again": list(units)}, targets, "start")
+    rows = [row.split("|") for row in table.splitlines()[2:]]
+    floor = float(rows[0][2])
+    assert rows[1][1].strip() == "start" and rows[1][4].strip() == "2/2"
+    # the true parameters again, with the same judge seeds: exactly the floor, and better than the far start
+    assert float(rows[2][2]) == pytest.approx(floor) and float(rows[2][3]) == pytest.approx(0.0, abs=1e-3)
+    assert float(rows[1][2]) > floor + 5 and rows[2][4].strip() == "2/2"
