@@ -8,7 +8,6 @@ Options that several commands take are declared once, in `options`.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import json
 import os
@@ -174,18 +173,12 @@ def fit_command(
     refine: options.Refine = 0,
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
-    from matfit.render_process import RendererProcess
+    from matfit import fitfile
 
-    renders = verify or refine or report is not None or render is not None
-    with RendererProcess() if renders else contextlib.nullcontext() as renderer:  # Mitsuba loads while JAX does
-        from matfit import fitfile
-
-        text = options.text
-        outputs = fitfile.Outputs(str(output), text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
-        settings = Settings(method, evaluations, box, polish_steps=polish_steps, starts=starts, iterations=iterations)
-        outcome = fitfile.run(
-            str(target), str(model_path), settings, outputs, text(mask), seed, text(init), verify, refine, renderer
-        )
+    text = options.text
+    outputs = fitfile.Outputs(str(output), text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
+    settings = Settings(method, evaluations, box, polish_steps=polish_steps, starts=starts, iterations=iterations)
+    outcome = fitfile.run(str(target), str(model_path), settings, outputs, text(mask), seed, text(init), verify, refine)
     echo_lines(outcome.notices)
     log(outcome.summary(str(output)))
 

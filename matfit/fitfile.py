@@ -17,7 +17,6 @@ import numpy as np
 
 from matfit import files, fit, images, models, params, refine, verify
 from matfit.errors import FitError, ImageError, OutputError
-from matfit.render_process import RendererProcess
 
 PROJECT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEFAULT_MODEL = os.path.join(PROJECT, "data", "models", "default")  # shipped in the repository
@@ -131,14 +130,12 @@ def run(
     init: str | None = None,
     verified: bool = True,
     refine_steps: int = 0,
-    renderer=None,
 ) -> Outcome:
     """Fits the image file `target` with a model (or a model directory) and writes `outputs`; returns what was found.
 
     `init`: a params.json of the source material, whose parameters join best-of-n's candidates.
     `verified`: let Mitsuba choose among the fit's final candidates (`verify.verify`); `refine_steps`:
-    then that many steps through Mitsuba's differentiable renderer (`refine.refine`); `renderer`: as
-    `fit_file` takes it (the command line passes a `RendererProcess` it started first). Every input
+    then that many steps through Mitsuba's differentiable renderer (`refine.refine`). Every input
     is read and every output path checked before the fit; the outputs are written together at the
     end (`files.together`), so a failure leaves none of them.
     """
@@ -146,17 +143,7 @@ def run(
     outputs.check()
     init_values = params.read_file(init) if init is not None else None
     outcome, renderer = fit_file(
-        target,
-        model,
-        settings,
-        mask,
-        seed,
-        init_values,
-        verified,
-        refine_steps,
-        outputs.needs_render,
-        renderer=renderer,
-        source=init,
+        target, model, settings, mask, seed, init_values, verified, refine_steps, outputs.needs_render, source=init
     )
     with files.together() as batch:
         write_outputs(outcome, outputs, batch, renderer)
@@ -183,9 +170,8 @@ def fit_file(
     Writes nothing: `run` writes the CLI's files, `serve` offers the same ones for download.
     `init_values`: the source material's physical parameters (joining best-of-n's candidates), read
     from the file `source` (recorded in the document); `renderer`: a loaded `render.Renderer` at the
-    model's resolution to reuse, a `RendererProcess` not yet opened (opened at the model's resolution
-    as soon as the model is loaded, so that its scene loads while this process fits), or None (one
-    is made when verification, refinement or a render output needs it).
+    model's resolution to reuse, or None (one is made when verification, refinement or a render
+    output needs it).
     """
     settings.check()
     if refine_steps < 0:
@@ -196,8 +182,6 @@ def fit_file(
     extra = params.to_unit(init_values)[None] if init_values is not None else None
     model_path = model if isinstance(model, str) else model.path
     model = load_model(model) if isinstance(model, str) else model
-    if isinstance(renderer, RendererProcess):
-        renderer.open(model.resolution, verify.SPP)
     target_srgb, weights, notices = read_target(target, model.resolution, mask)
     result = fit.fit(model, target_srgb, settings, weights, extra=extra, seed=seed)
     outcome = Outcome(result, target_srgb, result.unit, result.image, result.rmse, notices=notices)
