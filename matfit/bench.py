@@ -140,8 +140,7 @@ def judged_table(renderer, answers: dict[str, list[np.ndarray]], targets: Target
     judge's noise floor (the target's true parameters so rendered), and on how many targets it is no worse than the
     answers labelled `start`.
     """
-    floor = [rendered_rmse(renderer, unit, target, JUDGE_SEED + k, JUDGE_SPP) for k, (unit, target) in
-             enumerate(zip(targets.unit, targets.images, strict=True))]  # fmt: skip
+    floor_label = "the true parameters (the judge's noise floor)"
     judged = {
         label: np.array(
             [
@@ -149,12 +148,13 @@ def judged_table(renderer, answers: dict[str, list[np.ndarray]], targets: Target
                 for k, (unit, target) in enumerate(zip(units, targets.images, strict=True))
             ]
         )
-        for label, units in answers.items()
+        for label, units in {floor_label: list(targets.unit), **answers}.items()
     }
+    floor = judged.pop(floor_label)
     lines = [
         f"| answer | mean Mitsuba RMSE ({JUDGE_SPP} spp judge) | above the noise floor | no worse than the {start} |",
         "|---|---|---|---|",
-        f"| the true parameters (the judge's noise floor) | {np.mean(floor):.3f} | | |",
+        f"| {floor_label} | {np.mean(floor):.3f} | | |",
     ]
     for label, errors in judged.items():
         no_worse = int(np.sum(errors <= judged[start] + 1e-9))
