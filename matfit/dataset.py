@@ -48,10 +48,12 @@ ARRAYS = ("params.npy", "images.npy", "done.npy")
 # The scene without its sphere: rendered once, clean.
 SCENE_FILE = "scene.npy"
 SCENE_SPP = 4096
-# The refracting decoder's clear-glass basis (`scene.glass_basis_materials`): rendered on first use,
-# one file per grid point while under way (resumable), then one array per grid shape.
+# The refracting decoder's clear-glass and scattering bases (`scene.glass_basis_materials`,
+# `scene.medium_basis_materials`): rendered on first use, one file per grid point while under way
+# (resumable), then one array per grid shape (the scattering one without its thickness-0 row).
 GLASS_FILE = "glass-{specular}x{roughness}.npy"
-GLASS_SPP = 1024
+MEDIUM_FILE = "medium-{thickness}x{albedo}.npy"
+BASIS_SPP = 1024
 
 
 @dataclass(frozen=True)
@@ -123,36 +125,53 @@ class Dataset:
         return np.load(path).astype(np.float32) if os.path.isfile(path) else None
 
     def glass_basis(self, shape: tuple[int, int], progress: Callable[[int, int], None] | None = None) -> np.ndarray:
-        """Returns the clear-glass basis (S, G, R, R, 3), linear float32, rendering what is missing first.
-
-        Each grid point is rendered at GLASS_SPP with a seed no sample has and kept in a file of
-        its own until all are there, so an interrupted call loses at most one render;
-        `progress(done, total)` after each one.
-        """
+        """Returns the clear-glass basis (S, G, R, R, 3) of `scene.glass_basis_materials`, linear float32,
+        rendering what is missing first; `progress(done, total)` after each render."""
         path = os.path.join(self.path, GLASS_FILE.format(specular=shape[0], roughness=shape[1]))
+        return self.rendered_grid(path, scene.glass_basis_materials(shape), 0, progress)
+
+    def medium_basis(self, shape: tuple[int, int], progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+        """Returns the scattering basis (T, A, R, R, 3) of `scene.medium_basis_materials`, linear float32: each
+        grid point's render less that of its thickness at albedo 0 (the last column), so only the light the
+        medium scatters; zero at thickness 0 (not rendered). Renders what is missing first."""
+        path = os.path.join(self.path, MEDIUM_FILE.format(thickness=shape[0], albedo=shape[1]))
+        materials = scene.medium_basis_materials(shape)[1:]
+        rendered = self.rendered_grid(path, materials, 2**16, progress)  # seeds apart from any glass grid's
+        scattered = rendered - rendered[:, -1:]
+        return np.concatenate([np.zeros_like(scattered[:1]), scattered])
+
+    def rendered_grid(
+        self, path: str, materials: np.ndarray, offset: int, progress: Callable[[int, int], None] | None
+    ) -> np.ndarray:
+        """Returns Mitsuba renders (K, L, R, R, 3) of a grid of materials (K, L, 19), kept in `path`.
+
+        Each grid point is rendered at BASIS_SPP with a seed no sample has (`offset` keeps the seeds
+        of two grids apart) and kept in a file of its own until all are there, so an interrupted
+        call loses at most one render.
+        """
         if os.path.isfile(path):
             return np.load(path)
         from matfit.render import Renderer
 
+        shape = materials.shape[:2]
         parts = path[: -len(".npy")] + ".parts"
         os.makedirs(parts, exist_ok=True)
-        materials = scene.glass_basis_materials(shape)
-        basis = np.zeros((*shape, self.resolution, self.resolution, 3), np.float32)
+        grid = np.zeros((*shape, self.resolution, self.resolution, 3), np.float32)
         renderer = None
         for done, (i, j) in enumerate(np.ndindex(*shape)):
             part = os.path.join(parts, f"{i}-{j}.npy")
             if not os.path.isfile(part):
-                renderer = renderer or Renderer(self.resolution, GLASS_SPP, self.meta["variant"])
-                seed = image_seed(int(self.meta["seed"]), 2**32 - 2 - done)  # indices no sample has
+                renderer = renderer or Renderer(self.resolution, BASIS_SPP, self.meta["variant"])
+                seed = image_seed(int(self.meta["seed"]), 2**32 - 2 - offset - done)  # indices no sample has
                 with files.atomic_path(part) as temporary, open(temporary, "wb") as file:
                     np.save(file, renderer.render(materials[i, j], seed=seed))
-            basis[i, j] = np.load(part)
+            grid[i, j] = np.load(part)
             if progress is not None:
                 progress(done + 1, shape[0] * shape[1])
         with files.atomic_path(path) as temporary, open(temporary, "wb") as file:
-            np.save(file, basis)
+            np.save(file, grid)
         shutil.rmtree(parts, ignore_errors=True)
-        return basis
+        return grid
 
     def unit_params(self) -> np.ndarray:
         """Returns every sample's parameters on the unit cube, float32 (count, 19)."""

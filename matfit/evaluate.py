@@ -150,7 +150,7 @@ def evaluate(model: models.Model, references: Dataset, preset_spp: int = PRESET_
 
 
 def describe_decoder(description: dict) -> str:
-    """Returns a sentence saying how the decoder draws: its layers and whether it refracts through a glass basis."""
+    """Returns a sentence saying how the decoder draws: its layers and the Mitsuba bases of its glass and media."""
     stages = ", ".join(str(channels) for channels in description.get("stage_channels", []))
     sentence = (
         f"Decoder: two dense layers of {description.get('hidden')} to a 4 x 4 x {description.get('base_channels')} "
@@ -161,6 +161,12 @@ def describe_decoder(description: dict) -> str:
         sentence += (
             f"; it draws refraction from a {grid[0]} x {grid[1]} basis of clear-glass Mitsuba renders (specular x "
             "roughness), tinted per pixel by a predicted transmittance"
+        )
+    grid = description.get("medium_grid") or []
+    if grid:
+        sentence += (
+            f"; it draws the light media scatter from a {grid[0]} x {grid[1]} basis of grey-medium Mitsuba renders "
+            "(optical thickness x albedo, read per colour channel), weighted per pixel"
         )
     if description.get("medium_inputs"):
         sentence += "; its dense layers also see 10 physical features of the medium"

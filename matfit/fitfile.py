@@ -222,6 +222,7 @@ def document(
             "verification": {
                 "kept": checked.chosen,
                 "mitsuba_rmse": {name: round(value, 3) for name, value in checked.figures.items()},
+                "confirmation_rmse": {name: round(value, 3) for name, value in checked.confirmation.items()},
                 "spp": verify.SPP,
                 "seconds": round(checked.seconds, 3),
             },

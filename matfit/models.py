@@ -112,6 +112,34 @@ def interpolate_glass(basis: jax.Array, specular: jax.Array, roughness: jax.Arra
     return (low * (1 - ws) + high * ws).reshape(-1, *basis.shape[2:])
 
 
+def medium_physical(unit: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Returns the interior medium's absorption colour (N, 3), density (N, 1) and albedo (N, 1) from unit parameters."""
+    physical = params.LOW.astype(np.float32)[None] + unit * (params.HIGH - params.LOW).astype(np.float32)[None]
+    colour = physical[:, params.INDEX["medium_color_r"] : params.INDEX["medium_color_b"] + 1]
+    return colour, physical[:, params.INDEX["density"], None], physical[:, params.INDEX["scattering"], None]
+
+
+def medium_weights(unit: jax.Array, shape: Sequence[int]) -> jax.Array:
+    """Returns the bilinear weights (N, 3, T A) of the scattering basis grid `shape` (T, A) per colour channel.
+
+    Channel k reads the grid at its own optical thickness tau_k = density x -ln(colour_k) per radius
+    (in `scene.medium_grid_values`' coordinate log2(1 + 8 tau)) and at sqrt(1 - albedo); each
+    channel's weights sum to 1 and are differentiable in every medium parameter. Hat functions
+    rather than gathers: the basis is small, so the weighted sum is one dense contraction.
+    """
+    thickness_count, albedo_count = shape
+    colour, density, albedo = medium_physical(unit)
+    tau = density * -jnp.log(jnp.clip(colour, 1e-3, 1.0))  # (N, 3)
+    largest = np.log2(1.0 + scene.THICKNESS_SCALE * scene.LARGEST_THICKNESS)
+    t = jnp.log2(1.0 + scene.THICKNESS_SCALE * tau) / largest * (thickness_count - 1)
+    a = jnp.sqrt(jnp.clip(1.0 - albedo, 1e-6, 1.0)) * (albedo_count - 1)  # (N, 1)
+    t_grid = jnp.arange(thickness_count, dtype=tau.dtype)[None, None, :]
+    a_grid = jnp.arange(albedo_count, dtype=tau.dtype)[None, None, :]
+    hat_t = jax.nn.relu(1.0 - jnp.abs(jnp.clip(t, 0.0, thickness_count - 1)[..., None] - t_grid))  # (N, 3, T)
+    hat_a = jax.nn.relu(1.0 - jnp.abs(a[..., None] - a_grid))  # (N, 1, A)
+    return (hat_t[..., :, None] * hat_a[..., None, :]).reshape(*tau.shape, thickness_count * albedo_count)
+
+
 def medium_features(unit: jax.Array) -> jax.Array:
     """Returns 10 physical features of the interior medium (N, 10) from unit-cube parameters (N, 19).
 
@@ -123,10 +151,7 @@ def medium_features(unit: jax.Array) -> jax.Array:
     and the diffuse reflectance of a half-space of albedo a (van de Hulst's similarity relation,
     s = sqrt(1 - a): (1 - s)(1 - 0.139 s) / (1 + 1.17 s)).
     """
-    physical = params.LOW.astype(np.float32)[None] + unit * (params.HIGH - params.LOW).astype(np.float32)[None]
-    colour = physical[:, params.INDEX["medium_color_r"] : params.INDEX["medium_color_b"] + 1]
-    density = physical[:, params.INDEX["density"], None]
-    albedo = physical[:, params.INDEX["scattering"], None]
+    colour, density, albedo = medium_physical(unit)
     tau = 2.0 * density * -jnp.log(jnp.clip(colour, 1e-3, 1.0))  # through a diameter
     s = jnp.sqrt(jnp.clip(1.0 - albedo, 1e-6, 1.0))
     reflectance = (1.0 - s) * (1.0 - 0.139 * s) / (1.0 + 1.17 * s)
@@ -156,6 +181,12 @@ class Decoder(nn.Module):
     scattering), then added in linear light to the direct layer (reflection, diffuse, scattering):
     image = sRGB(direct + transmittance x glass(specular, roughness)).
 
+    With `medium_grid` (T, A), it also draws the light a medium scatters: a basis of Mitsuba renders
+    of grey media on a grid of optical thickness x albedo, less their absorbing-only renders
+    (`scene.medium_basis_materials`; a constant, set with `with_bases`), read per colour channel at
+    that channel's thickness (`medium_weights`), weighted by the transmitted share (1 - metallic) x
+    spec_trans and by a second predicted full-resolution map (starting at 1) and added in linear light.
+
     With `medium_inputs`, the dense layers also see `medium_features` of the parameters.
     """
 
@@ -167,6 +198,7 @@ class Decoder(nn.Module):
     coordinates: bool = False
     glass_grid: Sequence[int] = ()
     medium_inputs: bool = False
+    medium_grid: Sequence[int] = ()
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -197,18 +229,45 @@ class Decoder(nn.Module):
             # Starts near 0 (sigmoid(-3) = 0.05): the direct layer first learns the opaque scene.
             logit = nn.Conv(4 * 3, (3, 3), kernel_init=nn.initializers.zeros, bias_init=nn.initializers.constant(-3.0))
             transmittance = 1.5 * nn.sigmoid(depth_to_space(logit(features)))
-            direct = srgb_encode(srgb_decode(direct) + transmittance * glass)
+            linear = srgb_decode(direct) + transmittance * glass
+            if self.medium_grid:
+                linear = linear + self.scattered(inputs, features)
+            direct = srgb_encode(linear)
         return direct.reshape(*batch_shape, self.resolution, self.resolution, 3)
 
+    def scattered(self, inputs: jax.Array, features: jax.Array) -> jax.Array:
+        """Returns the medium's scattered light (N, R, R, 3), linear: the scattering basis read at its values."""
+        thickness_count, albedo_count = self.medium_grid
+        shape = (thickness_count, albedo_count, self.resolution, self.resolution, 3)
+        basis = self.variable("constants", "medium", jnp.zeros, shape).value
+        table = basis.reshape(thickness_count * albedo_count, self.resolution * self.resolution, 3)
+        light = jnp.einsum("nkj,jpk->npk", medium_weights(inputs, self.medium_grid), table)
+        share = (1.0 - inputs[:, params.INDEX["metallic"]]) * inputs[:, params.INDEX["spec_trans"]]
+        # Starts at 1 (1.5 sigmoid(ln 2)): the basis is right for clear glass of the default specular.
+        start = nn.initializers.constant(np.log(2.0))
+        logit = nn.Conv(4 * 3, (3, 3), kernel_init=nn.initializers.zeros, bias_init=start)
+        weight = 1.5 * nn.sigmoid(depth_to_space(logit(features)))
+        return weight * share[:, None, None, None] * light.reshape(-1, self.resolution, self.resolution, 3)
 
-def with_glass(decoder: Decoder, variables: dict, basis: np.ndarray) -> dict:
-    """Returns decoder variables holding the clear-glass basis (linear (S, G, R, R, 3)); unchanged without one."""
+
+def with_bases(decoder: Decoder, variables: dict, glass: np.ndarray, medium: np.ndarray | None = None) -> dict:
+    """Returns decoder variables holding its constants: the clear-glass basis (linear (S, G, R, R, 3)) and, if
+    the decoder has a `medium_grid`, the scattering basis (linear (T, A, R, R, 3)); unchanged without a glass grid."""
     if not decoder.glass_grid:
         return variables
-    expected = (*decoder.glass_grid, decoder.resolution, decoder.resolution, 3)
+    constants = {"glass": _basis(glass, (*decoder.glass_grid, decoder.resolution, decoder.resolution, 3), "glass")}
+    if decoder.medium_grid:
+        if medium is None:
+            raise ValueError("this decoder draws scattering media: give it the scattering basis too")
+        expected = (*decoder.medium_grid, decoder.resolution, decoder.resolution, 3)
+        constants["medium"] = _basis(medium, expected, "scattering")
+    return {**variables, "constants": constants}
+
+
+def _basis(basis: np.ndarray, expected: tuple[int, ...], what: str) -> jax.Array:
     if tuple(basis.shape) != expected:
-        raise ValueError(f"Shape mismatch: the glass basis is {tuple(basis.shape)}, the decoder needs {expected}.")
-    return {**variables, "constants": {"glass": jnp.asarray(basis, jnp.float32)}}
+        raise ValueError(f"Shape mismatch: the {what} basis is {tuple(basis.shape)}, the decoder needs {expected}.")
+    return jnp.asarray(basis, jnp.float32)
 
 
 @dataclass(frozen=True)
@@ -323,7 +382,9 @@ def architecture(name: str, resolution: int, decoder: Decoder | None = None) -> 
     """
     if name == DECODER:
         # what `matfit train` trains
-        decoder = decoder or Decoder(resolution=resolution, glass_grid=scene.GLASS_GRID, medium_inputs=True)
+        decoder = decoder or Decoder(
+            resolution=resolution, glass_grid=scene.GLASS_GRID, medium_inputs=True, medium_grid=scene.MEDIUM_GRID
+        )
         fields = {
             field.name: getattr(decoder, field.name)
             for field in dataclasses.fields(Decoder)
@@ -331,6 +392,7 @@ def architecture(name: str, resolution: int, decoder: Decoder | None = None) -> 
         }
         fields["stage_channels"] = list(fields["stage_channels"])
         fields["glass_grid"] = list(fields["glass_grid"])
+        fields["medium_grid"] = list(fields["medium_grid"])
         return {"kind": DECODER, **fields}
     if name not in ENCODER_NAMES:
         raise WeightsError(f"unknown network {name!r}: use decoder or encoder-1 to encoder-9")
@@ -344,6 +406,7 @@ def build(description: dict) -> nn.Module:
     if kind == DECODER:
         fields["stage_channels"] = tuple(fields["stage_channels"])
         fields["glass_grid"] = tuple(fields.get("glass_grid", ()))
+        fields["medium_grid"] = tuple(fields.get("medium_grid", ()))
         return Decoder(**fields)
     return encoder(fields["arch"])
 

@@ -95,9 +95,9 @@ class TrainingProgress(Progress):
         self.update(step, f"loss {loss:.5f}  {samples_per_second:.0f} samples/s")
 
     def rendering(self, done: int, total: int) -> None:
-        """Called after each render of the clear-glass basis."""
+        """Called after each render of one of the decoder's bases (clear glass, scattering)."""
         if done == 1:
-            self.start("rendering the clear-glass basis", total)
+            self.start("rendering a basis of the decoder", total)
         self.update(done, "")
 
     def end_epoch(self, record: dict) -> None:

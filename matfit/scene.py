@@ -144,6 +144,55 @@ def glass_basis_materials(shape: tuple[int, int] = GLASS_GRID) -> np.ndarray:
     return materials
 
 
+# The scattering basis of the refracting decoder: the light a medium scatters, which a clear-glass
+# render tinted per pixel cannot draw (milk: white, lit from inside). In Mitsuba's RGB mode every
+# colour channel is transported independently, so a medium whose extinction differs per channel
+# shows in channel k what a grey medium of channel k's optical thickness shows there: one basis of
+# grey media serves every colour. It is gridded in the optical thickness of a radius, tau = density
+# x -ln(colour), uniformly in log2(1 + 8 tau) up to the largest the parameters allow, and in the
+# similarity parameter sqrt(1 - albedo) (van de Hulst), along which a white medium's brightness
+# changes evenly; the surface is clear glass of the default specular and MEDIUM_ROUGHNESS. The
+# basis keeps only the scattered light: each render less the render of the same medium that only
+# absorbs (albedo 0), which is clear glass dimmed along each path, the glass basis's job.
+MEDIUM_GRID = (9, 6)
+MEDIUM_ROUGHNESS = 0.15
+LARGEST_THICKNESS = MEDIUM_SCALE
+THICKNESS_SCALE = 8.0  # the grid is uniform in log2(1 + THICKNESS_SCALE x tau)
+
+
+def medium_grid_values(shape: tuple[int, int] = MEDIUM_GRID) -> tuple[np.ndarray, np.ndarray]:
+    """Returns the (thickness tau, albedo) values of the scattering basis grid: (T,) from 0, (A,) from 1 down to 0."""
+    thickness_count, albedo_count = shape
+    if thickness_count < 2 or albedo_count < 2:
+        raise ValueError(f"a scattering basis grid needs at least 2 x 2 points, got {thickness_count} x {albedo_count}")
+    coordinate = np.linspace(0.0, np.log2(1.0 + THICKNESS_SCALE * LARGEST_THICKNESS), thickness_count)
+    similarity = np.linspace(0.0, 1.0, albedo_count)
+    return (2.0**coordinate - 1.0) / THICKNESS_SCALE, 1.0 - similarity**2
+
+
+def medium_basis_materials(shape: tuple[int, int] = MEDIUM_GRID) -> np.ndarray:
+    """Returns the physical parameter vectors of the scattering basis, (T, A, 19): a grey medium at each grid point.
+
+    The thickness comes from the colour at the largest density (colour = exp(-tau / density)), so
+    every grid point lies inside the parameter ranges.
+    """
+    thickness, albedo = medium_grid_values(shape)
+    clear = params.from_unit(np.zeros(params.COUNT))  # every lobe off, no medium (density 0)
+    for name in ("base_color_r", "base_color_g", "base_color_b", "spec_trans"):
+        clear[params.INDEX[name]] = 1.0
+    clear[params.INDEX["specular"]] = params.DEFAULTS[params.INDEX["specular"]]
+    clear[params.INDEX["roughness"]] = MEDIUM_ROUGHNESS
+    density = params.HIGH[params.INDEX["density"]]
+    low = params.LOW[params.INDEX["medium_color_r"]]
+    colour = np.clip(np.exp(-thickness / density), low, 1.0)
+    materials = np.repeat(np.repeat(clear[None, None], len(thickness), 0), len(albedo), 1)
+    materials[..., params.INDEX["density"]] = density
+    for name in ("medium_color_r", "medium_color_g", "medium_color_b"):
+        materials[..., params.INDEX[name]] = colour[:, None]
+    materials[..., params.INDEX["scattering"]] = albedo[None, :]
+    return materials
+
+
 def all_lobes_values() -> np.ndarray:
     """Returns a vector with every principled lobe and the medium switched on.
 

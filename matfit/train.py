@@ -152,7 +152,7 @@ def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool):
     """Returns the jitted train_step(state, constants, x, y, key) -> (state, loss) of a module.
 
     state = (weights, optimiser state); constants: the module's untrained variables (the refracting
-    decoder's clear-glass basis), passed in rather than captured so that they are not compiled in.
+    decoder's bases), passed in rather than captured so that they are not compiled in.
     """
 
     def loss_fn(weights, constants, x, y, key):
@@ -287,7 +287,7 @@ class Reporter:
         """Called after each epoch, once its checkpoint is written, with its history record."""
 
     def rendering(self, done: int, total: int) -> None:
-        """Called after each render of a refracting decoder's clear-glass basis."""
+        """Called after each render of a refracting decoder's clear-glass or scattering basis."""
 
 
 @dataclass(frozen=True)
@@ -307,7 +307,7 @@ class Run:
     identity: dict | list  # the dataset's identity, or a list of them
     checkpoint_file: str
     weights_file: str
-    constants: dict  # untrained variables: the refracting decoder's clear-glass basis, else none
+    constants: dict  # untrained variables: the refracting decoder's clear-glass and scattering bases, else none
 
     def variables(self, weights: dict) -> dict:
         """Returns the module's whole variables for trained `weights`."""
@@ -329,7 +329,7 @@ def create_run(
 ) -> Run:
     """Returns the run of network `name` on finished datasets; `decoder` replaces the decoder (a tiny one in tests).
 
-    A refracting decoder's clear-glass basis is rendered into the first dataset if it is not there.
+    A refracting decoder's bases are rendered into the first dataset if they are not there.
     """
     if name not in NETWORKS:
         raise TrainingError(f"unknown network {name!r}: use decoder or 1 to 9", field="arch")
@@ -348,8 +348,10 @@ def create_run(
     module = models.build(description)
     constants = {}
     if name == models.DECODER and module.glass_grid:
-        basis = datasets[0].glass_basis(tuple(module.glass_grid), reporter.rendering if reporter else None)
-        constants = models.with_glass(module, {}, basis)
+        progress = reporter.rendering if reporter else None
+        glass = datasets[0].glass_basis(tuple(module.glass_grid), progress)
+        medium = datasets[0].medium_basis(tuple(module.medium_grid), progress) if module.medium_grid else None
+        constants = models.with_bases(module, {}, glass, medium)
     return Run(
         name,
         description,

@@ -4,12 +4,15 @@ The optimiser minimises the decoder's error, and where the decoder is wrong (ref
 it can walk to parameters whose physical render is worse than where it started. Verification
 renders a few candidates at the model's resolution: the best-of-n start, and the fit's end points
 best neural RMSE first. Every candidate is rendered with the same seed (common random numbers),
-so their difference is the material's, not the noise's, and the start is always among them: the
-answer is never physically worse than the start, as Mitsuba sees it.
+so their difference is mostly the material's, and the start is always among them. An end point
+that beats the start must beat it again in a second render of both with another seed
+(`CONFIRM_SEED`): with one render, a lead within the render's noise kept answers that an
+independent judge found worse than the start (2 of 20 reachable targets, `matfit bench-fit`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -20,6 +23,7 @@ from matfit import fit, images, params
 CANDIDATES = 5  # the start and up to four end points: every end of the default 4-start fit
 SPP = 64  # ranks the candidates as 128 spp does within the judge's noise, in half the time: `bench.verification_table`
 SEED = 1_000_003  # not a seed of the training set's images
+CONFIRM_SEED = 1_000_033  # the second opinion on an end point's lead; neither SEED nor a training image's seed
 
 
 @dataclass
@@ -32,6 +36,7 @@ class Verified:
     chosen: str  # "start" or "end-1", "end-2", ... (end-1: the best neural RMSE)
     figures: dict[str, float]  # Mitsuba RMSE of every candidate rendered
     seconds: float
+    confirmation: dict[str, float] = dataclasses.field(default_factory=dict)  # start and best end, second seed
 
     @property
     def start_rmse(self) -> float:
@@ -72,5 +77,29 @@ def verify(
         for name, unit in pool.items()
     }
     figures = {name: float(images.rmse(image, target, weights)) for name, image in renders.items()}
-    chosen = min(figures, key=figures.get)  # the start comes first, so a tie keeps the start
-    return Verified(pool[chosen], renders[chosen], figures[chosen], chosen, figures, time.perf_counter() - started)
+    best = min(figures, key=figures.get)  # the start comes first, so a tie keeps the start
+    confirmation = {}
+    if best != "start":
+        confirmation = {
+            name: float(
+                images.rmse(
+                    images.srgb_encode(renderer.render(params.from_unit(pool[name]), seed=CONFIRM_SEED, spp=spp)),
+                    target,
+                    weights,
+                )
+            )
+            for name in ("start", best)
+        }
+    chosen = keep(figures, confirmation)
+    return Verified(
+        pool[chosen], renders[chosen], figures[chosen], chosen, figures, time.perf_counter() - started, confirmation
+    )
+
+
+def keep(figures: dict[str, float], confirmation: dict[str, float]) -> str:
+    """Returns the candidate to keep: the best of `figures` if it is the start or its lead over the start holds in
+    `confirmation` (both renders again with another seed), else the start."""
+    best = min(figures, key=figures.get)
+    if best == "start" or confirmation.get(best, np.inf) < confirmation.get("start", -np.inf):
+        return best
+    return "start"

@@ -182,15 +182,15 @@ def tiny_refracting_decoder():
 def test_refracting_decoder_adds_the_glass_basis_and_round_trips_with_it(tmp_path):
     model = tiny_refracting_decoder()
     basis = np.random.default_rng(2).uniform(0.0, 0.5, size=(3, 2, 16, 16, 3)).astype(np.float32)
-    variables = models.with_glass(model, dict(models.initialise(model, jax.random.key(0), (19,))), basis)
+    variables = models.with_bases(model, dict(models.initialise(model, jax.random.key(0), (19,))), basis)
     np.testing.assert_array_equal(variables["constants"]["glass"], basis)
     x = jax.random.uniform(jax.random.key(1), (2, 19))
     out = models.apply(model, variables, x)
     assert out.shape == (2, 16, 16, 3) and float(out.min()) >= 0.0 and float(out.max()) <= 1.0
-    darker = models.apply(model, models.with_glass(model, variables, basis * 0.0), x)
+    darker = models.apply(model, models.with_bases(model, variables, basis * 0.0), x)
     assert float(jnp.mean(out - darker)) > 0.002  # the glass layer adds light
     with pytest.raises(ValueError, match="glass basis"):
-        models.with_glass(model, variables, basis[:2])
+        models.with_bases(model, variables, basis[:2])
     description = models.architecture("decoder", 16, model)
     assert description["glass_grid"] == [3, 2]
     path = str(tmp_path / "decoder.msgpack")
@@ -201,9 +201,81 @@ def test_refracting_decoder_adds_the_glass_basis_and_round_trips_with_it(tmp_pat
     np.testing.assert_allclose(models.apply(loaded.module, loaded.variables, x), out, atol=1e-2)
 
 
+def test_medium_basis_materials_are_grey_media_of_the_grid_thickness_and_albedo():
+    materials = scene.medium_basis_materials((4, 3))
+    assert materials.shape == (4, 3, params.COUNT)
+    thickness, albedo = scene.medium_grid_values((4, 3))
+    np.testing.assert_allclose(albedo, [1.0, 0.75, 0.0])  # uniform in sqrt(1 - albedo)
+    assert thickness[0] == 0.0 and thickness[-1] == pytest.approx(scene.LARGEST_THICKNESS)
+    for i, j in np.ndindex(4, 3):
+        sigma_t, scattering = params.medium_coefficients(materials[i, j])
+        np.testing.assert_allclose(sigma_t, max(thickness[i], params.MINIMUM_EXTINCTION), rtol=1e-6)
+        np.testing.assert_allclose(scattering, albedo[j])
+    index = params.INDEX
+    assert np.all(materials[..., index["spec_trans"]] == 1.0) and np.all(materials[..., index["metallic"]] == 0.0)
+    assert np.all(materials[..., index["roughness"]] == scene.MEDIUM_ROUGHNESS)
+    unit = params.to_unit(materials)
+    assert np.all(unit >= 0) and np.all(unit <= 1)
+
+
+def test_medium_weights_read_each_channel_at_its_own_thickness():
+    shape = (4, 3)
+    thickness, albedo = scene.medium_grid_values(shape)
+    material = presets.preset("milk")
+    index = params.INDEX
+    material[index["density"]] = 4.0  # the largest: colour 0.01 gives the largest thickness
+    # channel r on grid point 1, g on grid point 3, b halfway between 0 and 1 in log2(1 + 8 tau)
+    halfway = (2.0 ** (0.5 * np.log2(1.0 + 8.0 * thickness[1])) - 1.0) / 8.0
+    for channel, tau in zip(("r", "g", "b"), (thickness[1], thickness[3], halfway), strict=True):
+        material[index[f"medium_color_{channel}"]] = np.exp(-tau / 4.0)
+    material[index["scattering"]] = albedo[1]
+    weights = np.asarray(models.medium_weights(jnp.asarray(params.to_unit(material)[None], jnp.float32), shape))
+    assert weights.shape == (1, 3, 12)
+    grid = weights[0].reshape(3, 4, 3)
+    np.testing.assert_allclose(weights.sum(-1), 1.0, atol=1e-5)
+    assert grid[0, 1, 1] == pytest.approx(1.0, abs=1e-4) and grid[1, 3, 1] == pytest.approx(1.0, abs=1e-4)
+    np.testing.assert_allclose(grid[2, :2, 1], [0.5, 0.5], atol=1e-4)
+
+    def light(unit):
+        return jnp.sum(models.medium_weights(unit, shape) * jnp.arange(12, dtype=jnp.float32)[None, None])
+
+    gradient = jax.grad(light)(jnp.asarray(params.to_unit(material)[None], jnp.float32))
+    assert np.all(np.isfinite(gradient)) and float(gradient[0, index["density"]]) != 0.0
+
+
+def test_scattering_decoder_adds_the_basis_by_the_transmitted_share(tmp_path):
+    model = models.Decoder(
+        resolution=16, hidden=16, base_channels=8, stage_channels=(8,), glass_grid=(3, 2), medium_grid=(4, 3)
+    )
+    rng = np.random.default_rng(3)
+    glass = rng.uniform(0.0, 0.3, size=(3, 2, 16, 16, 3)).astype(np.float32)
+    medium = rng.uniform(0.0, 0.3, size=(4, 3, 16, 16, 3)).astype(np.float32)
+    variables = models.with_bases(model, dict(models.initialise(model, jax.random.key(0), (19,))), glass, medium)
+    milk = params.to_unit(presets.preset("milk"))
+    opaque = milk.copy()
+    opaque[params.INDEX["spec_trans"]] = 0.0
+    x = jnp.asarray(np.stack([milk, opaque]), jnp.float32)
+    out = models.apply(model, variables, x)
+    without = models.apply(model, models.with_bases(model, variables, glass, medium * 0.0), x)
+    assert float(jnp.mean(out[0] - without[0])) > 0.01  # milk: the scattered light is added
+    np.testing.assert_allclose(out[1], without[1], atol=1e-6)  # nothing transmitted, nothing scattered
+    with pytest.raises(ValueError, match="scattering basis"):
+        models.with_bases(model, variables, glass)
+    with pytest.raises(ValueError, match="scattering basis"):
+        models.with_bases(model, variables, glass, medium[:2])
+    description = models.architecture("decoder", 16, model)
+    assert description["medium_grid"] == [4, 3]
+    path = str(tmp_path / "decoder.msgpack")
+    models.save(path, models.Network("decoder", description, model, variables, {}))
+    loaded = models.load(path)
+    assert loaded.module == model
+    np.testing.assert_allclose(loaded.variables["constants"]["medium"], medium, atol=1e-3)
+    np.testing.assert_allclose(models.apply(loaded.module, loaded.variables, x), out, atol=1e-2)
+
+
 def test_decoder_descriptions_without_refraction_fields_still_build():
     description = models.architecture("decoder", 64)
-    for key in ("coordinates", "glass_grid", "medium_inputs"):
+    for key in ("coordinates", "glass_grid", "medium_inputs", "medium_grid"):
         description.pop(key)
     assert models.build(description) == models.Decoder()
 

@@ -90,11 +90,13 @@ class Renders(train.Reporter):
         self.calls.append((done, total))
 
 
-def test_refracting_decoder_renders_its_glass_basis_once_and_ships_it(tmp_path, data):
+def test_refracting_decoder_renders_its_bases_once_and_ships_them(tmp_path, data):
     copy = tmp_path / "data"
     shutil.copytree(data.path, copy)
     copied = dataset.open_dataset(str(copy))
-    decoder = models.Decoder(resolution=32, hidden=32, base_channels=16, stage_channels=(16, 8, 8), glass_grid=(2, 2))
+    decoder = models.Decoder(
+        resolution=32, hidden=32, base_channels=16, stage_channels=(16, 8, 8), glass_grid=(2, 2), medium_grid=(2, 2)
+    )
     reporter = Renders()
     metrics = train.train_network(
         "decoder",
@@ -104,7 +106,7 @@ def test_refracting_decoder_renders_its_glass_basis_once_and_ships_it(tmp_path, 
         reporter,
         decoder,
     )
-    assert reporter.calls == [(1, 4), (2, 4), (3, 4), (4, 4)]
+    assert reporter.calls == [(1, 4), (2, 4), (3, 4), (4, 4), (1, 2), (2, 2)]  # glass 2 x 2, then media 1 x 2
     losses = [record["train_loss"] for record in metrics["history"]]
     assert losses[-1] < 0.85 * losses[0]  # 4 epochs on 46 samples: the loss falls
     assert "validation_rmse_transmissive" in metrics
@@ -115,7 +117,12 @@ def test_refracting_decoder_renders_its_glass_basis_once_and_ships_it(tmp_path, 
     assert np.abs(basis[1, 0] - basis[0, 0]).mean() > 0.01  # index 1.79 bends the checkers
     network = models.load(models.weights_path(str(tmp_path / "model"), "decoder"), resolution=32)
     np.testing.assert_allclose(network.variables["constants"]["glass"], basis, atol=2e-3)
-    assert copied.glass_basis((2, 2)) is not None and len(reporter.calls) == 4  # kept: not rendered again
+    assert copied.glass_basis((2, 2)) is not None and len(reporter.calls) == 6  # kept: not rendered again
+    medium = copied.medium_basis((2, 2))
+    assert medium.shape == (2, 2, 32, 32, 3) and not (copy / "medium-2x2.parts").exists()
+    # only scattered light: none at thickness 0 or albedo 0; a thick lossless medium scatters plenty
+    assert np.all(medium[0] == 0.0) and np.all(medium[:, 1] == 0.0) and medium[1, 0].mean() > 0.02
+    np.testing.assert_allclose(network.variables["constants"]["medium"], medium, atol=2e-3)
 
 
 def test_an_interrupted_glass_basis_keeps_its_renders(tmp_path, data):

@@ -40,8 +40,12 @@ def test_a_fooled_decoder_never_makes_the_answer_physically_worse_than_the_start
     )
     assert result.chosen == "extra-1" or result.start_rmse <= result.candidate_rmse["extra-1"]
     checked = verify.verify(renderer32, result, target)
-    assert checked.rmse == min(checked.figures.values())
     assert checked.rmse <= checked.start_rmse
+    if checked.chosen == "start":
+        assert checked.rmse == checked.figures["start"]
+    else:  # an end point kept: it led in both renders
+        assert checked.rmse == min(checked.figures.values())
+        assert checked.confirmation[checked.chosen] < checked.confirmation["start"]
     again = images.srgb_encode(renderer32.render(fit.params.from_unit(checked.unit), seed=verify.SEED, spp=verify.SPP))
     # the kept render is the chosen candidate's (two renders of one material may differ in the last bits)
     np.testing.assert_allclose(again, checked.rendered, atol=1e-5)
@@ -84,3 +88,12 @@ def test_the_judged_table_compares_answers_under_one_independent_render(renderer
     # the true parameters again, with the same judge seeds: exactly the floor, and better than the far start
     assert float(rows[2][2]) == pytest.approx(floor) and float(rows[2][3]) == pytest.approx(0.0, abs=1e-3)
     assert float(rows[1][2]) > floor + 5 and rows[2][4].strip() == "2/2"
+
+
+def test_an_end_point_is_kept_only_when_its_lead_holds_in_the_second_render():
+    figures = {"start": 5.0, "end-1": 4.0, "end-2": 4.5}
+    assert verify.keep(figures, {"start": 5.1, "end-1": 4.2}) == "end-1"
+    assert verify.keep(figures, {"start": 4.9, "end-1": 5.0}) == "start"  # the lead was the first render's noise
+    assert verify.keep(figures, {"start": 4.9, "end-1": 4.9}) == "start"  # a tie keeps the start
+    assert verify.keep({"start": 3.0, "end-1": 3.5}, {}) == "start"  # nothing to confirm
+    assert verify.keep(figures, {}) == "start"  # an unconfirmed lead is not kept
