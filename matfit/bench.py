@@ -768,8 +768,12 @@ def run_suite(model: models.Model, model_label: str, out: str, full: bool = Fals
     return report_text
 
 
-def serve_speed(model: models.Model, model_label: str, fits: int = 100, previews: int = 200, log=print) -> str:
+def serve_speed(
+    model: models.Model, model_label: str, fits: int = 100, previews: int = 200, log=print, samples: int = 10
+) -> str:
     """Returns the page's figures (Markdown): file saved -> result shown, slider -> preview, memory over many fits.
+
+    Warm fit and latency are medians of `samples` fits; memory is read after `samples` fits and after `fits`.
 
     The server runs in this process (`serve.running`), the client is this process too, over HTTP on
     the loopback: the latency is measured from the watched file's write to the moment the client,
@@ -794,7 +798,7 @@ def serve_speed(model: models.Model, model_label: str, fits: int = 100, previews
     with open(watched, "wb") as file:
         file.write(contents[0])
     warm = []
-    for k in range(10):
+    for k in range(samples):
         started = time.perf_counter()
         renderer = studio.renderer(model.resolution)
         studio.worker.submit(
@@ -821,7 +825,7 @@ def serve_speed(model: models.Model, model_label: str, fits: int = 100, previews
         threading.Thread(target=listen, args=(url,), daemon=True).start()
         time.sleep(0.5)
         latency = []
-        for k in range(10):
+        for k in range(samples):
             seen = len(events)
             started = time.perf_counter()
             with open(watched, "wb") as file:  # as an editor saves: the file rewritten in place
@@ -848,18 +852,19 @@ def serve_speed(model: models.Model, model_label: str, fits: int = 100, previews
             while len(events) == seen:
                 time.sleep(0.005)
             job_done(url, events[-1][1]["job"])
-            if k in (10, fits):
+            if k in (samples, fits):
                 memory[k] = resident_mib()
     studio.close()
     return "\n".join(
         [
             "| figure | value |",
             "|---|---|",
-            f"| warm fit through the library, the CLI's path (median of 10) | {np.median(warm):.3f} s |",
-            f"| watched file saved -> result read by the page's client (median of 10) | {np.median(latency):.3f} s |",
+            f"| warm fit through the library, the CLI's path (median of {samples}) | {np.median(warm):.3f} s |",
+            f"| watched file saved -> result read by the page's client (median of {samples}) "
+            f"| {np.median(latency):.3f} s |",
             f"| slider -> neural preview round trip (median of {previews}) | {1e3 * np.median(round_trips):.1f} ms |",
-            f"| resident memory after 10 fits / after {fits} | {memory[10]:.0f} / {memory[fits]:.0f} MiB "
-            f"({100 * (memory[fits] / memory[10] - 1):+.1f}%) |",
+            f"| resident memory after {samples} fits / after {fits} | {memory[samples]:.0f} / {memory[fits]:.0f} MiB "
+            f"({100 * (memory[fits] / memory[samples] - 1):+.1f}%) |",
         ]
     )
 

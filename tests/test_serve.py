@@ -368,13 +368,13 @@ def test_two_pages_fitting_at_once_each_show_their_own(browser, url):
 def test_the_page_benchmark_reports_every_figure():
     from matfit import bench
 
-    table = bench.serve_speed(random_model(), "memory", fits=10, previews=20, log=lambda _: None)
+    table = bench.serve_speed(random_model(), "memory", fits=3, previews=5, log=lambda _: None, samples=3)
     rows = table.splitlines()[2:]
     assert [row.split(" | ")[0] for row in rows] == [
-        "| warm fit through the library, the CLI's path (median of 10)",
-        "| watched file saved -> result read by the page's client (median of 10)",
-        "| slider -> neural preview round trip (median of 20)",
-        "| resident memory after 10 fits / after 10",
+        "| warm fit through the library, the CLI's path (median of 3)",
+        "| watched file saved -> result read by the page's client (median of 3)",
+        "| slider -> neural preview round trip (median of 5)",
+        "| resident memory after 3 fits / after 3",
     ]
     warm, latency = (float(row.split(" | ")[1].split()[0]) for row in rows[:2])
     assert 0 < warm < latency  # the page's path is the library's fit plus the watching
