@@ -181,7 +181,8 @@ class Decoder(nn.Module):
     scattering), then added in linear light to the direct layer (reflection, diffuse, scattering):
     image = sRGB(direct + transmittance x glass(specular, roughness)).
 
-    With `medium_grid` (T, A), it also draws the light a medium scatters: a basis of Mitsuba renders
+    With `medium_grid` (T, A) (an option, not the shipped decoder's: README, "Scattered light from a
+    medium basis"), it also draws the light a medium scatters: a basis of Mitsuba renders
     of grey media on a grid of optical thickness x albedo, less their absorbing-only renders
     (`scene.medium_basis_materials`; a constant, set with `with_bases`), read per colour channel at
     that channel's thickness (`medium_weights`), weighted by the transmitted share (1 - metallic) x
@@ -241,7 +242,9 @@ class Decoder(nn.Module):
         shape = (thickness_count, albedo_count, self.resolution, self.resolution, 3)
         basis = self.variable("constants", "medium", jnp.zeros, shape).value
         table = basis.reshape(thickness_count * albedo_count, self.resolution * self.resolution, 3)
-        light = jnp.einsum("nkj,jpk->npk", medium_weights(inputs, self.medium_grid), table)
+        weights = medium_weights(inputs, self.medium_grid)
+        # One (N, T A) x (T A, R R) product per colour: at batch 1, 0.4 ms faster than one einsum over all three.
+        light = jnp.stack([weights[:, k, :] @ table[:, :, k] for k in range(3)], axis=-1)
         share = (1.0 - inputs[:, params.INDEX["metallic"]]) * inputs[:, params.INDEX["spec_trans"]]
         # Starts at 1 (1.5 sigmoid(ln 2)): the basis is right for clear glass of the default specular.
         start = nn.initializers.constant(np.log(2.0))
@@ -382,9 +385,7 @@ def architecture(name: str, resolution: int, decoder: Decoder | None = None) -> 
     """
     if name == DECODER:
         # what `matfit train` trains
-        decoder = decoder or Decoder(
-            resolution=resolution, glass_grid=scene.GLASS_GRID, medium_inputs=True, medium_grid=scene.MEDIUM_GRID
-        )
+        decoder = decoder or Decoder(resolution=resolution, glass_grid=scene.GLASS_GRID, medium_inputs=True)
         fields = {
             field.name: getattr(decoder, field.name)
             for field in dataclasses.fields(Decoder)

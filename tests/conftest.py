@@ -32,11 +32,9 @@ def tiny_dataset(tmp_path_factory, renderer) -> str:
     path = str(tmp_path_factory.mktemp("tiny") / "data")
     data = dataset.prepare(path, dataset.Settings(32, 4, 5, renderer.variant), 48, {"mitsuba": "test", "drjit": "test"})
     dataset.render_missing(data, 0)
-    # The default decoder's clear-glass and scattering bases, as `Dataset.glass_basis` and `medium_basis` keep
-    # them, at 4 spp instead of 1024 so that tests training the default decoder do not spend minutes on it.
+    # The default decoder's clear-glass basis, as `Dataset.glass_basis` keeps it, rendered at 4 spp
+    # instead of 1024 so that tests training the default decoder do not spend minutes on it.
     cheap = Renderer(32, 4, renderer.variant)
     basis = np.stack([[cheap.render(material) for material in row] for row in scene.glass_basis_materials()])
     np.save(os.path.join(path, dataset.GLASS_FILE.format(specular=basis.shape[0], roughness=basis.shape[1])), basis)
-    media = np.stack([[cheap.render(material) for material in row] for row in scene.medium_basis_materials()[1:]])
-    np.save(os.path.join(path, dataset.MEDIUM_FILE.format(thickness=len(media) + 1, albedo=media.shape[1])), media)
     return path

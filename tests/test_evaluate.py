@@ -44,7 +44,11 @@ def test_preset_references_are_rendered_once_and_kept(tiny_dataset, monkeypatch)
 def test_the_card_says_how_the_decoder_draws_glass():
     shipped = evaluate.describe_decoder(models.architecture("decoder", 64))
     assert "17 x 6 basis of clear-glass Mitsuba renders" in shipped and "features of the medium" in shipped
-    assert "9 x 6 basis of grey-medium Mitsuba renders" in shipped
+    assert "grey-medium" not in shipped
+    scattering = models.Decoder(glass_grid=(17, 6), medium_grid=(9, 6))
+    assert "9 x 6 basis of grey-medium Mitsuba renders" in evaluate.describe_decoder(
+        models.architecture("decoder", 64, scattering)
+    )
     plain = evaluate.describe_decoder(models.architecture("decoder", 64, models.Decoder()))
     assert "stages of 64, 48, 32 filters" in plain and "glass" not in plain and "medium" not in plain
 
