@@ -74,6 +74,8 @@ def exit_now() -> None:
     for path in sorted(_temporaries, key=len, reverse=True):  # a folder's files before the folder
         with contextlib.suppress(OSError):
             os.rmdir(path) if os.path.isdir(path) else os.unlink(path)
+    if threading.current_thread() is threading.main_thread():  # the work stopped itself: nothing left running
+        release_semaphores()
     with contextlib.suppress(Exception):
         sys.stdout.flush()
     os._exit(EXIT_CODE)
@@ -86,10 +88,25 @@ def leave(code: int) -> None:
     what is left: measured 0.4 s after `matfit fit` (JAX's and Dr.Jit's shutdown), a tenth of the
     command's whole time. Child processes are stopped by the work that started them.
     """
+    release_semaphores()
     with contextlib.suppress(Exception):
         sys.stdout.flush()
         sys.stderr.flush()
     os._exit(code)
+
+
+def release_semaphores() -> None:
+    """Unlinks the named semaphores of the process pools this process made, as the interpreter's exit would.
+
+    `os._exit` skips multiprocessing's exit finalizers; its resource tracker then found the
+    semaphores of a stopped dataset's rendering pool still registered and printed a warning about
+    "leaked semaphore objects" after the `interrupted:` line. Priority 0 and up are what the
+    interpreter's own exit runs first: the pools (stopped by then) and their locks.
+    """
+    util = sys.modules.get("multiprocessing.util")
+    if util is not None:
+        with contextlib.suppress(Exception):
+            util._run_finalizers(0)
 
 
 def install() -> None:
