@@ -175,6 +175,16 @@ def test_glass_basis_materials_are_clear_glass_on_the_grid():
     assert np.all(materials[..., index["metallic"]] == 0.0) and np.all(unit >= 0) and np.all(unit <= 1)
 
 
+def saved_and_loaded(tmp_path, model: models.Decoder, variables: dict) -> models.Network:
+    """Returns a decoder's weights saved with its description and loaded back (the same module rebuilt)."""
+    path = str(tmp_path / "decoder.msgpack")
+    description = models.architecture("decoder", model.resolution, model)
+    models.save(path, models.Network("decoder", description, model, variables, {}))
+    loaded = models.load(path)
+    assert loaded.module == model
+    return loaded
+
+
 def tiny_refracting_decoder():
     return models.Decoder(resolution=16, hidden=16, base_channels=8, stage_channels=(8,), glass_grid=(3, 2))
 
@@ -191,12 +201,8 @@ def test_refracting_decoder_adds_the_glass_basis_and_round_trips_with_it(tmp_pat
     assert float(jnp.mean(out - darker)) > 0.002  # the glass layer adds light
     with pytest.raises(ValueError, match="glass basis"):
         models.with_bases(model, variables, basis[:2])
-    description = models.architecture("decoder", 16, model)
-    assert description["glass_grid"] == [3, 2]
-    path = str(tmp_path / "decoder.msgpack")
-    models.save(path, models.Network("decoder", description, model, variables, {}))
-    loaded = models.load(path)
-    assert loaded.module == model
+    assert models.architecture("decoder", 16, model)["glass_grid"] == [3, 2]
+    loaded = saved_and_loaded(tmp_path, model, variables)
     np.testing.assert_allclose(loaded.variables["constants"]["glass"], basis, atol=1e-3)
     np.testing.assert_allclose(models.apply(loaded.module, loaded.variables, x), out, atol=1e-2)
 
@@ -263,12 +269,8 @@ def test_scattering_decoder_adds_the_basis_by_the_transmitted_share(tmp_path):
         models.with_bases(model, variables, glass)
     with pytest.raises(ValueError, match="scattering basis"):
         models.with_bases(model, variables, glass, medium[:2])
-    description = models.architecture("decoder", 16, model)
-    assert description["medium_grid"] == [4, 3]
-    path = str(tmp_path / "decoder.msgpack")
-    models.save(path, models.Network("decoder", description, model, variables, {}))
-    loaded = models.load(path)
-    assert loaded.module == model
+    assert models.architecture("decoder", 16, model)["medium_grid"] == [4, 3]
+    loaded = saved_and_loaded(tmp_path, model, variables)
     np.testing.assert_allclose(loaded.variables["constants"]["medium"], medium, atol=1e-3)
     np.testing.assert_allclose(models.apply(loaded.module, loaded.variables, x), out, atol=1e-2)
 
