@@ -176,7 +176,7 @@ class Decoder(nn.Module):
     glass sphere shows (the checkers bent and turned upside down, blurred by roughness, the caustic
     in its shadow) depends only on its index of refraction and roughness. A basis of Mitsuba
     renders of clear glass on an S x G grid of specular and roughness (`scene.glass_basis_materials`;
-    a constant, set with `with_glass`) is interpolated at the material's values and multiplied per
+    a constant, set with `with_bases`) is interpolated at the material's values and multiplied per
     pixel by a predicted full-resolution transmittance (spec_trans, absorption tint, light lost to
     scattering), then added in linear light to the direct layer (reflection, diffuse, scattering):
     image = sRGB(direct + transmittance x glass(specular, roughness)).
