@@ -112,11 +112,13 @@ def interpolate_glass(basis: jax.Array, specular: jax.Array, roughness: jax.Arra
     return (low * (1 - ws) + high * ws).reshape(-1, *basis.shape[2:])
 
 
-def medium_physical(unit: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
-    """Returns the interior medium's absorption colour (N, 3), density (N, 1) and albedo (N, 1) from unit parameters."""
+def medium_physical(unit: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Returns the interior medium's optical thickness of a radius per colour, tau = density x -ln(colour) (N, 3),
+    and its albedo (N, 1), from unit-cube parameters (N, 19)."""
     physical = params.LOW.astype(np.float32)[None] + unit * (params.HIGH - params.LOW).astype(np.float32)[None]
     colour = physical[:, params.INDEX["medium_color_r"] : params.INDEX["medium_color_b"] + 1]
-    return colour, physical[:, params.INDEX["density"], None], physical[:, params.INDEX["scattering"], None]
+    tau = physical[:, params.INDEX["density"], None] * -jnp.log(jnp.clip(colour, 1e-3, 1.0))
+    return tau, physical[:, params.INDEX["scattering"], None]
 
 
 def medium_weights(unit: jax.Array, shape: Sequence[int]) -> jax.Array:
@@ -128,10 +130,8 @@ def medium_weights(unit: jax.Array, shape: Sequence[int]) -> jax.Array:
     rather than gathers: the basis is small, so the weighted sum is one dense contraction.
     """
     thickness_count, albedo_count = shape
-    colour, density, albedo = medium_physical(unit)
-    tau = density * -jnp.log(jnp.clip(colour, 1e-3, 1.0))  # (N, 3)
-    largest = np.log2(1.0 + scene.THICKNESS_SCALE * scene.LARGEST_THICKNESS)
-    t = jnp.log2(1.0 + scene.THICKNESS_SCALE * tau) / largest * (thickness_count - 1)
+    tau, albedo = medium_physical(unit)
+    t = jnp.log2(1.0 + scene.THICKNESS_SCALE * tau) / scene.LARGEST_COORDINATE * (thickness_count - 1)
     a = jnp.sqrt(jnp.clip(1.0 - albedo, 1e-6, 1.0)) * (albedo_count - 1)  # (N, 1)
     t_grid = jnp.arange(thickness_count, dtype=tau.dtype)[None, None, :]
     a_grid = jnp.arange(albedo_count, dtype=tau.dtype)[None, None, :]
@@ -151,8 +151,8 @@ def medium_features(unit: jax.Array) -> jax.Array:
     and the diffuse reflectance of a half-space of albedo a (van de Hulst's similarity relation,
     s = sqrt(1 - a): (1 - s)(1 - 0.139 s) / (1 + 1.17 s)).
     """
-    colour, density, albedo = medium_physical(unit)
-    tau = 2.0 * density * -jnp.log(jnp.clip(colour, 1e-3, 1.0))  # through a diameter
+    radius, albedo = medium_physical(unit)
+    tau = 2.0 * radius  # through a diameter
     s = jnp.sqrt(jnp.clip(1.0 - albedo, 1e-6, 1.0))
     reflectance = (1.0 - s) * (1.0 - 0.139 * s) / (1.0 + 1.17 * s)
     return jnp.concatenate(

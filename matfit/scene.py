@@ -132,13 +132,19 @@ def glass_grid_values(shape: tuple[int, int] = GLASS_GRID) -> tuple[np.ndarray, 
     return np.linspace(0.0, 1.0, specular_count), np.linspace(0.0, 1.0, roughness_count) ** 2
 
 
-def glass_basis_materials(shape: tuple[int, int] = GLASS_GRID) -> np.ndarray:
-    """Returns the physical parameter vectors of the glass basis, (S, G, 19): clear glass at each grid point."""
-    specular, roughness = glass_grid_values(shape)
+def clear_glass_grid(shape: tuple[int, int]) -> np.ndarray:
+    """Returns clear, colourless glass (white base colour, spec_trans 1, every other lobe off, no medium) repeated
+    on a grid, (K, L, 19) physical vectors: what both bases vary from."""
     clear = params.from_unit(np.zeros(params.COUNT))  # every lobe off, no medium (density 0)
     for name in ("base_color_r", "base_color_g", "base_color_b", "spec_trans"):
         clear[params.INDEX[name]] = 1.0
-    materials = np.repeat(np.repeat(clear[None, None], len(specular), 0), len(roughness), 1)
+    return np.repeat(np.repeat(clear[None, None], shape[0], 0), shape[1], 1)
+
+
+def glass_basis_materials(shape: tuple[int, int] = GLASS_GRID) -> np.ndarray:
+    """Returns the physical parameter vectors of the glass basis, (S, G, 19): clear glass at each grid point."""
+    specular, roughness = glass_grid_values(shape)
+    materials = clear_glass_grid((len(specular), len(roughness)))
     materials[..., params.INDEX["specular"]] = specular[:, None]
     materials[..., params.INDEX["roughness"]] = roughness[None, :]
     return materials
@@ -156,8 +162,8 @@ def glass_basis_materials(shape: tuple[int, int] = GLASS_GRID) -> np.ndarray:
 # absorbs (albedo 0), which is clear glass dimmed along each path, the glass basis's job.
 MEDIUM_GRID = (9, 6)
 MEDIUM_ROUGHNESS = 0.15
-LARGEST_THICKNESS = MEDIUM_SCALE
-THICKNESS_SCALE = 8.0  # the grid is uniform in log2(1 + THICKNESS_SCALE x tau)
+THICKNESS_SCALE = 8.0  # the grid is uniform in log2(1 + THICKNESS_SCALE x tau), from 0 to the largest tau:
+LARGEST_COORDINATE = float(np.log2(1.0 + THICKNESS_SCALE * MEDIUM_SCALE))
 
 
 def medium_grid_values(shape: tuple[int, int] = MEDIUM_GRID) -> tuple[np.ndarray, np.ndarray]:
@@ -165,7 +171,7 @@ def medium_grid_values(shape: tuple[int, int] = MEDIUM_GRID) -> tuple[np.ndarray
     thickness_count, albedo_count = shape
     if thickness_count < 2 or albedo_count < 2:
         raise ValueError(f"a scattering basis grid needs at least 2 x 2 points, got {thickness_count} x {albedo_count}")
-    coordinate = np.linspace(0.0, np.log2(1.0 + THICKNESS_SCALE * LARGEST_THICKNESS), thickness_count)
+    coordinate = np.linspace(0.0, LARGEST_COORDINATE, thickness_count)
     similarity = np.linspace(0.0, 1.0, albedo_count)
     return (2.0**coordinate - 1.0) / THICKNESS_SCALE, 1.0 - similarity**2
 
@@ -177,15 +183,12 @@ def medium_basis_materials(shape: tuple[int, int] = MEDIUM_GRID) -> np.ndarray:
     every grid point lies inside the parameter ranges.
     """
     thickness, albedo = medium_grid_values(shape)
-    clear = params.from_unit(np.zeros(params.COUNT))  # every lobe off, no medium (density 0)
-    for name in ("base_color_r", "base_color_g", "base_color_b", "spec_trans"):
-        clear[params.INDEX[name]] = 1.0
-    clear[params.INDEX["specular"]] = params.DEFAULTS[params.INDEX["specular"]]
-    clear[params.INDEX["roughness"]] = MEDIUM_ROUGHNESS
     density = params.HIGH[params.INDEX["density"]]
     low = params.LOW[params.INDEX["medium_color_r"]]
     colour = np.clip(np.exp(-thickness / density), low, 1.0)
-    materials = np.repeat(np.repeat(clear[None, None], len(thickness), 0), len(albedo), 1)
+    materials = clear_glass_grid((len(thickness), len(albedo)))
+    materials[..., params.INDEX["specular"]] = params.DEFAULTS[params.INDEX["specular"]]
+    materials[..., params.INDEX["roughness"]] = MEDIUM_ROUGHNESS
     materials[..., params.INDEX["density"]] = density
     for name in ("medium_color_r", "medium_color_g", "medium_color_b"):
         materials[..., params.INDEX[name]] = colour[:, None]

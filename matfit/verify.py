@@ -72,23 +72,17 @@ def verify(
     started = time.perf_counter()
     weights = np.ones(target.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
     pool = candidates(result, count)
-    renders = {
-        name: images.srgb_encode(renderer.render(params.from_unit(unit), seed=SEED, spp=spp))
-        for name, unit in pool.items()
-    }
+
+    def rendered(name: str, seed: int) -> np.ndarray:
+        return images.srgb_encode(renderer.render(params.from_unit(pool[name]), seed=seed, spp=spp))
+
+    renders = {name: rendered(name, SEED) for name in pool}
     figures = {name: float(images.rmse(image, target, weights)) for name, image in renders.items()}
     best = min(figures, key=figures.get)  # the start comes first, so a tie keeps the start
     confirmation = {}
     if best != "start":
         confirmation = {
-            name: float(
-                images.rmse(
-                    images.srgb_encode(renderer.render(params.from_unit(pool[name]), seed=CONFIRM_SEED, spp=spp)),
-                    target,
-                    weights,
-                )
-            )
-            for name in ("start", best)
+            name: float(images.rmse(rendered(name, CONFIRM_SEED), target, weights)) for name in ("start", best)
         }
     chosen = keep(figures, confirmation)
     return Verified(

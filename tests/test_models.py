@@ -212,7 +212,7 @@ def test_medium_basis_materials_are_grey_media_of_the_grid_thickness_and_albedo(
     assert materials.shape == (4, 3, params.COUNT)
     thickness, albedo = scene.medium_grid_values((4, 3))
     np.testing.assert_allclose(albedo, [1.0, 0.75, 0.0])  # uniform in sqrt(1 - albedo)
-    assert thickness[0] == 0.0 and thickness[-1] == pytest.approx(scene.LARGEST_THICKNESS)
+    assert thickness[0] == 0.0 and thickness[-1] == pytest.approx(scene.MEDIUM_SCALE)
     for i, j in np.ndindex(4, 3):
         sigma_t, scattering = params.medium_coefficients(materials[i, j])
         np.testing.assert_allclose(sigma_t, max(thickness[i], params.MINIMUM_EXTINCTION), rtol=1e-6)
