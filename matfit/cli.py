@@ -167,8 +167,13 @@ def fit_command(
         int, typer.Option(min=1, max=MAX_STARTS, help="L-BFGS-B starts (the best best-of-n candidates).")
     ] = Settings.starts,
     iterations: Annotated[
-        int, typer.Option(min=1, max=MAX_ITERATIONS, help="L-BFGS-B steps per start (a value and gradient each).")
+        int,
+        typer.Option(min=1, max=MAX_ITERATIONS, help="L-BFGS-B steps of the best start (a value and gradient each)."),
     ] = Settings.iterations,
+    narrow_after: Annotated[
+        int,
+        typer.Option(min=1, max=MAX_ITERATIONS, help="L-BFGS-B steps of every start; then the best goes on alone."),
+    ] = Settings.narrow_after,
     verify: Annotated[bool, typer.Option(help="Let Mitsuba choose among the final candidates.")] = True,
     refine: options.Refine = 0,
 ) -> None:
@@ -177,7 +182,15 @@ def fit_command(
 
     text = options.text
     outputs = fitfile.Outputs(str(output), text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
-    settings = Settings(method, evaluations, box, polish_steps=polish_steps, starts=starts, iterations=iterations)
+    settings = Settings(
+        method,
+        evaluations,
+        box,
+        polish_steps=polish_steps,
+        starts=starts,
+        iterations=iterations,
+        narrow_after=narrow_after,
+    )
     outcome = fitfile.run(str(target), str(model_path), settings, outputs, text(mask), seed, text(init), verify, refine)
     echo_lines(outcome.notices)
     log(outcome.summary(str(output)))

@@ -31,6 +31,8 @@ Nelder-Mead loop stays compiled). A call costs tens of microseconds of dispatch,
 
 A start whose projected gradient falls below `tolerance` stops moving (its steps still evaluate,
 as the batch does). The accepted points only ever improve, so a start's `x` is its best point.
+With `narrow_after`, the batch runs that many steps, then the best start goes on alone (a batch
+of one: the step's second compiled shape); the others end where they are.
 """
 
 from __future__ import annotations
@@ -41,6 +43,9 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+from matfit import programs
 
 TOLERANCE = 1e-4  # projected-gradient max-norm at which a start stops (RMSE units per unit of the cube)
 MEMORY = 8  # L-BFGS pairs kept
@@ -90,24 +95,29 @@ def _direction(x, g, s, y, rho, newest, gamma):
     return jnp.where(downhill, d, -gamma * masked)
 
 
-def init(starts: jax.Array, memory: int = MEMORY) -> dict[str, jax.Array]:
-    """Returns the state of k starts (k, n) before their first evaluation (at the starts, clipped into the box)."""
+def init(starts: np.ndarray, memory: int = MEMORY) -> dict[str, np.ndarray]:
+    """Returns the state of k starts (k, n) before their first evaluation (at the starts, clipped into the box).
+
+    Host (NumPy) arrays: every JAX operation outside a compiled program is a small program of its
+    own, traced and compiled (or read from the cache) on its first use in a process.
+    """
+    starts = np.asarray(starts)
     k, n = starts.shape
     dtype = starts.dtype
-    x0 = jnp.clip(starts, 0.0, 1.0)
+    x0 = np.clip(starts, 0.0, 1.0)
     return {
         "x": x0,
-        "f": jnp.full(k, jnp.inf, dtype),
-        "g": jnp.zeros((k, n), dtype),
-        "d": jnp.zeros((k, n), dtype),
-        "step": jnp.ones(k, dtype),
+        "f": np.full(k, np.inf, dtype),
+        "g": np.zeros((k, n), dtype),
+        "d": np.zeros((k, n), dtype),
+        "step": np.ones(k, dtype),
         "trial": x0,
-        "s": jnp.zeros((k, memory, n), dtype),
-        "y": jnp.zeros((k, memory, n), dtype),
-        "rho": jnp.zeros((k, memory), dtype),
-        "newest": jnp.zeros(k, jnp.int32),
-        "gamma": jnp.ones(k, dtype),
-        "converged": jnp.zeros(k, bool),
+        "s": np.zeros((k, memory, n), dtype),
+        "y": np.zeros((k, memory, n), dtype),
+        "rho": np.zeros((k, memory), dtype),
+        "newest": np.zeros(k, np.int32),
+        "gamma": np.ones(k, dtype),
+        "converged": np.zeros(k, bool),
     }
 
 
@@ -165,32 +175,61 @@ def _update(state: dict, f_t: jax.Array, g_t: jax.Array, tolerance: float) -> di
     }
 
 
-@partial(jax.jit, static_argnums=(0, 3))
+@programs.jit(static_argnames=("fn", "tolerance"))
 def step(fn: Callable[[jax.Array, Any], jax.Array], state: dict, args: Any, tolerance: float = TOLERANCE) -> dict:
     """Returns the state after one step: every start's trial point evaluated (one batched call), then updated."""
     f_t, g_t = jax.vmap(jax.value_and_grad(fn), in_axes=(0, None))(state["trial"], args)
     return jax.vmap(partial(_update, tolerance=tolerance))(state, f_t, g_t)
 
 
+def _run(fn: Callable[[jax.Array, Any], jax.Array], state: dict, args: Any, steps: int, tolerance: float):
+    """Returns (the state after at most `steps` steps, on the host; the steps taken) from a host state: it stops early
+    once every start converged.
+
+    The state goes to the device committed, as the step's outputs are: otherwise the first step
+    and the others would be two compilations of one program.
+    """
+    state = jax.device_put(state, jax.devices()[0])
+    done = 0
+    for done in range(1, steps + 1):
+        state = step(fn, state, args, tolerance)
+        if done % CHECK_EVERY == 0 and np.all(jax.device_get(state["converged"])):
+            break
+    return jax.device_get(state), done
+
+
 def minimise(
     fn: Callable[[jax.Array, Any], jax.Array],
-    starts: jax.Array,
+    starts: np.ndarray,
     args: Any,
     steps: int,
     tolerance: float = TOLERANCE,
     memory: int = MEMORY,
-) -> tuple[jax.Array, jax.Array, int]:
-    """Returns (best points (k, n), fn at them (k,), value-and-gradient evaluations per start) from k starts in the box.
+    narrow_after: int | None = None,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Returns (best points (k, n), fn at them (k,), value-and-gradient evaluations spent by all starts) from k starts.
 
-    At most `steps` steps (the first evaluates the starts); the loop ends early once every start
-    has converged (checked every CHECK_EVERY steps). `fn` must be the same object from call to
-    call (it is a static argument of the compiled step): a module-level function, or one cached.
+    At most `steps` steps (the first evaluates the starts); with `narrow_after`, every start takes
+    that many steps, then only the best one so far goes on, alone, to `steps` (the others end
+    where they are). The best start's later steps lower the decoded RMSE most; the others' ends,
+    less refined, stay candidates for Mitsuba's verification. Measured on the shipped decoder (20
+    reachable targets, README "Fitting"): 4 starts x 35 steps then the best alone to 60 reach a
+    lower decoded RMSE than 4 x 50 (2.126 against 2.128) and as good a verified answer, in 0.78 of
+    its time. The loop ends early once every start still moving has converged (checked every
+    CHECK_EVERY steps). `fn` must be the same object from call to call, or an equal one (it is a
+    static argument of the compiled step). Host work in between is NumPy, not JAX (see `init`).
     """
     if steps < 1:
         raise ValueError(f"steps {steps} must be at least 1")
-    state = init(jnp.asarray(starts), memory)
-    for done in range(1, steps + 1):
-        state = step(fn, state, args, tolerance)
-        if done % CHECK_EVERY == 0 and bool(jnp.all(state["converged"])):
-            break
-    return state["x"], state["f"], done
+    if narrow_after is not None and narrow_after < 1:
+        raise ValueError(f"narrow_after {narrow_after} must be at least 1")
+    starts = np.asarray(starts)
+    together = steps if narrow_after is None else min(narrow_after, steps)
+    state, done = _run(fn, init(starts, memory), args, together, tolerance)
+    x, f, spent = state["x"].copy(), state["f"].copy(), done * starts.shape[0]
+    best = int(np.argmin(f))
+    if done == together < steps and not state["converged"][best]:  # the best goes on alone
+        alone = {name: leaf[best : best + 1] for name, leaf in state.items()}
+        alone, more = _run(fn, alone, args, steps - done, tolerance)
+        x[best], f[best], spent = alone["x"][0], alone["f"][0], spent + more
+    return x, f, spent

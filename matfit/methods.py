@@ -60,7 +60,8 @@ class Settings:
     polish_steps: int = 0
     polish_rate: float = 3e-3
     starts: int = 4  # L-BFGS-B starts: the best candidates of best-of-n (and Nelder-Mead's result)
-    iterations: int = 50  # L-BFGS-B steps per start, one value-and-gradient each (`gradient.py`)
+    iterations: int = 60  # L-BFGS-B steps of the best start, one value-and-gradient each (`gradient.py`)
+    narrow_after: int = 35  # L-BFGS-B steps of every start; then the best goes on alone (README, "Fitting")
 
     def __post_init__(self):
         try:  # accept the plain strings too ("hybrid"), as the library's callers write them
@@ -91,4 +92,10 @@ class Settings:
         if not 1 <= self.iterations <= MAX_ITERATIONS:
             raise FitError(
                 f"iterations {self.iterations} is out of range: use 1 to {MAX_ITERATIONS}", field="iterations"
+            )
+        if not 1 <= self.narrow_after <= MAX_ITERATIONS:
+            raise FitError(
+                f"narrow after {self.narrow_after} is out of range: use 1 to {MAX_ITERATIONS} (at least --iterations "
+                "keeps every start to the end)",
+                field="narrow_after",
             )

@@ -83,6 +83,7 @@ def run_settings(settings: fit.Settings, reinit: bool, model: models.Model) -> d
         "box": settings.box,
         "starts": settings.starts,
         "iterations": settings.iterations,
+        "narrow_after": settings.narrow_after,
         "reinit": reinit,
         "model": model.identity(),
     }

@@ -1,0 +1,191 @@
+"""Traced programs kept across processes: matfit's compiled stages exported once (`jax.export`) and read back.
+
+JAX's persistent compilation cache (`enable`) keeps machine code, but a new process must still
+trace and lower every jitted function to find it: 1.2 s of a cold `matfit fit` went to tracing
+its three stages (best-of-n, the gradient step, the finish) through Flax. `jit` is `jax.jit` with
+static arguments whose traced program, once the cache is enabled, is serialized the first time
+and deserialized by later processes, which then skip the tracing (and, through the compilation
+cache, the compiling).
+
+The key of a stored program holds everything it was traced from: matfit's own source (every .py
+of the package, hashed once per process), the versions of jax, jaxlib and flax, the JAX settings
+that change a trace (64-bit, promotion rules, matmul precision), the backend, the function's
+name, the static arguments' repr, and the tree structure, shapes and dtypes of the others. So a
+changed matfit, JAX or model architecture finds no stale program. A static argument without a
+faithful repr (one naming a memory address) cannot be keyed: such calls are traced as usual.
+Under a JAX transformation (a tracer among the arguments), or before `enable`, a `jit` function
+is plain `jax.jit`. An unreadable stored program is traced again and rewritten.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import inspect
+import json
+import os
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import numpy as np
+
+from matfit import files
+
+SUFFIX = ".jaxprogram"
+_directory: str | None = None
+
+
+def enable(directory: str) -> None:
+    """Stores and reads traced programs under `directory` from now on (it is created if needed)."""
+    global _directory
+    os.makedirs(directory, exist_ok=True)
+    _directory = directory
+
+
+def disable() -> None:
+    """Stops storing and reading traced programs (`jit` functions behave as `jax.jit`)."""
+    global _directory
+    _directory = None
+
+
+@functools.cache
+def source_digest() -> str:
+    """Returns the SHA-256 of matfit's Python source: every .py file of the package, by name."""
+    package = os.path.dirname(os.path.abspath(__file__))
+    digest = hashlib.sha256()
+    for name in sorted(os.listdir(package)):
+        if name.endswith(".py"):
+            digest.update(name.encode())
+            with open(os.path.join(package, name), "rb") as file:
+                digest.update(file.read())
+    return digest.hexdigest()
+
+
+def environment() -> tuple:
+    """Returns what, besides matfit's source and the arguments, decides a traced program."""
+    import flax
+    import jaxlib
+
+    config = jax.config
+    return (
+        jax.__version__,
+        jaxlib.__version__,
+        flax.__version__,
+        jax.default_backend(),
+        config.jax_enable_x64,
+        config.jax_numpy_dtype_promotion,
+        config.jax_numpy_rank_promotion,
+        config.jax_default_matmul_precision,
+    )
+
+
+class Program:
+    """A jitted function whose traced programs are stored and read back (see the module's docstring)."""
+
+    def __init__(self, function: Callable, static_argnames: tuple[str, ...]):
+        self.function = function
+        self.static_argnames = tuple(static_argnames)
+        self.signature = inspect.signature(function)
+        self.dynamic_names = tuple(name for name in self.signature.parameters if name not in self.static_argnames)
+        self.jitted = jax.jit(function, static_argnames=self.static_argnames)
+        self.loaded: dict[tuple, Callable] = {}
+        functools.update_wrapper(self, function)
+
+    def __call__(self, *args, **kwargs):
+        if _directory is None:
+            return self.jitted(*args, **kwargs)
+        bound = self.signature.bind(*args, **kwargs)
+        bound.apply_defaults()
+        statics = tuple((name, bound.arguments[name]) for name in self.static_argnames)
+        values = tuple(bound.arguments[name] for name in self.dynamic_names)
+        leaves, tree = jax.tree_util.tree_flatten(values)
+        if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
+            return self.jitted(*args, **kwargs)
+        shapes = tuple((np.shape(leaf), jax.typeof(leaf).dtype, jax.typeof(leaf).weak_type) for leaf in leaves)
+        key = (statics, tree, shapes, _directory)
+        program = self.loaded.get(key)
+        if program is None:
+            program = self.loaded[key] = self.program(statics, tree, shapes)
+        return program(*values)
+
+    def program(self, statics: tuple, tree, shapes: tuple) -> Callable:
+        """Returns a callable of the dynamic arguments: the stored program if there is one, else one traced now (and
+        stored), or the jitted function if the statics cannot be keyed."""
+        fixed = dict(statics)
+
+        def traced(*dynamic):
+            return self.function(**fixed, **dict(zip(self.dynamic_names, dynamic, strict=True)))
+
+        described = repr(statics)
+        if " at 0x" in described:  # a repr naming an address: no key survives the process
+            return jax.jit(traced)
+        name = f"{self.function.__module__}.{self.function.__qualname__}"
+        key = repr(
+            (
+                name,
+                described,
+                str(tree),
+                [(shape, str(dtype), weak) for shape, dtype, weak in shapes],
+                environment(),
+                source_digest(),
+            )
+        )
+        path = os.path.join(_directory, f"{name}-{hashlib.sha256(key.encode()).hexdigest()[:32]}{SUFFIX}")
+        from jax import export
+
+        exported = None
+        try:
+            with open(path, "rb") as file:
+                exported = export.deserialize(bytearray(file.read()))
+        except FileNotFoundError:
+            pass
+        except Exception:  # a damaged or foreign file: trace again, below
+            exported = None
+        if exported is None:
+            specs = [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in shapes]
+            try:
+                exported = export.export(jax.jit(traced))(*jax.tree_util.tree_unflatten(tree, specs))
+                files.write_bytes(path, bytes(exported.serialize()))
+            except OSError:
+                pass  # no room or no permission: this process still uses what it traced
+            except Exception:  # something jax.export cannot serialize: trace as usual
+                return jax.jit(traced)
+        return jax.jit(exported.call)
+
+    def _cache_size(self) -> int:
+        """Returns how many programs this function holds in this process (compiled by jax.jit or read back)."""
+        return self.jitted._cache_size() + len(self.loaded)
+
+
+def jit(function: Callable | None = None, *, static_argnames: tuple[str, ...] = ()) -> Any:
+    """Returns `function` as a `Program` (usable as a decorator, `@programs.jit(static_argnames=(...))`)."""
+    if function is None:
+        return functools.partial(jit, static_argnames=static_argnames)
+    return Program(function, static_argnames)
+
+
+def remembered(name: str, parts: Any, compute: Callable[[], Any]) -> Any:
+    """Returns `compute()` (JSON data), kept in the store under `name` and the key rules of programs: `parts` (with a
+    faithful repr), the environment and matfit's source. Without a store it is computed every time."""
+    if _directory is None:
+        return compute()
+    key = repr((name, repr(parts), environment(), source_digest()))
+    path = os.path.join(_directory, f"{name}-{hashlib.sha256(key.encode()).hexdigest()[:32]}.json")
+    try:
+        with open(path, encoding="utf-8") as file:
+            return json.load(file)
+    except (OSError, ValueError):  # absent or damaged: computed again, below
+        pass
+    value = compute()
+    with contextlib.suppress(OSError):  # no room or no permission: computed again next time
+        files.write_text(path, json.dumps(value))
+    return json.loads(json.dumps(value))  # the same types as read back (lists for tuples)
+
+
+def stored() -> list[str]:
+    """Returns the stored programs' and remembered values' file names (none before `enable`)."""
+    if _directory is None or not os.path.isdir(_directory):
+        return []
+    return sorted(name for name in os.listdir(_directory) if name.endswith((SUFFIX, ".json")))

@@ -1,0 +1,117 @@
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from matfit import programs
+
+TRACES = []
+
+
+def scaled(x, y, factor):
+    TRACES.append(factor)  # runs once per trace: the tests count traces with it
+    return {"sum": factor * jnp.sum(x * y), "y": y}
+
+
+@pytest.fixture
+def store(tmp_path):
+    """Returns a fresh store of programs, enabled for the test; the store is disabled again after it."""
+    previous = programs._directory
+    programs.enable(str(tmp_path / "programs"))
+    TRACES.clear()
+    yield str(tmp_path / "programs")
+    programs._directory = previous
+
+
+def arguments(n: int = 3):
+    return np.arange(n, dtype=np.float32), np.full(n, 2.0, np.float32)
+
+
+def test_a_new_process_reads_the_stored_program_back_instead_of_tracing(store):
+    first = programs.jit(scaled, static_argnames=("factor",))
+    out = first(*arguments(), factor=3.0)
+    assert float(out["sum"]) == pytest.approx(3.0 * 2.0 * (0 + 1 + 2))
+    traced = len(TRACES)
+    assert traced >= 1 and len(programs.stored()) == 1
+    again = programs.jit(scaled, static_argnames=("factor",))  # what a new process holds: nothing in memory
+    out = again(*arguments(), factor=3.0)
+    assert len(TRACES) == traced  # read back, not traced
+    assert float(out["sum"]) == pytest.approx(18.0)
+    np.testing.assert_array_equal(np.asarray(out["y"]), arguments()[1])
+    assert again._cache_size() == 1
+
+
+def test_new_statics_shapes_or_source_make_new_programs(store, monkeypatch):
+    function = programs.jit(scaled, static_argnames=("factor",))
+    function(*arguments(), factor=3.0)
+    function(*arguments(), factor=5.0)
+    function(*arguments(4), factor=5.0)
+    assert len(programs.stored()) == 3
+    traced = len(TRACES)
+    monkeypatch.setattr(programs, "source_digest", lambda: "another matfit")
+    out = programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)
+    assert len(TRACES) > traced and len(programs.stored()) == 4  # a changed matfit never reads a stale program
+    assert float(out["sum"]) == pytest.approx(18.0)
+
+
+def test_a_damaged_program_is_traced_again_and_rewritten(store):
+    programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)
+    (name,) = programs.stored()
+    with open(os.path.join(store, name), "wb") as file:
+        file.write(b"not a program")
+    traced = len(TRACES)
+    out = programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)
+    assert float(out["sum"]) == pytest.approx(18.0) and len(TRACES) > traced
+    assert os.path.getsize(os.path.join(store, name)) > 100
+    TRACES.clear()
+    programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)
+    assert TRACES == []
+
+
+def test_transformations_and_unkeyable_statics_trace_as_jax_jit_does(store):
+    function = programs.jit(scaled, static_argnames=("factor",))
+    x, y = arguments()
+    gradient = jax.grad(lambda x: function(x, y, factor=3.0)["sum"])(x)
+    np.testing.assert_allclose(np.asarray(gradient), 3.0 * y)
+    batched = jax.vmap(lambda x: function(x, y, factor=1.0)["sum"])(np.stack([x, 2 * x]))
+    np.testing.assert_allclose(np.asarray(batched), [6.0, 12.0])
+    assert programs.stored() == []  # under a transformation nothing is exported
+
+    class Opaque:  # the default repr names an address: no key outlives the process
+        def __mul__(self, other):
+            return 4.0 * other
+
+    out = function(x, y, factor=Opaque())
+    assert float(out["sum"]) == pytest.approx(24.0) and programs.stored() == []
+
+
+def test_without_a_store_it_is_jax_jit():
+    previous = programs._directory
+    programs.disable()
+    try:
+        function = programs.jit(scaled, static_argnames=("factor",))
+        assert float(function(*arguments(), factor=2.0)["sum"]) == pytest.approx(12.0)
+        assert function._cache_size() == 1 and programs.stored() == []
+        assert programs.remembered("value", 1, lambda: [1, 2]) == [1, 2]
+    finally:
+        programs._directory = previous
+
+
+def test_remembered_values_are_computed_once_per_key(store):
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return {"shape": (2, 3)}
+
+    assert programs.remembered("shapes", {"kind": "a"}, compute) == {"shape": [2, 3]}
+    assert programs.remembered("shapes", {"kind": "a"}, compute) == {"shape": [2, 3]}
+    assert len(calls) == 1
+    programs.remembered("shapes", {"kind": "b"}, compute)
+    assert len(calls) == 2
+    for name in programs.stored():
+        with open(os.path.join(store, name), "w") as file:
+            file.write("{damaged")
+    assert programs.remembered("shapes", {"kind": "a"}, compute) == {"shape": [2, 3]} and len(calls) == 3
