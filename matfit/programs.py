@@ -32,6 +32,7 @@ import jax
 import numpy as np
 
 from matfit import files
+from matfit.errors import OutputError
 
 SUFFIX = ".jaxprogram"
 _directory: str | None = None
@@ -148,7 +149,7 @@ class Program:
             try:
                 exported = export.export(jax.jit(traced))(*jax.tree_util.tree_unflatten(tree, specs))
                 files.write_bytes(path, bytes(exported.serialize()))
-            except OSError:
+            except (OSError, OutputError):
                 pass  # no room or no permission: this process still uses what it traced
             except Exception:  # something jax.export cannot serialize: trace as usual
                 return jax.jit(traced)
@@ -179,7 +180,7 @@ def remembered(name: str, parts: Any, compute: Callable[[], Any]) -> Any:
     except (OSError, ValueError):  # absent or damaged: computed again, below
         pass
     value = compute()
-    with contextlib.suppress(OSError):  # no room or no permission: computed again next time
+    with contextlib.suppress(OSError, OutputError):  # no room or no permission: computed again next time
         files.write_text(path, json.dumps(value))
     return json.loads(json.dumps(value))  # the same types as read back (lists for tuples)
 

@@ -5,7 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from matfit import programs
+from matfit import files, programs
+from matfit.errors import OutputError
 
 TRACES = []
 
@@ -115,3 +116,14 @@ def test_remembered_values_are_computed_once_per_key(store):
         with open(os.path.join(store, name), "w") as file:
             file.write("{damaged")
     assert programs.remembered("shapes", {"kind": "a"}, compute) == {"shape": [2, 3]} and len(calls) == 3
+
+
+def test_a_full_disk_leaves_the_fit_working_and_nothing_stored(store, monkeypatch):
+    def full(path, data):
+        raise OutputError(f"cannot write {path}: No space left on device")
+
+    monkeypatch.setattr(files, "write_bytes", full)
+    monkeypatch.setattr(files, "write_text", full)
+    out = programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)
+    assert float(out["sum"]) == pytest.approx(18.0) and programs.stored() == []
+    assert programs.remembered("shapes", 1, lambda: [4]) == [4]
