@@ -43,9 +43,9 @@ def reachable_targets(renderer, count: int, spp: int = 256) -> Targets:
     return Targets(unit, np.stack(rendered))
 
 
+_DEFAULT = fit.Settings()
 DEFAULT_LABEL = (
-    f"lbfgsb, {fit.Settings().starts} starts x {fit.Settings().narrow_after}, the best to {fit.Settings().iterations}"
-    " (default)"
+    f"lbfgsb, {_DEFAULT.starts} starts x {_DEFAULT.narrow_after}, the best to {_DEFAULT.iterations} (default)"
 )
 
 

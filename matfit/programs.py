@@ -29,7 +29,6 @@ from collections.abc import Callable
 from typing import Any
 
 import jax
-import numpy as np
 
 from matfit import files
 from matfit.errors import OutputError
@@ -104,7 +103,7 @@ class Program:
         leaves, tree = jax.tree_util.tree_flatten(values)
         if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
             return self.jitted(*args, **kwargs)
-        shapes = tuple((np.shape(leaf), jax.typeof(leaf).dtype, jax.typeof(leaf).weak_type) for leaf in leaves)
+        shapes = tuple((typed.shape, typed.dtype, typed.weak_type) for typed in map(jax.typeof, leaves))
         key = (statics, tree, shapes, _directory)
         program = self.loaded.get(key)
         if program is None:
@@ -123,27 +122,16 @@ class Program:
         if " at 0x" in described:  # a repr naming an address: no key survives the process
             return jax.jit(traced)
         name = f"{self.function.__module__}.{self.function.__qualname__}"
-        key = repr(
-            (
-                name,
-                described,
-                str(tree),
-                [(shape, str(dtype), weak) for shape, dtype, weak in shapes],
-                environment(),
-                source_digest(),
-            )
-        )
-        path = os.path.join(_directory, f"{name}-{hashlib.sha256(key.encode()).hexdigest()[:32]}{SUFFIX}")
+        arguments = [(shape, str(dtype), weak) for shape, dtype, weak in shapes]
+        path = _stored_path(name, (described, str(tree), arguments), SUFFIX)
         from jax import export
 
         exported = None
         try:
             with open(path, "rb") as file:
                 exported = export.deserialize(bytearray(file.read()))
-        except FileNotFoundError:
+        except Exception:  # absent, damaged or foreign: traced (again) below
             pass
-        except Exception:  # a damaged or foreign file: trace again, below
-            exported = None
         if exported is None:
             specs = [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in shapes]
             try:
@@ -160,6 +148,12 @@ class Program:
         return self.jitted._cache_size() + len(self.loaded)
 
 
+def _stored_path(name: str, parts: Any, suffix: str) -> str:
+    """Returns where the store keeps `name` for `parts`: hashed with the environment and matfit's source."""
+    key = repr((name, parts, environment(), source_digest()))
+    return os.path.join(_directory, f"{name}-{hashlib.sha256(key.encode()).hexdigest()[:32]}{suffix}")
+
+
 def jit(function: Callable | None = None, *, static_argnames: tuple[str, ...] = ()) -> Any:
     """Returns `function` as a `Program` (usable as a decorator, `@programs.jit(static_argnames=(...))`)."""
     if function is None:
@@ -172,8 +166,7 @@ def remembered(name: str, parts: Any, compute: Callable[[], Any]) -> Any:
     faithful repr), the environment and matfit's source. Without a store it is computed every time."""
     if _directory is None:
         return compute()
-    key = repr((name, repr(parts), environment(), source_digest()))
-    path = os.path.join(_directory, f"{name}-{hashlib.sha256(key.encode()).hexdigest()[:32]}.json")
+    path = _stored_path(name, repr(parts), ".json")
     try:
         with open(path, encoding="utf-8") as file:
             return json.load(file)
