@@ -44,7 +44,10 @@ Model = Annotated[
 Variant = Annotated[Literal[VARIANTS] | None, typer.Option(help="Force a Mitsuba variant.")]
 Sampler = Annotated[
     Literal[tuple(params.SAMPLERS)],
-    typer.Option(help="How parameters are drawn: the training distribution, or its dense-media corner (a supplement)."),
+    typer.Option(
+        help="How parameters are drawn: the training distribution, or one of its corners (a supplement): "
+        "dense-media (milky, jade-like) or glass (transmissive dielectrics with a white or grey base colour)."
+    ),
 ]
 Spp = Annotated[int, typer.Option(min=1, max=dataset.MAX_SPP, help="Samples per pixel (of the renders).")]
 Size = Annotated[

@@ -77,8 +77,28 @@ def test_dense_media_sampler_draws_dense_transmissive_nearly_lossless_media():
     np.testing.assert_array_equal(params.sample_index(0, 5, "dense-media"), params.sample_index(0, 5, "dense-media"))
 
 
+def test_glass_sampler_draws_white_and_grey_dielectrics_clear_tinted_and_milky():
+    unit = np.stack([params.sample_index(0, i, "glass") for i in range(2000)])
+    assert unit.min() >= 0.0 and unit.max() <= 1.0
+    physical = params.from_unit(unit)
+    column = {name: physical[:, params.INDEX[name]] for name in params.NAMES}
+    assert column["spec_trans"].min() >= 0.95 and column["metallic"].max() <= 0.05
+    colour = physical[:, :3]
+    assert np.mean(np.ptp(colour, axis=1) == 0.0) == pytest.approx(0.5, abs=0.04)  # exactly grey
+    assert np.ptp(colour, axis=1).max() <= 0.05  # never more than a tint
+    assert np.mean(colour.min(axis=1) >= 0.95) == pytest.approx(0.35, abs=0.04)  # white: every transmissive preset
+    # the uniform sampler draws a white base colour once in thousands
+    uniform = params.from_unit(np.stack([params.sample_index(0, i) for i in range(2000)]))
+    assert np.mean(uniform[:, :3].min(axis=1) >= 0.95) < 0.002
+    # half the media are the dense-media corner's, the other half as drawn (clear glass among them)
+    dense = (column["density"] >= 0.5) & (column["scattering"] >= 0.85)
+    assert np.mean(dense) == pytest.approx(0.5 + 0.5 * 0.15, abs=0.05)
+    assert np.mean(column["density"] <= 0.2) == pytest.approx(0.5 * 0.4, abs=0.05)
+    np.testing.assert_array_equal(params.sample_index(0, 5, "glass"), params.sample_index(0, 5, "glass"))
+
+
 def test_unknown_sampler_is_refused():
-    with pytest.raises(ParameterError, match="unknown sampler 'milk': use uniform or dense-media"):
+    with pytest.raises(ParameterError, match="unknown sampler 'milk': use uniform or dense-media or glass"):
         params.sample_index(0, 0, "milk")
 
 
