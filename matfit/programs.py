@@ -130,6 +130,7 @@ class Program:
         try:
             with open(path, "rb") as file:
                 exported = export.deserialize(bytearray(file.read()))
+            touch(path)
         except Exception:  # absent, damaged or foreign: traced (again) below
             pass
         if exported is None:
@@ -169,13 +170,46 @@ def remembered(name: str, parts: Any, compute: Callable[[], Any]) -> Any:
     path = _stored_path(name, repr(parts), ".json")
     try:
         with open(path, encoding="utf-8") as file:
-            return json.load(file)
+            value = json.load(file)
+        touch(path)
+        return value
     except (OSError, ValueError):  # absent or damaged: computed again, below
         pass
     value = compute()
     with contextlib.suppress(OSError, OutputError):  # no room or no permission: computed again next time
         files.write_text(path, json.dumps(value))
     return json.loads(json.dumps(value))  # the same types as read back (lists for tuples)
+
+
+def prune(directory: str, max_bytes: int) -> int:
+    """Removes the least recently used files of a cache directory until the rest take at most `max_bytes`;
+    returns how many it removed. Last use is a file's later access or modification time (a program read back
+    has its time set, `touch`). Files another process removes meanwhile, or that cannot be removed, are skipped:
+    a cache is never worth an error."""
+    try:
+        entries = []
+        with os.scandir(directory) as listing:
+            for entry in listing:
+                if entry.is_file(follow_symlinks=False):
+                    status = entry.stat(follow_symlinks=False)
+                    entries.append((max(status.st_atime, status.st_mtime), status.st_size, entry.path))
+    except OSError:
+        return 0
+    total, removed = sum(size for _, size, _ in entries), 0
+    for _, size, path in sorted(entries):
+        if total <= max_bytes:
+            break
+        with contextlib.suppress(OSError):
+            os.remove(path)
+            removed += 1
+        total -= size
+    return removed
+
+
+def touch(path: str) -> None:
+    """Marks a stored file as used now (for `prune`), if it can."""
+    with contextlib.suppress(OSError):
+        os.utime(path)
 
 
 def stored() -> list[str]:

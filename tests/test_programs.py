@@ -127,3 +127,25 @@ def test_a_full_disk_leaves_the_fit_working_and_nothing_stored(store, monkeypatc
     out = programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)
     assert float(out["sum"]) == pytest.approx(18.0) and programs.stored() == []
     assert programs.remembered("shapes", 1, lambda: [4]) == [4]
+
+
+def test_prune_removes_the_least_recently_used_until_the_rest_fit(tmp_path):
+    for age, name in enumerate(["newest", "middle", "oldest"]):
+        path = tmp_path / name
+        path.write_bytes(b"x" * 1000)
+        os.utime(path, (1e9 - 100 * age, 1e9 - 100 * age))
+    assert programs.prune(str(tmp_path), 2500) == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["middle", "newest"]
+    programs.touch(str(tmp_path / "middle"))  # read back now: the newest use
+    assert programs.prune(str(tmp_path), 1000) == 1
+    assert [p.name for p in tmp_path.iterdir()] == ["middle"]
+    assert programs.prune(str(tmp_path), 1000) == 0
+    assert programs.prune(str(tmp_path / "absent"), 0) == 0  # no cache: nothing to do, no error
+
+
+def test_a_program_read_back_counts_as_used(store, tmp_path):
+    programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)
+    (path,) = [os.path.join(store, name) for name in programs.stored()]
+    os.utime(path, (1e9, 1e9))
+    programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)  # a new process reads it back
+    assert TRACES == [3.0] and os.path.getmtime(path) > 1e9
