@@ -71,8 +71,9 @@ model: $(BIN)/matfit
 	@mkdir -p datasets
 	$(BIN)/matfit render-dataset datasets/train --count 22000 --resolution 64 --spp 16 --seed 0
 	$(BIN)/matfit render-dataset datasets/dense-media --count 4000 --resolution 64 --spp 16 --seed 2 --sampler dense-media
+	$(BIN)/matfit render-dataset datasets/glass --count 6000 --resolution 64 --spp 16 --seed 3 --sampler glass
 	$(BIN)/matfit render-dataset datasets/reference --count 300 --resolution 64 --spp 2048 --seed 1
-	$(BIN)/matfit train --arch decoder --dataset datasets/train --dataset datasets/dense-media --out $(MODEL)
+	$(BIN)/matfit train --arch decoder --dataset datasets/train --dataset datasets/dense-media --dataset datasets/glass --out $(MODEL)
 	$(BIN)/matfit train --arch 1..9 --dataset datasets/train --out $(MODEL)
 	$(BIN)/matfit evaluate --model $(MODEL) --references datasets/reference --card
 
