@@ -187,11 +187,13 @@ def describe_training(decoder: dict) -> str:
         f"Trained on {data.get('count', '?')} Mitsuba renders ({data.get('resolution', '?')} px, "
         f"{data.get('spp', '?')} spp, {data.get('variant', '?')}, sampling seed {data.get('seed', '?')})"
     )
-    for extra in datasets[1:]:
-        sentence += (
-            f", the decoder also on {extra.get('count', '?')} drawn by the {extra.get('sampler', '?')} sampler "
-            f"(seed {extra.get('seed', '?')}; the encoders on the first set alone)"
-        )
+    extras = [
+        f"{extra.get('count', '?')} drawn by the {extra.get('sampler', '?')} sampler (seed {extra.get('seed', '?')})"
+        for extra in datasets[1:]
+    ]
+    if extras:
+        listed = extras[0] if len(extras) == 1 else ", ".join(extras[:-1]) + " and " + extras[-1]
+        sentence += f", the decoder also on {listed}, the encoders on the first set alone"
     fraction = decoder.get("config", {}).get("validation_fraction", 0.05)
     held_out = decoder.get("validation_samples", "?")
     return f"{sentence}; the last {100 * fraction:.0f}% of each set ({held_out} renders) were held out for validation."

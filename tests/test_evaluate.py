@@ -64,7 +64,13 @@ def test_the_card_says_what_the_decoder_trained_on():
     two = {**one, "dataset": [first, media], "validation_samples": 1300}
     sentence = evaluate.describe_training(two)
     assert (
-        "the decoder also on 4000 drawn by the dense-media sampler (seed 2; the encoders on the first set alone)"
+        "the decoder also on 4000 drawn by the dense-media sampler (seed 2), the encoders on the first set alone"
         in (sentence)
     )
     assert "(1300 renders)" in sentence
+    glass = {**first, "count": 6000, "seed": 3, "sampler": "glass"}
+    three = evaluate.describe_training({**one, "dataset": [first, media, glass], "validation_samples": 1600})
+    assert (
+        "the decoder also on 4000 drawn by the dense-media sampler (seed 2) and 6000 drawn by the glass sampler "
+        "(seed 3), the encoders on the first set alone; the last 5% of each set (1600 renders)" in three
+    )
