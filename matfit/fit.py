@@ -1,8 +1,9 @@
 """Fitting the 19 shader parameters to a target image: the paper's Algorithm 1, jit-compiled.
 
 - best-of-n: every encoder guesses x from the target; the guesses (plus any extra candidates,
-  such as the previous frame's optimum in a sequence) are decoded in one batch and the one whose
-  image is closest to the target wins;
+  such as the previous frame's optimum in a sequence, and for the gradient methods the fixed
+  grid of `media_candidates`) are decoded in one batch and the one whose image is closest to the
+  target wins;
 - Nelder-Mead (`simplex.py`) minimises the image RMSE E(x) = RMSE(phi(x), t) (0-255 sRGB,
   optionally weighted per pixel by a mask) inside the unit cube, within a budget of evaluations;
 - `hybrid` starts Nelder-Mead from the best-of-n guess, `optimize` from a random point (the
@@ -27,6 +28,8 @@ compiled functions, compiled once per model and settings and reused for every ta
 
 from __future__ import annotations
 
+import functools
+import itertools
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -49,6 +52,15 @@ BARRIER = 1e4
 # batch 4 (11.98 / 4.89 ms), the gradient stage's two batch sizes (it was 1.8 with the decoder before the glass basis).
 GRADIENT_COST = 2.5
 ASPECT_TOLERANCE = 0.01
+# The grid of `media_candidates`: white dielectric spheres filled with a grey medium. The encoders, trained on
+# uniform draws where a dense white medium is rare, guess milk as an opaque white material and the fit stayed
+# there (README, "Fitting": milk's round trip 8.17 before the grid).
+MEDIA_GRID = {
+    "density": (0.5, 1.0, 2.0, 4.0),
+    "medium_color": (0.05, 0.2, 0.5),
+    "scattering": (0.7, 1.0),
+    "roughness": (0.05, 0.3),
+}
 
 
 def distance_outside(x: jax.Array) -> jax.Array:
@@ -56,6 +68,26 @@ def distance_outside(x: jax.Array) -> jax.Array:
     squared = jnp.sum((x - jnp.clip(x, 0.0, 1.0)) ** 2)
     positive = squared > 0
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, squared, 1.0)), 0.0)
+
+
+@functools.cache
+def media_candidates() -> np.ndarray:
+    """Returns the unit-cube grid (k, 19) of transmissive candidates the gradient methods add to best-of-n.
+
+    Each is the default material made a white dielectric (base colour 1, spec_trans 1) holding a grey
+    medium, for every combination of `MEDIA_GRID`; the gradient stage tints and tunes the winner.
+    """
+    points = []
+    for density, grey, albedo, roughness in itertools.product(*MEDIA_GRID.values()):
+        x = params.DEFAULTS.copy()
+        for name in ("base_color_r", "base_color_g", "base_color_b", "spec_trans"):
+            x[params.INDEX[name]] = 1.0
+        for name in ("medium_color_r", "medium_color_g", "medium_color_b"):
+            x[params.INDEX[name]] = grey
+        x[params.INDEX["density"]], x[params.INDEX["scattering"]] = density, albedo
+        x[params.INDEX["roughness"]] = roughness
+        points.append(params.to_unit(x))
+    return np.asarray(points, np.float32)
 
 
 def objective(x: jax.Array, args: tuple) -> jax.Array:
@@ -207,9 +239,13 @@ class Result:
     end_rmse: np.ndarray | None = None  # their neural RMSE
 
 
-def candidate_names(model: models.Model, extra_count: int) -> list[str]:
-    """Returns the names of the best-of-n candidates in order: encoders, then extra candidates."""
-    return [f"encoder-{arch}" for arch in model.encoders] + [f"extra-{k + 1}" for k in range(extra_count)]
+def candidate_names(model: models.Model, extra_count: int, media_count: int = 0) -> list[str]:
+    """Returns the names of the best-of-n candidates in order: encoders, extra candidates, then the media grid."""
+    return (
+        [f"encoder-{arch}" for arch in model.encoders]
+        + [f"extra-{k + 1}" for k in range(extra_count)]
+        + [f"media-{k + 1}" for k in range(media_count)]
+    )
 
 
 def fit(
@@ -223,8 +259,9 @@ def fit(
     """Returns the parameters whose decoded image best matches `target`.
 
     target: sRGB (R, R, 3) in [0, 1] at the model's resolution (`prepare_target`); weights: (R, R)
-    per-pixel weights (a mask) or None; extra: unit-cube candidates (k, 19) joining best-of-n;
-    seed: draws the random start of `optimize` (data, not a setting: no recompilation).
+    per-pixel weights (a mask) or None; extra: unit-cube candidates (k, 19) joining best-of-n (the
+    gradient methods add `media_candidates` after them); seed: draws the random start of `optimize`
+    (data, not a setting: no recompilation).
     """
     settings = settings or Settings()
     settings.check()
@@ -242,7 +279,8 @@ def fit(
         if extra is None
         else np.asarray(extra, np.float32).reshape(-1, params.COUNT)
     )
-    if not model.encoders and not len(extra) and settings.method != Method.optimize:
+    media = media_candidates() if settings.method.uses_gradient else np.zeros((0, params.COUNT), np.float32)
+    if not model.encoders and not len(extra) + len(media) and settings.method != Method.optimize:
         raise FitError("best-of-n needs at least one encoder or extra candidate: use a model with encoders")
     start = np.random.default_rng(seed).uniform(0.0, 1.0, params.COUNT).astype(np.float32)
     encoder_target = models.encoder_input(images.srgb_decode(target))
@@ -257,7 +295,7 @@ def fit(
         target,
         encoder_target,
         weights,
-        extra,
+        np.concatenate([extra, media]),
         start,
     )
     out = jax.device_get(out)  # host arrays between the compiled stages: no JAX operation outside them
@@ -270,7 +308,7 @@ def fit(
         out["evaluations"] = out["evaluations"] + GRADIENT_COST * spent
     out |= jax.device_get(_finish(decoder, settings, model.decoder.variables, target, weights, ends))
     seconds = time.perf_counter() - started
-    names = candidate_names(model, len(extra))
+    names = candidate_names(model, len(extra), len(media))
     unit = np.asarray(out["unit"], np.float64)
     chosen = int(out["chosen"])
     start_rmse, start_point, start_image, chosen_name = (

@@ -151,3 +151,19 @@ def test_optimize_reports_its_random_start(model):
     assert result.chosen == "random"
     np.testing.assert_array_equal(result.start, expected)
     assert result.start_rmse == pytest.approx(float(np.asarray(images.rmse(decode(model, expected), target))), rel=1e-5)
+
+
+def test_gradient_methods_add_the_media_grid_to_best_of_n(model):
+    grid = fit.media_candidates()
+    assert grid.shape == (48, params.COUNT) and grid.min() >= 0.0 and grid.max() <= 1.0
+    assert len({tuple(point) for point in grid}) == 48
+    physical = np.stack([params.from_unit(point) for point in grid])
+    for name in ("base_color_r", "base_color_g", "base_color_b", "spec_trans"):
+        np.testing.assert_allclose(physical[:, params.INDEX[name]], 1.0)
+    assert sorted(set(np.round(physical[:, params.INDEX["density"]], 6))) == [0.5, 1.0, 2.0, 4.0]
+    target = decode(model, grid[17])
+    result = fit.fit(model, target, Settings(method="lbfgsb", starts=1, iterations=1, narrow_after=1))
+    assert result.chosen == "media-18" and result.start_rmse == pytest.approx(0.0, abs=1e-3)
+    assert len(result.candidate_rmse) == len(model.encoders) + 48
+    paper = fit.fit(model, target, Settings(method="nn"))
+    assert set(paper.candidate_rmse) == {"encoder-3", "encoder-8"}
