@@ -37,7 +37,6 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from matfit import gradient, images, models, params, programs
 from matfit.errors import FitError
@@ -102,6 +101,8 @@ def objective(x: jax.Array, args: tuple) -> jax.Array:
 
 def polish(decoder, variables, target, weights, x: jax.Array, steps: int, rate: float) -> jax.Array:
     """Returns the best point of `steps` projected Adam steps on E from x (x itself if none is better)."""
+    import optax  # only for the opt-in polish: 0.1 s of every cold start
+
     tx = optax.adam(rate)
     loss = jax.value_and_grad(lambda y: images.rmse(decoder.apply(variables, y), target, weights))
 
@@ -142,7 +143,7 @@ def _fit(
     start,
 ):
     guesses = [
-        encoder.apply(variables, encoder_target[None])[0]
+        encoder.apply(models.as_float32(variables), encoder_target[None])[0]
         for encoder, variables in zip(encoders, encoder_variables, strict=True)
     ]
     candidates = jnp.concatenate([jnp.stack(guesses), extra]) if guesses else extra
@@ -200,7 +201,7 @@ def gradient_objective(decoder) -> DecodedObjective:
 
 @programs.jit(static_argnames=("decoder", "settings"))
 def _finish(decoder, settings: Settings, decoder_variables, target, weights, ends):
-    """Returns the end points sorted by neural RMSE (after the optional polish), and the best one's image."""
+    """Returns the end points sorted by neural RMSE (after the optional polish), and their images."""
     end_errors = images.rmse(decoder.apply(decoder_variables, ends), target, weights)
     if settings.polish_steps:
         polished = polish(
@@ -216,8 +217,15 @@ def _finish(decoder, settings: Settings, decoder_variables, target, weights, end
         end_errors = images.rmse(decoder.apply(decoder_variables, ends), target, weights)
     order = jnp.argsort(end_errors)
     ends, end_errors = ends[order], end_errors[order]
-    image = decoder.apply(decoder_variables, ends[0])
-    return {"unit": ends[0], "image": image, "rmse": end_errors[0], "ends": ends, "end_rmse": end_errors}
+    end_images = decoder.apply(decoder_variables, ends)
+    return {
+        "unit": ends[0],
+        "image": end_images[0],
+        "rmse": end_errors[0],
+        "ends": ends,
+        "end_rmse": end_errors,
+        "end_images": end_images,
+    }
 
 
 @dataclass
@@ -237,6 +245,18 @@ class Result:
     seconds: float = 0.0
     ends: np.ndarray | None = None  # the fit's end points (unit cube, (k, 19)), best neural RMSE first
     end_rmse: np.ndarray | None = None  # their neural RMSE
+    end_images: np.ndarray | None = None  # their decoded images, sRGB (k, R, R, 3)
+
+    def decoded(self, unit: np.ndarray) -> np.ndarray | None:
+        """Returns phi(unit) if `unit` is the start or an end point (already decoded by the fit), else None."""
+        unit = np.asarray(unit, np.float64)
+        if np.array_equal(unit, np.asarray(self.start, np.float64)):
+            return self.start_image
+        if self.ends is not None and self.end_images is not None:
+            for end, image in zip(self.ends, self.end_images, strict=True):
+                if np.array_equal(unit, np.asarray(end, np.float64)):
+                    return image
+        return None
 
 
 def candidate_names(model: models.Model, extra_count: int, media_count: int = 0) -> list[str]:
@@ -335,6 +355,7 @@ def fit(
         seconds=seconds,
         ends=np.asarray(out["ends"], np.float64),
         end_rmse=np.asarray(out["end_rmse"], np.float64),
+        end_images=np.asarray(out["end_images"]),
     )
 
 

@@ -199,7 +199,8 @@ def fit_file(
         outcome.refined = refine.refine(outcome.unit, target_srgb, refine_steps, weights, renderer)
         outcome.unit, outcome.rendered = outcome.refined.unit, outcome.refined.rendered
     if verified or refine_steps:
-        outcome.image = model.decode(outcome.unit)[0]
+        decoded = result.decoded(outcome.unit)  # verification keeps a point the fit decoded: no new program to load
+        outcome.image = model.decode(outcome.unit)[0] if decoded is None else decoded
         outcome.neural_rmse = float(images.rmse(outcome.image, target_srgb, weights))
     outcome.document = document(outcome, settings, model_path, target, mask, source)
     return outcome, renderer

@@ -347,10 +347,16 @@ def initialise(model: nn.Module, key: jax.Array, input_shape: tuple[int, ...]) -
     return jax.jit(model.init)(key, jnp.zeros((1, *input_shape), jnp.float32))  # compiled: faster than op by op
 
 
-@partial(jax.jit, static_argnums=0)
+def as_float32(variables: dict) -> dict:
+    """Returns the weights as float32: inside a compiled program, an encoder's stored float16 weights (`load`) are
+    converted where XLA runs, once per call; float32 weights are left as they are."""
+    return jax.tree_util.tree_map(lambda leaf: jnp.asarray(leaf).astype(jnp.float32), variables)
+
+
+@programs.jit(static_argnames=("module",))
 def apply(module: nn.Module, variables: dict, x: jax.Array) -> jax.Array:
     """Returns `module` applied to a batch in inference mode; compiled once per module and shape."""
-    return module.apply(variables, x)
+    return module.apply(as_float32(variables), x)
 
 
 def apply_in_batches(module: nn.Module, variables: dict, inputs: np.ndarray, batch: int = 256) -> np.ndarray:
@@ -488,8 +494,11 @@ def restore_document(path: str, expected_format: str, what: str) -> dict:
     return {**document, "sha256": hashlib.sha256(data).hexdigest()}
 
 
-def restore_variables(path: str, description: dict, stored: dict) -> tuple[nn.Module, dict]:
-    """Returns the module of `description` and `stored` weights checked against its shapes, float32."""
+def restore_variables(
+    path: str, description: dict, stored: dict, dtype: type | None = np.float32
+) -> tuple[nn.Module, dict]:
+    """Returns the module of `description` and `stored` weights checked against its shapes, as `dtype` (None: as
+    stored)."""
     try:
         module = build(description)
     except (KeyError, TypeError, ValueError) as error:
@@ -514,7 +523,7 @@ def restore_variables(path: str, description: dict, stored: dict) -> tuple[nn.Mo
         raise WeightsError(f"{path} holds weights of other shapes than its architecture: train again")
     # One transfer of the whole tree: converting leaf by leaf with jnp.asarray took 0.8 s for the ten shipped networks,
     # one device_put of float32 NumPy arrays 0.2 s.
-    return module, jax.device_put(jax.tree_util.tree_map(lambda leaf: np.asarray(leaf, np.float32), stored))
+    return module, jax.device_put(jax.tree_util.tree_map(lambda leaf: np.asarray(leaf, dtype), stored))
 
 
 def load(path: str, resolution: int | None = None, name: str | None = None) -> Network:
@@ -534,7 +543,12 @@ def load(path: str, resolution: int | None = None, name: str | None = None) -> N
             f"{path} was trained on {description['resolution']} px images, not {resolution} px: "
             "use a model of that resolution"
         )
-    module, variables = restore_variables(path, description, document.get("variables"))
+    # The decoder runs in every step of a fit: its weights become float32 once, here. An encoder runs once per fit
+    # (best-of-n): its weights stay as stored (float16 in the shipped model, 90% of its weights) and are converted to
+    # float32 inside the compiled program (`as_float32`), the same numbers; converting them here took 0.15 s of a cold
+    # fit.
+    dtype = np.float32 if stored_name == DECODER else None
+    module, variables = restore_variables(path, description, document.get("variables"), dtype)
     return Network(
         str(document.get("name")), description, module, variables, document.get("info") or {}, document["sha256"]
     )
@@ -598,29 +612,25 @@ def load_model(directory: str) -> Model:
     return Model(directory, decoder, encoders)
 
 
-# The most each cache may hold. One model's fit takes ~0.45 MB of executables (JAX's cache) and ~0.2 MB of traced
-# programs; training and evaluation add executables of up to ~6 MB each; every new matfit, JAX or model writes new
-# entries beside the old, which only pruning removes.
-CACHE_BYTES = {"jax": 256 * 2**20, "programs": 32 * 2**20}
+# The most the program store may hold: one model's default fit stores ~1.4 MB of executables (its four compiled stages);
+# every new matfit, JAX or model writes new entries beside the old, which only pruning removes.
+CACHE_BYTES = {"programs": 64 * 2**20}
 
 
 def enable_compilation_cache() -> None:
-    """Turns on JAX's persistent compilation cache and matfit's store of traced programs (`programs.py`), under
-    $XDG_CACHE_HOME/matfit or ~/.cache/matfit.
+    """Turns on matfit's store of compiled programs (`programs.py`) under $XDG_CACHE_HOME/matfit or ~/.cache/matfit.
 
-    A second `matfit fit` then reads its traced and compiled programs instead of tracing and compiling them again.
-    Neither grows without bound: each process first prunes them to `CACHE_BYTES` (least recently used first).
+    A second `matfit fit` then loads its compiled stages instead of tracing and compiling them again. The store
+    does not grow without bound: each process first prunes it to `CACHE_BYTES` (least recently used first).
+    JAX's own persistent compilation cache is not turned on: the store keeps the executables themselves, and an
+    executable that JAX read from its cache does not survive being stored again (it fails at its next load with
+    "Function ... not found"). What earlier matfit versions kept there (`matfit/jax`) is removed.
     """
     root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    directory = os.path.join(root, "matfit", "jax")
     stored = os.path.join(root, "matfit", "programs")
     try:
-        os.makedirs(directory, exist_ok=True)
         programs.enable(stored)
     except OSError:
         return  # no writable cache: trace and compile every time
-    programs.prune(directory, CACHE_BYTES["jax"])
+    programs.prune(os.path.join(root, "matfit", "jax"), 0)
     programs.prune(stored, CACHE_BYTES["programs"])
-    jax.config.update("jax_compilation_cache_dir", directory)
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)

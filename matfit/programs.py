@@ -1,20 +1,24 @@
-"""Traced programs kept across processes: matfit's compiled stages exported once (`jax.export`) and read back.
+"""Compiled programs kept across processes: matfit's compiled stages stored once as executables and read back.
 
-JAX's persistent compilation cache (`enable`) keeps machine code, but a new process must still
-trace and lower every jitted function to find it: 1.2 s of a cold `matfit fit` went to tracing
-its three stages (best-of-n, the gradient step, the finish) through Flax. `jit` is `jax.jit` with
-static arguments whose traced program, once the cache is enabled, is serialized the first time
-and deserialized by later processes, which then skip the tracing (and, through the compilation
-cache, the compiling).
+JAX's persistent compilation cache keeps machine code, but a new process must still trace and
+lower every jitted function to find it: 1.2 s of a cold `matfit fit` went to tracing its three
+stages (best-of-n, the gradient step, the finish) through Flax. `jit` is `jax.jit` with static
+arguments whose compiled executable, once the store is enabled, is serialized the first time
+(`jax.experimental.serialize_executable`) and loaded by later processes, which then skip tracing,
+lowering and compiling. (Storing `jax.export` programs instead still cost their lowering and JAX's
+cache look-up in every process, 0.2-0.3 s of a cold fit, of which ~0.2 s went to JAX importing
+SciPy to initialise LAPACK when an exported program is lowered on CPU.)
 
-The key of a stored program holds everything it was traced from: matfit's own source (every .py
+The key of a stored program holds everything it was compiled from: matfit's own source (every .py
 of the package, hashed once per process), the versions of jax, jaxlib and flax, the JAX settings
-that change a trace (64-bit, promotion rules, matmul precision), the backend, the function's
-name, the static arguments' repr, and the tree structure, shapes and dtypes of the others. So a
-changed matfit, JAX or model architecture finds no stale program. A static argument without a
+that change a trace (64-bit, promotion rules, matmul precision), the backend, its devices and
+XLA_FLAGS, the processor's features (machine code compiled for one CPU may not run on another
+sharing the home directory), the function's name, the static arguments' repr, and the tree
+structure, shapes and dtypes of the others. So a changed matfit, JAX, machine or model
+architecture finds no stale program. A static argument without a
 faithful repr (one naming a memory address) cannot be keyed: such calls are traced as usual.
 Under a JAX transformation (a tracer among the arguments), or before `enable`, a `jit` function
-is plain `jax.jit`. An unreadable stored program is traced again and rewritten.
+is plain `jax.jit`. An unreadable stored program is compiled again and rewritten.
 """
 
 from __future__ import annotations
@@ -25,6 +29,8 @@ import hashlib
 import inspect
 import json
 import os
+import pickle
+import platform
 from collections.abc import Callable
 from typing import Any
 
@@ -33,19 +39,19 @@ import jax
 from matfit import files
 from matfit.errors import OutputError
 
-SUFFIX = ".jaxprogram"
+SUFFIX = ".jaxexecutable"
 _directory: str | None = None
 
 
 def enable(directory: str) -> None:
-    """Stores and reads traced programs under `directory` from now on (it is created if needed)."""
+    """Stores and reads compiled programs under `directory` from now on (it is created if needed)."""
     global _directory
     os.makedirs(directory, exist_ok=True)
     _directory = directory
 
 
 def disable() -> None:
-    """Stops storing and reading traced programs (`jit` functions behave as `jax.jit`)."""
+    """Stops storing and reading compiled programs (`jit` functions behave as `jax.jit`)."""
     global _directory
     _directory = None
 
@@ -63,17 +69,34 @@ def source_digest() -> str:
     return digest.hexdigest()
 
 
+@functools.cache
+def processor() -> str:
+    """Returns what identifies this machine's processor for machine code: its architecture and feature flags."""
+    digest = hashlib.sha256(platform.machine().encode())
+    with contextlib.suppress(OSError), open("/proc/cpuinfo", encoding="utf-8", errors="replace") as file:
+        for line in file:
+            if line.startswith(("flags", "Features", "model name")):
+                digest.update(line.encode())
+                break
+    return digest.hexdigest()[:16]
+
+
 def environment() -> tuple:
-    """Returns what, besides matfit's source and the arguments, decides a traced program."""
+    """Returns what, besides matfit's source and the arguments, decides a compiled program."""
     import flax
     import jaxlib
 
     config = jax.config
+    devices = jax.devices()
     return (
         jax.__version__,
         jaxlib.__version__,
         flax.__version__,
         jax.default_backend(),
+        devices[0].client.platform_version,
+        len(devices),
+        os.environ.get("XLA_FLAGS", ""),
+        processor(),
         config.jax_enable_x64,
         config.jax_numpy_dtype_promotion,
         config.jax_numpy_rank_promotion,
@@ -82,7 +105,7 @@ def environment() -> tuple:
 
 
 class Program:
-    """A jitted function whose traced programs are stored and read back (see the module's docstring)."""
+    """A jitted function whose compiled programs are stored and read back (see the module's docstring)."""
 
     def __init__(self, function: Callable, static_argnames: tuple[str, ...]):
         self.function = function
@@ -111,8 +134,8 @@ class Program:
         return program(*values)
 
     def program(self, statics: tuple, tree, shapes: tuple) -> Callable:
-        """Returns a callable of the dynamic arguments: the stored program if there is one, else one traced now (and
-        stored), or the jitted function if the statics cannot be keyed."""
+        """Returns a callable of the dynamic arguments: the stored executable if there is one, else one compiled now
+        (and stored), or the jitted function if the statics cannot be keyed."""
         fixed = dict(statics)
 
         def traced(*dynamic):
@@ -124,29 +147,40 @@ class Program:
         name = f"{self.function.__module__}.{self.function.__qualname__}"
         arguments = [(shape, str(dtype), weak) for shape, dtype, weak in shapes]
         path = _stored_path(name, (described, str(tree), arguments), SUFFIX)
-        from jax import export
+        from jax.experimental import serialize_executable
 
-        exported = None
         try:
             with open(path, "rb") as file:
-                exported = export.deserialize(bytearray(file.read()))
+                payload, in_tree, out_tree = pickle.load(file)
+            compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
             touch(path)
-        except Exception:  # absent, damaged or foreign: traced (again) below
+            return compiled
+        except Exception:  # absent, damaged or foreign: compiled (again) below
             pass
-        if exported is None:
-            specs = [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in shapes]
-            try:
-                exported = export.export(jax.jit(traced))(*jax.tree_util.tree_unflatten(tree, specs))
-                files.write_bytes(path, bytes(exported.serialize()))
-            except (OSError, OutputError):
-                pass  # no room or no permission: this process still uses what it traced
-            except Exception:  # something jax.export cannot serialize: trace as usual
-                return jax.jit(traced)
-        return jax.jit(exported.call)
+        specs = [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in shapes]
+        try:
+            compiled = jax.jit(traced).lower(*jax.tree_util.tree_unflatten(tree, specs)).compile()
+        except Exception:  # something ahead-of-time compilation cannot take: traced as usual
+            return jax.jit(traced)
+        if jax_cache_enabled():  # it may have come from JAX's cache, and such an executable does not survive storing
+            return compiled
+        # No room, no permission (OSError, OutputError) or an executable that cannot be serialized: used, not stored.
+        with contextlib.suppress(Exception):
+            files.write_bytes(path, pickle.dumps(serialize_executable.serialize(compiled)))
+        return compiled
 
     def _cache_size(self) -> int:
         """Returns how many programs this function holds in this process (compiled by jax.jit or read back)."""
         return self.jitted._cache_size() + len(self.loaded)
+
+
+def jax_cache_enabled() -> bool:
+    """Returns whether JAX's persistent compilation cache is on (by the user's JAX settings: matfit leaves it off).
+
+    An executable that XLA's CPU backend read from that cache and that is then serialized again loads in a later
+    process but fails when run ("Function wrapped_iota not found"): with the cache on, nothing is stored.
+    """
+    return bool(jax.config.jax_compilation_cache_dir) and bool(jax.config.jax_enable_compilation_cache)
 
 
 def _stored_path(name: str, parts: Any, suffix: str) -> str:

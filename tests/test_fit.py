@@ -167,3 +167,15 @@ def test_gradient_methods_add_the_media_grid_to_best_of_n(model):
     assert len(result.candidate_rmse) == len(model.encoders) + 48
     paper = fit.fit(model, target, Settings(method="nn"))
     assert set(paper.candidate_rmse) == {"encoder-3", "encoder-8"}
+
+
+def test_the_fit_hands_back_the_images_of_its_start_and_end_points(model):
+    target = decode(model, true_point(5))
+    result = fit.fit(model, target, Settings(method="lbfgsb", starts=2, iterations=3, narrow_after=2))
+    assert result.end_images.shape == (len(result.ends), R, R, 3)
+    for end, image in zip(result.ends, result.end_images, strict=True):
+        np.testing.assert_allclose(result.decoded(end), decode(model, end), atol=1e-5)
+        np.testing.assert_array_equal(result.decoded(end), image)
+    np.testing.assert_allclose(result.decoded(result.start), decode(model, result.start), atol=1e-5)
+    np.testing.assert_allclose(result.image, result.end_images[0])
+    assert result.decoded(np.full(params.COUNT, 0.123)) is None  # not a point the fit decoded

@@ -149,3 +149,16 @@ def test_a_program_read_back_counts_as_used(store, tmp_path):
     os.utime(path, (1e9, 1e9))
     programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)  # a new process reads it back
     assert TRACES == [3.0] and os.path.getmtime(path) > 1e9
+
+
+def test_with_jax_s_persistent_cache_on_nothing_is_stored(store, tmp_path, monkeypatch):
+    # An executable XLA read from JAX's cache fails after being stored again: the store stays out of the way.
+    monkeypatch.setattr(programs, "jax_cache_enabled", lambda: True)
+    out = programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)
+    assert float(out["sum"]) == pytest.approx(18.0) and programs.stored() == []
+
+
+def test_the_key_names_the_processor_and_the_devices():
+    described = repr(programs.environment())
+    assert programs.processor() in described and len(programs.processor()) == 16
+    assert str(len(jax.devices())) in described
