@@ -129,6 +129,12 @@ def test_a_weights_file_of_another_network_is_refused(tmp_path):
         models.Network("encoder-8", models.architecture("encoder-8", 32), encoder, variables, {}),
     )
     first = models.load_model(str(moved))
+    stored = models.load(str(moved / "encoder-8.msgpack")).variables  # one network alone: its weights as stored
+    loaded = first.encoders[8].variables  # the model's: converted on the device, the same numbers
+    for kept, converted in zip(jax.tree_util.tree_leaves(stored), jax.tree_util.tree_leaves(loaded), strict=True):
+        assert kept.dtype == np.float16 and converted.dtype == np.float32
+        np.testing.assert_array_equal(np.asarray(kept, np.float32), np.asarray(converted))
+    assert {leaf.dtype for leaf in jax.tree_util.tree_leaves(first.decoder.variables)} == {np.dtype(np.float32)}
     os.rename(moved, tmp_path / "elsewhere")
     assert models.load_model(str(tmp_path / "elsewhere")).identity() == first.identity()  # the weights, not the place
 
