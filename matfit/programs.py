@@ -18,7 +18,9 @@ structure, shapes and dtypes of the others. So a changed matfit, JAX, machine or
 architecture finds no stale program. A static argument without a
 faithful repr (one naming a memory address) cannot be keyed: such calls are traced as usual.
 Under a JAX transformation (a tracer among the arguments), or before `enable`, a `jit` function
-is plain `jax.jit`. An unreadable stored program is compiled again and rewritten.
+is plain `jax.jit`. An unreadable stored program is compiled again and rewritten. A stored
+executable is loaded with pickle, as JAX's own cache loads machine code: the store is the user's
+own directory, never a file from elsewhere.
 """
 
 from __future__ import annotations
@@ -73,11 +75,13 @@ def source_digest() -> str:
 def processor() -> str:
     """Returns what identifies this machine's processor for machine code: its architecture and feature flags."""
     digest = hashlib.sha256(platform.machine().encode())
+    seen = set()
     with contextlib.suppress(OSError), open("/proc/cpuinfo", encoding="utf-8", errors="replace") as file:
-        for line in file:
-            if line.startswith(("flags", "Features", "model name")):
+        for line in file:  # the first processor's model and features (x86: "flags", ARM: "Features")
+            name = line.split(":", 1)[0].strip()
+            if name in ("model name", "flags", "Features") and name not in seen:
+                seen.add(name)
                 digest.update(line.encode())
-                break
     return digest.hexdigest()[:16]
 
 
