@@ -18,9 +18,10 @@ structure, shapes and dtypes of the others. So a changed matfit, JAX, machine or
 architecture finds no stale program. A static argument without a
 faithful repr (one naming a memory address) cannot be keyed: such calls are traced as usual.
 Under a JAX transformation (a tracer among the arguments), or before `enable`, a `jit` function
-is plain `jax.jit`. An unreadable stored program is compiled again and rewritten. A stored
-executable is loaded with pickle, as JAX's own cache loads machine code: the store is the user's
-own directory, never a file from elsewhere.
+is plain `jax.jit`. An unreadable stored program is compiled again and rewritten. A stored file
+holds the argument and result trees (their protocol-buffer form) and the executable as JAX
+serializes it for its own compilation cache: loading one runs the machine code it holds, so the
+store is the user's own cache directory, never a file from elsewhere.
 """
 
 from __future__ import annotations
@@ -31,8 +32,8 @@ import hashlib
 import inspect
 import json
 import os
-import pickle
 import platform
+import struct
 from collections.abc import Callable
 from typing import Any
 
@@ -42,6 +43,7 @@ from matfit import files
 from matfit.errors import OutputError
 
 SUFFIX = ".jaxexecutable"
+MAGIC = b"matfit executable 1\n"  # then three little-endian sizes: argument tree, result tree, executable
 _directory: str | None = None
 
 
@@ -155,7 +157,7 @@ class Program:
 
         try:
             with open(path, "rb") as file:
-                payload, in_tree, out_tree = pickle.load(file)
+                payload, in_tree, out_tree = unpack(file.read())
             compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
             touch(path)
             return compiled
@@ -168,14 +170,39 @@ class Program:
             return jax.jit(traced)
         if jax_cache_enabled():  # it may have come from JAX's cache, and such an executable does not survive storing
             return compiled
-        # No room, no permission (OSError, OutputError) or an executable that cannot be serialized: used, not stored.
+        # No room, no permission (OSError, OutputError), an executable that cannot be serialized or a tree without a
+        # protocol-buffer form (a custom node): used, not stored.
         with contextlib.suppress(Exception):
-            files.write_bytes(path, pickle.dumps(serialize_executable.serialize(compiled)))
+            files.write_bytes(path, pack(*serialize_executable.serialize(compiled)))
         return compiled
 
     def _cache_size(self) -> int:
         """Returns how many programs this function holds in this process (compiled by jax.jit or read back)."""
         return self.jitted._cache_size() + len(self.loaded)
+
+
+def pack(payload: bytes, in_tree, out_tree) -> bytes:
+    """Returns a stored executable's file: `MAGIC`, the three sizes, the trees' protocol buffers, the executable."""
+    parts = (in_tree.serialize_using_proto(), out_tree.serialize_using_proto(), bytes(payload))
+    return MAGIC + struct.pack("<3Q", *map(len, parts)) + b"".join(parts)
+
+
+def unpack(data: bytes) -> tuple:
+    """Returns (executable, argument tree, result tree) from a stored executable's file; ValueError if damaged."""
+    header = len(MAGIC) + struct.calcsize("<3Q")
+    if not data.startswith(MAGIC) or len(data) < header:
+        raise ValueError("not a stored executable")
+    sizes = struct.unpack_from("<3Q", data, len(MAGIC))
+    if header + sum(sizes) != len(data):
+        raise ValueError("a stored executable of the wrong size")
+    ends = [header + sum(sizes[: k + 1]) for k in range(3)]
+    in_tree, out_tree, payload = (data[start:end] for start, end in zip([header, *ends[:2]], ends, strict=True))
+    registry = jax.tree_util.default_registry
+    return (
+        payload,
+        jax.tree_util.PyTreeDef.deserialize_using_proto(registry, in_tree),
+        jax.tree_util.PyTreeDef.deserialize_using_proto(registry, out_tree),
+    )
 
 
 def jax_cache_enabled() -> bool:

@@ -162,3 +162,15 @@ def test_the_key_names_the_processor_and_the_devices():
     described = repr(programs.environment())
     assert programs.processor() in described and len(programs.processor()) == 16
     assert str(len(jax.devices())) in described
+
+
+def test_a_stored_executable_file_holds_its_trees_and_refuses_damage():
+    in_tree = jax.tree_util.tree_structure(((1, {"a": 2, "b": (3, 4)}), {}))
+    out_tree = jax.tree_util.tree_structure({"sum": 0, "y": 0})
+    data = programs.pack(b"machine code", in_tree, out_tree)
+    assert data.startswith(programs.MAGIC)
+    payload, arguments, results = programs.unpack(data)
+    assert (payload, arguments, results) == (b"machine code", in_tree, out_tree)
+    for damaged in (data[:-1], data + b"x", b"not a program", data[: len(programs.MAGIC) + 4]):
+        with pytest.raises(ValueError):
+            programs.unpack(damaged)
