@@ -143,7 +143,7 @@ def _fit(
     start,
 ):
     guesses = [
-        encoder.apply(models.as_float32(variables), encoder_target[None])[0]
+        encoder.apply(variables, encoder_target[None])[0]
         for encoder, variables in zip(encoders, encoder_variables, strict=True)
     ]
     candidates = jnp.concatenate([jnp.stack(guesses), extra]) if guesses else extra
