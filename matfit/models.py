@@ -623,8 +623,9 @@ def encoders_float32(variables: tuple) -> tuple:
     return as_float32(variables)
 
 
-# The most the program store may hold: one model's default fit stores ~1.4 MB of executables (its four compiled stages);
-# every new matfit, JAX or model writes new entries beside the old, which only pruning removes.
+# The most the program store may hold: the shipped model's default fit stores ~2.4 MB of executables (its four compiled
+# stages and the encoders' conversion); every new matfit, JAX or model writes new entries beside the old, which only
+# pruning removes.
 CACHE_BYTES = {"programs": 64 * 2**20}
 
 
