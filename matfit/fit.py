@@ -202,7 +202,8 @@ def gradient_objective(decoder) -> DecodedObjective:
 @programs.jit(static_argnames=("decoder", "settings"))
 def _finish(decoder, settings: Settings, decoder_variables, target, weights, ends):
     """Returns the end points sorted by neural RMSE (after the optional polish), and their images."""
-    end_errors = images.rmse(decoder.apply(decoder_variables, ends), target, weights)
+    end_images = decoder.apply(decoder_variables, ends)
+    end_errors = images.rmse(end_images, target, weights)
     if settings.polish_steps:
         polished = polish(
             decoder,
@@ -214,10 +215,10 @@ def _finish(decoder, settings: Settings, decoder_variables, target, weights, end
             settings.polish_rate,
         )
         ends = jnp.concatenate([polished[None], ends])
-        end_errors = images.rmse(decoder.apply(decoder_variables, ends), target, weights)
+        end_images = decoder.apply(decoder_variables, ends)
+        end_errors = images.rmse(end_images, target, weights)
     order = jnp.argsort(end_errors)
-    ends, end_errors = ends[order], end_errors[order]
-    end_images = decoder.apply(decoder_variables, ends)
+    ends, end_errors, end_images = ends[order], end_errors[order], end_images[order]
     return {
         "unit": ends[0],
         "image": end_images[0],
