@@ -195,8 +195,11 @@ def unpack(data: bytes) -> tuple:
     sizes = struct.unpack_from("<3Q", data, len(MAGIC))
     if header + sum(sizes) != len(data):
         raise ValueError("a stored executable of the wrong size")
-    ends = [header + sum(sizes[: k + 1]) for k in range(3)]
-    in_tree, out_tree, payload = (data[start:end] for start, end in zip([header, *ends[:2]], ends, strict=True))
+    parts, offset = [], header
+    for size in sizes:
+        parts.append(data[offset : offset + size])
+        offset += size
+    in_tree, out_tree, payload = parts
     registry = jax.tree_util.default_registry
     return (
         payload,
