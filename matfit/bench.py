@@ -19,6 +19,7 @@ import numpy as np
 
 from matfit import edits, files, fit, images, models, params, presets, verify
 from matfit.errors import OutputError
+from matfit.methods import CORRECTIONS
 
 TARGET_SEED = 1
 TARGET_OFFSET = 100_000  # sample indices far from the reference set's 0..N
@@ -293,12 +294,13 @@ def random_guess_rmse(model: models.Model, target: np.ndarray, seeds: int) -> fl
 
 
 def default_fit(model: models.Model, renderer, target: np.ndarray) -> dict:
-    """Returns matfit's default fit of a target (`fit.Settings()`, Mitsuba-verified): neural figures, time, values."""
+    """Returns matfit's default fit of a target (`fit.Settings()`, Mitsuba-verified and corrected, as `matfit fit`):
+    neural figures, time, values."""
     settings = fit.Settings()
     fit.fit(model, target, settings)  # compile outside the timing
     started = time.perf_counter()
     result = fit.fit(model, target, settings)
-    checked = verify.verify(renderer, result, target)
+    checked = verify.verify(renderer, result, target, corrections=CORRECTIONS, model=model)
     return {
         "default": float(images.rmse(model.decode(checked.unit)[0], target)),
         "default_seconds": time.perf_counter() - started,
@@ -706,8 +708,12 @@ def fit_comparison(model: models.Model, count: int, evaluations: int, log=print)
         "best-of-n start": [result.start for result in default],
         reference: [result.unit for result in table[reference]["results"]],
         "default, not verified": [result.unit for result in default],
-        "default, verified (what `matfit fit` answers)": [
+        "default, verified, not corrected": [
             verify.verify(renderer, result, target).unit for result, target in zip(default, targets.images, strict=True)
+        ],
+        f"default, verified, {CORRECTIONS} corrections (what `matfit fit` answers)": [
+            verify.verify(renderer, result, target, corrections=CORRECTIONS, model=model).unit
+            for result, target in zip(default, targets.images, strict=True)
         ],
     }
     judged = judged_table(renderer, answers, targets, "best-of-n start")

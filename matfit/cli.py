@@ -176,6 +176,7 @@ def fit_command(
     ] = Settings.narrow_after,
     verify: Annotated[bool, typer.Option(help="Let Mitsuba choose among the final candidates.")] = True,
     refine: options.Refine = 0,
+    corrections: options.Corrections = None,
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
     from matfit import fitfile
@@ -191,7 +192,9 @@ def fit_command(
         iterations=iterations,
         narrow_after=narrow_after,
     )
-    outcome = fitfile.run(str(target), str(model_path), settings, outputs, text(mask), seed, text(init), verify, refine)
+    outcome = fitfile.run(
+        str(target), str(model_path), settings, outputs, text(mask), seed, text(init), verify, refine, corrections
+    )
     echo_lines(outcome.notices)
     log(outcome.summary(str(output)))
 

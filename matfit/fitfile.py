@@ -17,6 +17,7 @@ import numpy as np
 
 from matfit import files, fit, images, models, params, refine, verify
 from matfit.errors import FitError, ImageError, OutputError
+from matfit.methods import CORRECTIONS
 
 PROJECT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEFAULT_MODEL = os.path.join(PROJECT, "data", "models", "default")  # shipped in the repository
@@ -130,11 +131,14 @@ def run(
     init: str | None = None,
     verified: bool = True,
     refine_steps: int = 0,
+    corrections: int | None = None,
 ) -> Outcome:
     """Fits the image file `target` with a model (or a model directory) and writes `outputs`; returns what was found.
 
     `init`: a params.json of the source material, whose parameters join best-of-n's candidates.
-    `verified`: let Mitsuba choose among the fit's final candidates (`verify.verify`); `refine_steps`:
+    `verified`: let Mitsuba choose among the fit's final candidates (`verify.verify`), after
+    `corrections` rounds of correction (`correct.py`; None: `methods.CORRECTIONS` when verified,
+    else none) from the best of them; `refine_steps`:
     then that many steps through Mitsuba's differentiable renderer (`refine.refine`). Every input
     is read and every output path checked before the fit; the outputs are written together at the
     end (`files.together`), so a failure leaves none of them.
@@ -143,7 +147,17 @@ def run(
     outputs.check()
     init_values = params.read_file(init) if init is not None else None
     outcome, renderer = fit_file(
-        target, model, settings, mask, seed, init_values, verified, refine_steps, outputs.needs_render, source=init
+        target,
+        model,
+        settings,
+        mask,
+        seed,
+        init_values,
+        verified,
+        refine_steps,
+        outputs.needs_render,
+        source=init,
+        corrections=corrections,
     )
     with files.together() as batch:
         write_outputs(outcome, outputs, batch, renderer)
@@ -164,6 +178,7 @@ def fit_file(
     needs_render: bool = False,
     renderer=None,
     source: str | None = None,
+    corrections: int | None = None,
 ) -> tuple[Outcome, object]:
     """Returns (what a fit of the image file `target` found, with its params.json document; the renderer used).
 
@@ -176,6 +191,14 @@ def fit_file(
     settings.check()
     if refine_steps < 0:
         raise FitError(f"refine steps {refine_steps} must be >= 0: use 0 to skip refinement", field="refine")
+    corrections = (CORRECTIONS if verified else 0) if corrections is None else corrections
+    if corrections < 0:
+        raise FitError(f"corrections {corrections} must be >= 0: use 0 to skip correction", field="corrections")
+    if corrections and not verified:
+        raise FitError(
+            f"{corrections} correction rounds need verification's renders: drop --no-verify or add --corrections 0",
+            field="corrections",
+        )
     for path, name in ((target, "target"), (mask, "mask")):
         if path is not None and not os.path.isfile(path):
             raise ImageError(f"{name} {path} is not a file: give the picture's path", field=name)
@@ -191,7 +214,7 @@ def fit_file(
         renderer = Renderer(model.resolution, verify.SPP)
         notices.extend([renderer.notice] if renderer.notice else [])
     if verified:
-        outcome.verified = verify.verify(renderer, result, target_srgb, weights)
+        outcome.verified = verify.verify(renderer, result, target_srgb, weights, corrections=corrections, model=model)
         outcome.unit, outcome.rendered = outcome.verified.unit, outcome.verified.rendered
     elif renderer is not None and not refine_steps:
         outcome.rendered = images.srgb_encode(renderer.render(result.values, seed=verify.SEED))
@@ -199,7 +222,9 @@ def fit_file(
         outcome.refined = refine.refine(outcome.unit, target_srgb, refine_steps, weights, renderer)
         outcome.unit, outcome.rendered = outcome.refined.unit, outcome.refined.rendered
     if verified or refine_steps:
-        decoded = result.decoded(outcome.unit)  # verification keeps a point the fit decoded: no new program to load
+        decoded = result.decoded(outcome.unit)  # verification keeps a point the fit decoded (or a round decoded)
+        if decoded is None and outcome.verified is not None:
+            decoded = outcome.verified.decoded.get(outcome.verified.chosen)
         outcome.image = model.decode(outcome.unit)[0] if decoded is None else decoded
         outcome.neural_rmse = float(images.rmse(outcome.image, target_srgb, weights))
     outcome.document = document(outcome, settings, model_path, target, mask, source)
@@ -224,6 +249,7 @@ def document(
                 "kept": checked.chosen,
                 "mitsuba_rmse": {name: round(value, 3) for name, value in checked.figures.items()},
                 "confirmation_rmse": {name: round(value, 3) for name, value in checked.confirmation.items()},
+                "corrections": checked.corrections,
                 "spp": verify.SPP,
                 "seconds": round(checked.seconds, 3),
             },

@@ -13,6 +13,8 @@ from enum import StrEnum
 from matfit import params
 from matfit.errors import FitError
 
+CORRECTIONS = 2  # rounds of correction (`correct.py`) a verified fit runs by default: README "Fitting" has the figures
+
 
 class Method(StrEnum):
     """How a fit searches: the paper's three methods and the gradient methods built on the exact decoder gradient."""

@@ -11,7 +11,7 @@ from typing import Annotated, Literal
 import typer
 
 from matfit import dataset, params
-from matfit.methods import MAX_EVALUATIONS, MIN_EVALUATIONS, Box, Method
+from matfit.methods import CORRECTIONS, MAX_EVALUATIONS, MIN_EVALUATIONS, Box, Method
 from matfit.render import VARIANTS
 
 DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "data" / "models" / "default"  # shipped in the repository
@@ -67,6 +67,18 @@ Refine = Annotated[
         min=0,
         max=MAX_REFINE,
         help="Steps through Mitsuba's differentiable renderer after the fit (~0.1-1 s each), kept only if better.",
+    ),
+]
+MAX_CORRECTIONS = 100
+Corrections = Annotated[
+    int | None,
+    typer.Option(
+        "--corrections",
+        min=0,
+        max=MAX_CORRECTIONS,
+        help="Rounds of fitting again on the target less the decoder's error at the answer, as a Mitsuba render shows "
+        f"it (~0.2 s each; default {CORRECTIONS} with verification, 0: none). A round's answer is kept only if Mitsuba "
+        "prefers it.",
     ),
 ]
 Init = Annotated[Path | None, typer.Option(help="params.json of the source material: joins the candidates.")]

@@ -439,13 +439,26 @@ def test_fit_with_the_gradient_method_an_init_and_verification(trained, target, 
     assert document["method"] == "lbfgsb" and document["init"] == str(source)
     figures = document["verification"]["mitsuba_rmse"]
     kept, confirmation = document["verification"]["kept"], document["verification"]["confirmation_rmse"]
-    assert "start" in figures and document["mitsuba_rmse"] == figures[kept] <= figures["start"]
-    # an end point is kept only if it led in the first render and again in the second
-    assert kept == "start" or (figures[kept] == min(figures.values()) and confirmation[kept] < confirmation["start"])
+    # the default's two rounds of correction: the last round's point is rendered against the start with the
+    # confirmation's seed, and kept if it beats it there
+    assert document["verification"]["corrections"] == 2 and "corrected-1" in figures
+    assert confirmation["corrected-2"] > 0 and confirmation["start"] > 0
+    if kept == "corrected-2":
+        assert document["mitsuba_rmse"] == confirmation[kept] < confirmation["start"]
+    else:  # an end point is kept only if it led in the first render and again in the second
+        assert "start" in figures and document["mitsuba_rmse"] == figures[kept] <= figures["start"]
+        fits = {name: figure for name, figure in figures.items() if not name.startswith("corrected")}
+        assert kept == "start" or (figures[kept] == min(fits.values()) and confirmation[kept] < confirmation["start"])
     assert "Mitsuba RMSE" in result.output and f"kept {document['verification']['kept']}" in result.output
     assert_one_line_error(
         run("fit", target, "-o", out, "--model", trained, "--starts", 0), "--starts 0 is out of range"
     )
+    out.unlink()
+    assert_one_line_error(
+        run("fit", target, "-o", out, "--model", trained, "--no-verify", "--corrections", 1),
+        "1 correction rounds need verification's renders: drop --no-verify or add --corrections 0",
+    )
+    assert not out.exists()
     assert_one_line_error(
         run("fit", target, "-o", out, "--model", trained, "--refine", -1), "--refine -1 is out of range"
     )

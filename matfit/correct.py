@@ -1,0 +1,60 @@
+"""Correction: the fit run again on the target less what the decoder gets wrong at its answer, as Mitsuba shows it.
+
+The fit finds x where the decoder's picture phi(x) matches the target t. Where the decoder is
+wrong, its error e(x) = R(x) - phi(x) (R: Mitsuba's render, sRGB) is carried into the answer: the
+physical render is off by about e. That error changes slowly with the material (a refraction drawn
+too blurred, a medium drawn too grey), so one render at the answer measures it, and the fit run
+again from there on the corrected target t - e(x) moves the answer to where phi(y) + e(x) = t:
+the decoder supplies the direction (its exact gradient), Mitsuba the residual. This is defect
+correction, as in iterative refinement of a linear solve with an inexact factorisation: each
+round costs one render and a short gradient fit, and a fixed point x* has R(x*) as close to t as
+the decoder's derivatives can tell. Each round's point is rendered and judged like verification's
+candidates (`verify.py`); nothing is kept that Mitsuba did not prefer.
+
+Measured (20 reachable random targets, bench-fit's, judged by independent 1024-spp renders; the
+judge's own noise floor 1.478 RMSE): verified answers 1.717, after one round 1.583, two 1.574,
+three 1.558 (README, "Fitting").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from matfit import fit, gradient, models
+
+ITERATIONS = 30  # gradient steps of a round's fit: it starts next to the answer of the corrected target
+
+
+def corrected_target(target: np.ndarray, rendered: np.ndarray, decoded: np.ndarray) -> np.ndarray:
+    """Returns t - (R(x) - phi(x)): the target less the decoder's error at x, as Mitsuba's render `rendered` shows it.
+
+    All three are sRGB (R, R, 3) in [0, 1]; the result may leave [0, 1] where the decoder is far off.
+    """
+    if not target.shape == rendered.shape == decoded.shape:
+        raise ValueError(f"Shape mismatch: got {target.shape}, {rendered.shape} and {decoded.shape}.")
+    error = np.asarray(rendered, np.float32) - np.asarray(decoded, np.float32)
+    return np.asarray(target, np.float32) - error
+
+
+def step(
+    model: models.Model,
+    target: np.ndarray,
+    weights: np.ndarray,
+    unit: np.ndarray,
+    rendered: np.ndarray,
+    decoded: np.ndarray,
+    iterations: int = ITERATIONS,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns one round of correction from `unit`: (the new point (19,), phi of it (R, R, 3)).
+
+    `rendered`: Mitsuba's sRGB render of `unit`; `decoded`: phi(unit); `weights`: the fit's (R, R)
+    mask weights. The gradient stage (`gradient.minimise`, the fit's objective and compiled step,
+    one start) minimises RMSE(phi(y), t - (R(x) - phi(x))) from x.
+    """
+    data = (model.decoder.variables, corrected_target(target, rendered, decoded), np.asarray(weights, np.float32))
+    ends, _, _ = gradient.minimise(
+        fit.gradient_objective(model.decoder.module), np.asarray(unit, np.float32)[None], data, iterations
+    )
+    point = np.clip(np.asarray(ends[0], np.float64), 0.0, 1.0)
+    decoded = models.apply(model.decoder.module, model.decoder.variables, point[None].astype(np.float32))
+    return point, np.asarray(decoded[0], np.float32)
