@@ -533,8 +533,8 @@ def suite_report(
         f"(best-of-9, optimiser seed 0 and hybrid at {budgets[-1]}) at 256 spp and compare it with the target: "
         "the neural renderer's own error shows there.",
         "",
-        f"## 1b. matfit's default ({fit.Settings().method.value}, Mitsuba-verified) against its start and the paper's "
-        "hybrid",
+        f"## 1b. matfit's default ({fit.Settings().method.value}, Mitsuba-verified, {CORRECTIONS} corrections) "
+        "against its start and the paper's hybrid",
         "",
         "Mitsuba RMSE of a fresh 256-spp render (seed independent of verification's) against the target.",
         "",

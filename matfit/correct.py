@@ -8,12 +8,12 @@ again from there on the corrected target t - e(x) moves the answer to where phi(
 the decoder supplies the direction (its exact gradient), Mitsuba the residual. This is defect
 correction, as in iterative refinement of a linear solve with an inexact factorisation: each
 round costs one render and a short gradient fit, and a fixed point x* has R(x*) as close to t as
-the decoder's derivatives can tell. Each round's point is rendered and judged like verification's
-candidates (`verify.py`); nothing is kept that Mitsuba did not prefer.
+the decoder's derivatives can tell. Verification runs the rounds and keeps the last one's point
+only if Mitsuba prefers it to the start (`verify.py`).
 
-Measured (20 reachable random targets, bench-fit's, judged by independent 1024-spp renders; the
-judge's own noise floor 1.478 RMSE): verified answers 1.717, after one round 1.583, two 1.574,
-three 1.558 (README, "Fitting").
+Measured (the 20 reachable random targets of `matfit bench-fit`, judged by independent 1024-spp
+renders; the judge's own noise floor 1.478 RMSE): verification alone 1.718, one round 1.600, two
+1.589, three 1.576 (README, "Fitting").
 """
 
 from __future__ import annotations
