@@ -474,8 +474,12 @@ def test_fit_with_physical_refinement(trained, target, tmp_path):
     before, after = refinement["mitsuba_rmse_before"], refinement["mitsuba_rmse_after"]
     assert refinement["kept"] == (after < before)  # kept only when the independent render improves
     assert document["mitsuba_rmse"] == min(before, after)
-    # refinement starts from the point verification kept: its figure is that point's verification render
-    assert document["verification"]["mitsuba_rmse"][document["verification"]["kept"]] > 0
+    # refinement starts from the point verification kept: its figure is that point's verification render (the last
+    # round of correction's, if kept, is its render against the start with the confirmation's seed)
+    verification = document["verification"]
+    kept = verification["kept"]
+    figures = verification["confirmation_rmse"] if kept == "corrected-2" else verification["mitsuba_rmse"]
+    assert figures[kept] > 0
     assert "refined 2 steps" in result.output
     (tmp_path / "bad.json").write_text('{"roughness": 3}')
     assert_one_line_error(
