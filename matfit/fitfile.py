@@ -192,8 +192,7 @@ def fit_file(
     if refine_steps < 0:
         raise FitError(f"refine steps {refine_steps} must be >= 0: use 0 to skip refinement", field="refine")
     corrections = (CORRECTIONS if verified else 0) if corrections is None else corrections
-    if corrections < 0:
-        raise FitError(f"corrections {corrections} must be >= 0: use 0 to skip correction", field="corrections")
+    verify.check_corrections(corrections)  # before the fit: no work for a bad count
     if corrections and not verified:
         raise FitError(
             f"{corrections} correction rounds need verification's renders: drop --no-verify or add --corrections 0",

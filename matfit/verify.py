@@ -85,8 +85,7 @@ def verify(
     ...; they need the fit's `model`); the last one's point is kept if it beats the start in renders
     with CONFIRM_SEED (`confirmation`), else the rule of the module docstring chooses.
     """
-    if corrections < 0:
-        raise FitError(f"corrections {corrections} must be >= 0: use 0 to skip correction", field="corrections")
+    check_corrections(corrections)
     if corrections and model is None:
         raise ValueError("correction needs the fit's model")
     started = time.perf_counter()
@@ -132,6 +131,12 @@ def verify(
         confirm(("start", best))
     chosen = keep(fits, confirmation)
     return answer(chosen, renders[chosen], figures[chosen], figures["start"])
+
+
+def check_corrections(corrections: int) -> None:
+    """Raises FitError unless `corrections` (rounds of correction) is a count."""
+    if corrections < 0:
+        raise FitError(f"corrections {corrections} must be >= 0: use 0 to skip correction", field="corrections")
 
 
 def keep(figures: dict[str, float], confirmation: dict[str, float]) -> str:
