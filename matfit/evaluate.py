@@ -162,6 +162,11 @@ def describe_decoder(description: dict) -> str:
             f"; it draws refraction from a {grid[0]} x {grid[1]} basis of clear-glass Mitsuba renders (specular x "
             "roughness), tinted per pixel by a predicted transmittance"
         )
+    if description.get("absorption"):
+        sentence += (
+            "; the transmittance of its medium is Beer-Lambert's, exp(-L tau) per colour, tau known from the "
+            "parameters, L a predicted path length per pixel"
+        )
     grid = description.get("medium_grid") or []
     if grid:
         sentence += (

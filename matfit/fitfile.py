@@ -8,6 +8,7 @@ the exports under temporary names, renaming them into place only once all of the
 
 from __future__ import annotations
 
+import concurrent.futures
 import json
 import os
 import time
@@ -205,12 +206,20 @@ def fit_file(
     model_path = model if isinstance(model, str) else model.path
     model = load_model(model) if isinstance(model, str) else model
     target_srgb, weights, notices = read_target(target, model.resolution, mask)
-    result = fit.fit(model, target_srgb, settings, weights, extra=extra, seed=seed)
-    outcome = Outcome(result, target_srgb, result.unit, result.image, result.rmse, notices=notices)
+    pending = None
     if renderer is None and (verified or refine_steps or needs_render):
-        from matfit.render import Renderer
+        from matfit.render import start_renderer
 
-        renderer = Renderer(model.resolution, verify.SPP)
+        pending = start_renderer(model.resolution, verify.SPP)  # loads while the fit runs
+    try:
+        result = fit.fit(model, target_srgb, settings, weights, extra=extra, seed=seed)
+    except BaseException:
+        if pending is not None:  # Mitsuba must not be loading while the interpreter exits
+            concurrent.futures.wait([pending])
+        raise
+    outcome = Outcome(result, target_srgb, result.unit, result.image, result.rmse, notices=notices)
+    if pending is not None:
+        renderer = pending.result()
         notices.extend([renderer.notice] if renderer.notice else [])
     if verified:
         outcome.verified = verify.verify(renderer, result, target_srgb, weights, corrections=corrections, model=model)

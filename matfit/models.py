@@ -140,6 +140,27 @@ def medium_weights(unit: jax.Array, shape: Sequence[int]) -> jax.Array:
     return (hat_t[..., :, None] * hat_a[..., None, :]).reshape(*tau.shape, thickness_count * albedo_count)
 
 
+def absorbed(unit: jax.Array, path: jax.Array) -> jax.Array:
+    """Returns the transmittance exp(-L tau) (N, R, R, 3) of light crossing the medium along paths L (N, R, R, 1).
+
+    tau is each colour's extinction per radius (`medium_physical`: density x -ln(colour), known
+    exactly from the unit-cube parameters (N, 19)), L in radii, one length for all three colours:
+    the colour of what is seen through a tinted sphere follows from Beer-Lambert, and a network
+    that predicts L only learns how far the light travels inside it.
+    """
+    tau, _ = medium_physical(unit)
+    return jnp.exp(-path * tau[:, None, None, :])
+
+
+def constant(values: np.ndarray):
+    """Returns a Flax initializer that fills a parameter with `values` (of its shape)."""
+
+    def init(key, shape, dtype=jnp.float32):
+        return jnp.asarray(values, dtype).reshape(shape)
+
+    return init
+
+
 def medium_features(unit: jax.Array) -> jax.Array:
     """Returns 10 physical features of the interior medium (N, 10) from unit-cube parameters (N, 19).
 
@@ -200,6 +221,7 @@ class Decoder(nn.Module):
     glass_grid: Sequence[int] = ()
     medium_inputs: bool = False
     medium_grid: Sequence[int] = ()
+    absorption: bool = False
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -228,8 +250,15 @@ class Decoder(nn.Module):
             basis = self.variable("constants", "glass", jnp.zeros, shape).value
             glass = interpolate_glass(basis, inputs[:, params.INDEX["specular"]], inputs[:, params.INDEX["roughness"]])
             # Starts near 0 (sigmoid(-3) = 0.05): the direct layer first learns the opaque scene.
-            logit = nn.Conv(4 * 3, (3, 3), kernel_init=nn.initializers.zeros, bias_init=nn.initializers.constant(-3.0))
-            transmittance = 1.5 * nn.sigmoid(depth_to_space(logit(features)))
+            # With `absorption`, a fourth channel per pixel is the path length (softplus(start) = 1).
+            per_pixel = 4 if self.absorption else 3
+            start = np.full((4, per_pixel), -3.0, np.float32)
+            start[:, 3:] = np.log(np.expm1(1.0))
+            logit = nn.Conv(4 * per_pixel, (3, 3), kernel_init=nn.initializers.zeros, bias_init=constant(start))
+            out = depth_to_space(logit(features))
+            transmittance = 1.5 * nn.sigmoid(out[..., :3])
+            if self.absorption:
+                transmittance = transmittance * absorbed(inputs, nn.softplus(out[..., 3:]))
             linear = srgb_decode(direct) + transmittance * glass
             if self.medium_grid:
                 linear = linear + self.scattered(inputs, features)

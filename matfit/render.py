@@ -15,7 +15,9 @@ from __future__ import annotations
 import glob
 import os
 import re
+import threading
 import time
+from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
@@ -203,6 +205,29 @@ class Renderer:
         """Returns the image of whatever material is loaded, without touching the scene."""
         image = self.mi.render(self.scene, seed=int(seed) & 0xFFFFFFFF, spp=int(spp or self.spp))
         return np.array(image, dtype=np.float32)
+
+
+def start_renderer(resolution: int, spp: int, variant: str | None = None) -> Future:
+    """Returns the future `Renderer` (resolution, spp, variant), loaded and warmed up on a background thread.
+
+    Importing Mitsuba, loading the scene, the first `update()` of its parameters and the first
+    render's kernels take ~0.5 s that a fit does not need to wait for: it computes meanwhile (XLA
+    releases the interpreter). The warm-up renders one sample of the default material; it changes
+    no later image (each render is seeded). A failure is raised by `result()`.
+    """
+    future: Future = Future()
+
+    def load() -> None:
+        try:
+            renderer = Renderer(resolution, spp, variant)
+            renderer.render(params.DEFAULTS, spp=1)
+        except BaseException as error:  # handed to whoever waits for the renderer
+            future.set_exception(error)
+        else:
+            future.set_result(renderer)
+
+    threading.Thread(target=load, name="matfit-renderer", daemon=True).start()
+    return future
 
 
 @dataclass

@@ -281,9 +281,47 @@ def test_scattering_decoder_adds_the_basis_by_the_transmitted_share(tmp_path):
     np.testing.assert_allclose(models.apply(loaded.module, loaded.variables, x), out, atol=1e-2)
 
 
+def test_absorption_is_beer_lambert_per_colour_along_the_predicted_path():
+    amber = presets.preset("amber-glass")
+    unit = jnp.asarray(params.to_unit(np.stack([amber, presets.preset("glass")])), jnp.float32)
+    path = jnp.broadcast_to(jnp.asarray([2.0, 0.5])[:, None, None, None], (2, 4, 4, 1))
+    transmittance = np.asarray(models.absorbed(unit, path))
+    assert transmittance.shape == (2, 4, 4, 3)
+    colour = amber[params.INDEX["medium_color_r"] : params.INDEX["medium_color_b"] + 1]
+    # a diameter of amber (density 1): each colour's own exp(-2 tau) = colour^2; clear glass keeps everything
+    np.testing.assert_allclose(transmittance[0], np.broadcast_to(colour**2, (4, 4, 3)), rtol=1e-4)
+    np.testing.assert_allclose(transmittance[1], 1.0, atol=1e-3)
+
+
+def test_an_absorbing_decoder_tints_the_glass_layer_by_the_medium_and_round_trips(tmp_path):
+    model = models.Decoder(
+        resolution=16, hidden=16, base_channels=8, stage_channels=(8,), glass_grid=(3, 2), absorption=True
+    )
+    basis = np.random.default_rng(4).uniform(0.0, 0.5, size=(3, 2, 16, 16, 3)).astype(np.float32)
+    variables = models.with_bases(model, dict(models.initialise(model, jax.random.key(0), (19,))), basis)
+    amber = params.to_unit(presets.preset("amber-glass"))
+    clear = amber.copy()
+    clear[params.INDEX["density"]] = 0.0
+    x = jnp.asarray(np.stack([amber, clear]), jnp.float32)
+    glass_layer = models.apply(model, variables, x) - models.apply(
+        model, models.with_bases(model, variables, basis * 0.0), x
+    )
+    # the layer starts at path length 1: amber keeps more red than blue, clear glass keeps every colour
+    red, blue = (float(jnp.mean(glass_layer[0, ..., k])) for k in (0, 2))
+    assert red > 4 * blue > 0.0
+    np.testing.assert_allclose(jnp.mean(glass_layer[1], axis=(0, 1)), jnp.mean(glass_layer[1]), rtol=0.2)
+    gradient = jax.grad(lambda y: jnp.sum(models.apply(model, variables, y)))(x)
+    assert np.all(np.isfinite(np.asarray(gradient))) and float(gradient[0, params.INDEX["medium_color_b"]]) > 0.0
+    assert models.architecture("decoder", 16, model)["absorption"] is True
+    loaded = saved_and_loaded(tmp_path, model, variables)
+    np.testing.assert_allclose(
+        models.apply(loaded.module, loaded.variables, x), models.apply(model, variables, x), atol=1e-2
+    )
+
+
 def test_decoder_descriptions_without_refraction_fields_still_build():
     description = models.architecture("decoder", 64)
-    for key in ("coordinates", "glass_grid", "medium_inputs", "medium_grid"):
+    for key in ("coordinates", "glass_grid", "medium_inputs", "medium_grid", "absorption"):
         description.pop(key)
     assert models.build(description) == models.Decoder()
 

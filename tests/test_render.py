@@ -132,3 +132,17 @@ def test_variant_choice(monkeypatch):
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "/nonexistent/libLLVM.so")
     with pytest.raises(RenderError, match="does not exist"):
         render.choose_variant(None)
+
+
+def test_a_renderer_started_in_the_background_renders_what_one_loaded_in_front_does(renderer):
+    pending = render.start_renderer(renderer.resolution, renderer.spp)
+    background = pending.result(timeout=120)
+    assert isinstance(background, render.Renderer) and background.variant == renderer.variant
+    material = params.from_unit(params.sample_index(0, 3))
+    np.testing.assert_allclose(background.render(material, seed=4), renderer.render(material, seed=4), atol=1e-5)
+
+
+def test_a_renderer_that_fails_in_the_background_raises_for_whoever_waits():
+    pending = render.start_renderer(16, 4, "no_such_variant")
+    with pytest.raises(RenderError, match="unknown variant 'no_such_variant'"):
+        pending.result(timeout=60)
