@@ -31,6 +31,7 @@ from __future__ import annotations
 import functools
 import itertools
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -276,13 +277,15 @@ def fit(
     weights: np.ndarray | None = None,
     extra: np.ndarray | None = None,
     seed: int = 0,
+    on_start: Callable[[np.ndarray], None] | None = None,
 ) -> Result:
     """Returns the parameters whose decoded image best matches `target`.
 
     target: sRGB (R, R, 3) in [0, 1] at the model's resolution (`prepare_target`); weights: (R, R)
     per-pixel weights (a mask) or None; extra: unit-cube candidates (k, 19) joining best-of-n (the
     gradient methods add `media_candidates` after them); seed: draws the random start of `optimize`
-    (data, not a setting: no recompilation).
+    (data, not a setting: no recompilation); on_start: called with best-of-n's winner (unit cube)
+    as soon as it is chosen, before the gradient stage (verification renders it meanwhile).
     """
     settings = settings or Settings()
     settings.check()
@@ -321,6 +324,8 @@ def fit(
     )
     out = jax.device_get(out)  # host arrays between the compiled stages: no JAX operation outside them
     ends = out["ends"]
+    if on_start is not None and settings.method != Method.optimize:  # optimize starts at random
+        on_start(np.asarray(out["candidates"][int(out["chosen"])]))
     if settings.method.uses_gradient:
         data = (model.decoder.variables, target, weights)
         ends, _, spent = gradient.minimise(

@@ -8,7 +8,6 @@ the exports under temporary names, renaming them into place only once all of the
 
 from __future__ import annotations
 
-import concurrent.futures
 import json
 import os
 import time
@@ -206,23 +205,26 @@ def fit_file(
     model_path = model if isinstance(model, str) else model.path
     model = load_model(model) if isinstance(model, str) else model
     target_srgb, weights, notices = read_target(target, model.resolution, mask)
-    pending = None
+    background = on_start = None
     if renderer is None and (verified or refine_steps or needs_render):
-        from matfit.render import start_renderer
+        from matfit.render import Background
 
-        pending = start_renderer(model.resolution, verify.SPP)  # loads while the fit runs
-    try:
-        result = fit.fit(model, target_srgb, settings, weights, extra=extra, seed=seed)
-    except BaseException:
-        if pending is not None:  # Mitsuba must not be loading while the interpreter exits
-            concurrent.futures.wait([pending])
-        raise
+        background = Background(model.resolution, verify.SPP)  # loads while the fit runs
+        if verified:  # verification renders the start with SEED, and with CONFIRM_SEED after corrections
+
+            def on_start(start: np.ndarray) -> None:
+                for seed in (verify.SEED, verify.CONFIRM_SEED) if corrections else (verify.SEED,):
+                    background.prefetch(params.from_unit(np.asarray(start, np.float64)), seed, verify.SPP)
+
+    result = fit.fit(model, target_srgb, settings, weights, extra=extra, seed=seed, on_start=on_start)
     outcome = Outcome(result, target_srgb, result.unit, result.image, result.rmse, notices=notices)
-    if pending is not None:
-        renderer = pending.result()
+    if background is not None:
+        renderer = background.renderer()
         notices.extend([renderer.notice] if renderer.notice else [])
     if verified:
-        outcome.verified = verify.verify(renderer, result, target_srgb, weights, corrections=corrections, model=model)
+        outcome.verified = verify.verify(
+            background or renderer, result, target_srgb, weights, corrections=corrections, model=model
+        )
         outcome.unit, outcome.rendered = outcome.verified.unit, outcome.verified.rendered
     elif renderer is not None and not refine_steps:
         outcome.rendered = images.srgb_encode(renderer.render(result.values, seed=verify.SEED))

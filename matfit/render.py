@@ -15,9 +15,8 @@ from __future__ import annotations
 import glob
 import os
 import re
-import threading
 import time
-from concurrent.futures import Future
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 
 import numpy as np
@@ -207,27 +206,47 @@ class Renderer:
         return np.array(image, dtype=np.float32)
 
 
-def start_renderer(resolution: int, spp: int, variant: str | None = None) -> Future:
-    """Returns the future `Renderer` (resolution, spp, variant), loaded and warmed up on a background thread.
+class Background:
+    """A `Renderer` loaded, and renders made, on one background thread while the caller computes.
 
     Importing Mitsuba, loading the scene, the first `update()` of its parameters and the first
-    render's kernels take ~0.5 s that a fit does not need to wait for: it computes meanwhile (XLA
-    releases the interpreter). The warm-up renders one sample of the default material; it changes
-    no later image (each render is seeded). A failure is raised by `result()`.
+    render's kernels take ~0.4 s that a fit need not wait for (XLA releases the interpreter), and a
+    render asked for early (`prefetch`, such as the fit's start as soon as best-of-n has chosen it)
+    runs during the fit's next stage. One thread does it all, so the scene is never used by two
+    renders at once; `render` waits for it before rendering itself, and answers a prefetched
+    (values, seed, spp) with that image (each render is seeded, so it is the same picture). A
+    failure to load is raised by `renderer()` and `render`. Its thread finishes its jobs before
+    the interpreter exits (Ctrl-C included), so Mitsuba is never torn down mid-render.
     """
-    future: Future = Future()
 
-    def load() -> None:
-        try:
-            renderer = Renderer(resolution, spp, variant)
-            renderer.render(params.DEFAULTS, spp=1)
-        except BaseException as error:  # handed to whoever waits for the renderer
-            future.set_exception(error)
-        else:
-            future.set_result(renderer)
+    def __init__(self, resolution: int, spp: int, variant: str | None = None):
+        self._executor = ThreadPoolExecutor(1, thread_name_prefix="matfit-renderer")
+        self._loaded = self._executor.submit(self._load, resolution, spp, variant)
+        self._prefetched: dict[tuple, Future] = {}
 
-    threading.Thread(target=load, name="matfit-renderer", daemon=True).start()
-    return future
+    @staticmethod
+    def _load(resolution: int, spp: int, variant: str | None) -> Renderer:
+        renderer = Renderer(resolution, spp, variant)
+        renderer.render(params.DEFAULTS, spp=1)  # warms the kernels; changes no later (seeded) render
+        return renderer
+
+    def prefetch(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> None:
+        """Starts rendering a material in the background, for a later `render` of the same arguments."""
+        values = np.asarray(values, np.float64)
+        key = (values.tobytes(), int(seed), spp)
+        if key not in self._prefetched:
+            self._prefetched[key] = self._executor.submit(lambda: self._loaded.result().render(values, seed, spp))
+
+    def renderer(self) -> Renderer:
+        """Returns the loaded renderer once every background render is done (raises a failure to load)."""
+        wait(self._prefetched.values())
+        return self._loaded.result()
+
+    def render(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> np.ndarray:
+        """Returns what `Renderer.render` returns: the prefetched image of these arguments, or a new render."""
+        renderer = self.renderer()
+        job = self._prefetched.get((np.asarray(values, np.float64).tobytes(), int(seed), spp))
+        return job.result() if job is not None else renderer.render(values, seed, spp)
 
 
 @dataclass

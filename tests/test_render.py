@@ -134,15 +134,29 @@ def test_variant_choice(monkeypatch):
         render.choose_variant(None)
 
 
-def test_a_renderer_started_in_the_background_renders_what_one_loaded_in_front_does(renderer):
-    pending = render.start_renderer(renderer.resolution, renderer.spp)
-    background = pending.result(timeout=120)
-    assert isinstance(background, render.Renderer) and background.variant == renderer.variant
+def test_a_background_renderer_renders_what_one_loaded_in_front_does_and_answers_prefetches(renderer):
+    background = render.Background(renderer.resolution, renderer.spp)
     material = params.from_unit(params.sample_index(0, 3))
-    np.testing.assert_allclose(background.render(material, seed=4), renderer.render(material, seed=4), atol=1e-5)
+    other = params.from_unit(params.sample_index(0, 4))
+    background.prefetch(material, seed=4)
+    loaded = background.renderer()
+    assert isinstance(loaded, render.Renderer) and loaded.variant == renderer.variant
+    expected = renderer.render(material, seed=4)
+    np.testing.assert_allclose(background.render(material, seed=4), expected, atol=1e-5)
+    # the prefetched picture is answered, not rendered again: the scene now holds nothing of it
+    loaded.render(other, seed=1)
+    np.testing.assert_allclose(background.render(material, seed=4), expected, atol=1e-5)
+    # anything not prefetched is rendered now, with its own seed and spp
+    np.testing.assert_allclose(
+        background.render(other, seed=2, spp=8), renderer.render(other, seed=2, spp=8), atol=1e-5
+    )
+    assert not np.allclose(background.render(material, seed=5), expected, atol=1e-3)
 
 
 def test_a_renderer_that_fails_in_the_background_raises_for_whoever_waits():
-    pending = render.start_renderer(16, 4, "no_such_variant")
+    background = render.Background(16, 4, "no_such_variant")
+    background.prefetch(params.DEFAULTS, seed=1)
     with pytest.raises(RenderError, match="unknown variant 'no_such_variant'"):
-        pending.result(timeout=60)
+        background.renderer()
+    with pytest.raises(RenderError, match="unknown variant 'no_such_variant'"):
+        background.render(params.DEFAULTS, seed=1)
