@@ -179,3 +179,20 @@ def test_the_fit_hands_back_the_images_of_its_start_and_end_points(model):
     np.testing.assert_allclose(result.decoded(result.start), decode(model, result.start), atol=1e-5)
     np.testing.assert_allclose(result.image, result.end_images[0])
     assert result.decoded(np.full(params.COUNT, 0.123)) is None  # not a point the fit decoded
+
+
+def test_on_start_hears_best_of_n_winner_and_never_a_random_start(model):
+    target = decode(model, true_point(14))
+    heard = []
+
+    def on_start(start):
+        heard.append(np.array(start))
+
+    result = fit.fit(
+        model, target, Settings(method="lbfgsb", starts=2, iterations=3, narrow_after=2), on_start=on_start
+    )
+    assert len(heard) == 1
+    # the very bytes verification renders the start from (`verify.candidates`): a prefetched render is found
+    assert np.asarray(heard[0], np.float64).tobytes() == np.asarray(result.start, np.float64).tobytes()
+    fit.fit(model, target, Settings(method="optimize", evaluations=40), on_start=on_start)
+    assert len(heard) == 1  # optimize starts from a random point, not from best-of-n's winner
