@@ -213,8 +213,8 @@ def fit_file(
         if verified:  # verification renders the start with SEED, and with CONFIRM_SEED after corrections
 
             def on_start(start: np.ndarray) -> None:
-                for seed in (verify.SEED, verify.CONFIRM_SEED) if corrections else (verify.SEED,):
-                    background.prefetch(params.from_unit(np.asarray(start, np.float64)), seed, verify.SPP)
+                for render_seed in (verify.SEED, verify.CONFIRM_SEED) if corrections else (verify.SEED,):
+                    background.prefetch(params.from_unit(np.asarray(start, np.float64)), render_seed, verify.SPP)
 
     result = fit.fit(model, target_srgb, settings, weights, extra=extra, seed=seed, on_start=on_start)
     outcome = Outcome(result, target_srgb, result.unit, result.image, result.rmse, notices=notices)
