@@ -152,15 +152,6 @@ def absorbed(unit: jax.Array, path: jax.Array) -> jax.Array:
     return jnp.exp(-path * tau[:, None, None, :])
 
 
-def constant(values: np.ndarray):
-    """Returns a Flax initializer that fills a parameter with `values` (of its shape)."""
-
-    def init(key, shape, dtype=jnp.float32):
-        return jnp.asarray(values, dtype).reshape(shape)
-
-    return init
-
-
 def medium_features(unit: jax.Array) -> jax.Array:
     """Returns 10 physical features of the interior medium (N, 10) from unit-cube parameters (N, 19).
 
@@ -254,7 +245,12 @@ class Decoder(nn.Module):
             per_pixel = 4 if self.absorption else 3
             start = np.full((4, per_pixel), -3.0, np.float32)
             start[:, 3:] = np.log(np.expm1(1.0))
-            logit = nn.Conv(4 * per_pixel, (3, 3), kernel_init=nn.initializers.zeros, bias_init=constant(start))
+            logit = nn.Conv(
+                4 * per_pixel,
+                (3, 3),
+                kernel_init=nn.initializers.zeros,
+                bias_init=nn.initializers.constant(start.reshape(-1)),
+            )
             out = depth_to_space(logit(features))
             transmittance = 1.5 * nn.sigmoid(out[..., :3])
             if self.absorption:

@@ -230,10 +230,13 @@ class Background:
         renderer.render(params.DEFAULTS, spp=1)  # warms the kernels; changes no later (seeded) render
         return renderer
 
+    @staticmethod
+    def _key(values: np.ndarray, seed: int, spp: int | None) -> tuple:
+        return np.asarray(values, np.float64).tobytes(), int(seed), spp
+
     def prefetch(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> None:
         """Starts rendering a material in the background, for a later `render` of the same arguments."""
-        values = np.asarray(values, np.float64)
-        key = (values.tobytes(), int(seed), spp)
+        key = self._key(values, seed, spp)
         if key not in self._prefetched:
             self._prefetched[key] = self._executor.submit(lambda: self._loaded.result().render(values, seed, spp))
 
@@ -245,7 +248,7 @@ class Background:
     def render(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> np.ndarray:
         """Returns what `Renderer.render` returns: the prefetched image of these arguments, or a new render."""
         renderer = self.renderer()
-        job = self._prefetched.get((np.asarray(values, np.float64).tobytes(), int(seed), spp))
+        job = self._prefetched.get(self._key(values, seed, spp))
         return job.result() if job is not None else renderer.render(values, seed, spp)
 
 

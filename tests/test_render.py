@@ -92,8 +92,9 @@ def test_renders_are_reproducible_whatever_came_before(renderer):
     b = params.from_unit(params.sample_index(0, 2))
     first = renderer.render(a, seed=5)
     renderer.render(b, seed=9)
-    np.testing.assert_array_equal(renderer.render(a, seed=5), first)
-    assert not np.array_equal(renderer.render(a, seed=6), first)
+    # the same picture up to the last bit, which Dr.Jit's threads may add in another order (README)
+    np.testing.assert_allclose(renderer.render(a, seed=5), first, rtol=0, atol=1e-5)
+    assert not np.allclose(renderer.render(a, seed=6), first, rtol=0, atol=1e-3)
 
 
 def test_rejects_malformed_materials(renderer):
