@@ -210,11 +210,10 @@ def fit_file(
         from matfit.render import Background
 
         background = Background(model.resolution, verify.SPP)  # loads while the fit runs
-        if verified:  # verification renders the start with SEED, and with CONFIRM_SEED after corrections
+        if verified:
 
             def on_start(start: np.ndarray) -> None:
-                for render_seed in (verify.SEED, verify.CONFIRM_SEED) if corrections else (verify.SEED,):
-                    background.prefetch(params.from_unit(np.asarray(start, np.float64)), render_seed, verify.SPP)
+                verify.prefetch_start(background, start, corrections)
 
     result = fit.fit(model, target_srgb, settings, weights, extra=extra, seed=seed, on_start=on_start)
     outcome = Outcome(result, target_srgb, result.unit, result.image, result.rmse, notices=notices)

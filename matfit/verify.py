@@ -133,6 +133,14 @@ def verify(
     return answer(chosen, renders[chosen], figures[chosen], figures["start"])
 
 
+def prefetch_start(renderer, start: np.ndarray, corrections: int = 0, spp: int = SPP) -> None:
+    """Starts, on a `render.Background`, the renders `verify` will make of the fit's start (unit cube): with SEED,
+    and with CONFIRM_SEED when rounds of correction will be guarded against it."""
+    values = params.from_unit(np.asarray(start, np.float64))  # as `candidates` and `rendered` make them
+    for seed in (SEED, CONFIRM_SEED) if corrections else (SEED,):
+        renderer.prefetch(values, seed, spp)
+
+
 def check_corrections(corrections: int) -> None:
     """Raises FitError unless `corrections` (rounds of correction) is a count."""
     if corrections < 0:

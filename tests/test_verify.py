@@ -97,3 +97,17 @@ def test_an_end_point_is_kept_only_when_its_lead_holds_in_the_second_render():
     assert verify.keep(figures, {"start": 4.9, "end-1": 4.9}) == "start"  # a tie keeps the start
     assert verify.keep({"start": 3.0, "end-1": 3.5}, {}) == "start"  # nothing to confirm
     assert verify.keep(figures, {}) == "start"  # an unconfirmed lead is not kept
+
+
+def test_prefetch_start_asks_for_the_very_renders_verify_makes_of_the_start():
+    from matfit import params
+    from matfit.render import Background
+
+    start = np.asarray(to_unit(presets.preset("jade")), np.float32)  # float32, as the fit hands it over
+    expected = params.from_unit(np.asarray(start, np.float64))  # what `verify.candidates` renders
+    for corrections, seeds in ((0, {verify.SEED}), (2, {verify.SEED, verify.CONFIRM_SEED})):
+        background = Background(R, 4)
+        verify.prefetch_start(background, start, corrections, spp=4)
+        keys = set(background._prefetched)
+        assert keys == {Background._key(expected, seed, 4) for seed in seeds}
+        background.renderer()
