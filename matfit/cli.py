@@ -254,13 +254,20 @@ def train(
     batch_size: Annotated[int, typer.Option(help="Samples per training step.")] = 64,
     learning_rate: Annotated[float, typer.Option(help="Peak Adam learning rate (warm-up, then cosine decay).")] = 1e-3,
     seed: Annotated[int, options.seed("Seed of initialisation, shuffling and dropout.")] = 0,
+    start_from: Annotated[
+        Path | None,
+        typer.Option(
+            help="A model directory whose weights of each network start the run instead of fresh ones "
+            "(e.g. more epochs at a lower --learning-rate)."
+        ),
+    ] = None,
 ) -> None:
     """Train the decoder and/or the encoders; run the same command again to resume after an interruption."""
     from matfit import train as train_module
     from matfit.progress import TrainingProgress
 
     names = train_module.parse_arch(arch)
-    config = train_module.Config(epochs, batch_size, learning_rate, seed=seed)
+    config = train_module.Config(epochs, batch_size, learning_rate, seed=seed, start_from=options.text(start_from))
     data = [dataset.open_dataset(str(path)) for path in dataset_paths]
     with TrainingProgress() as progress:
         for name, metrics in train_module.train_networks(names, data, str(out), config, progress):

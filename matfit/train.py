@@ -13,7 +13,10 @@ directory, in the Flax examples' steps: `create_run` (module, data split, optimi
   epoch, step), so a run that is interrupted and resumed ends with the same weights as one that
   was not;
 - at the end the weights are rounded to float16 (what ships), validated, and written to
-  `<out>/<name>.msgpack` with their metrics, plus a readable `<out>/<name>.json`.
+  `<out>/<name>.msgpack` with their metrics, plus a readable `<out>/<name>.json`;
+- `Config.start_from` names a model directory whose weights of the same network start the run
+  instead of fresh ones (more epochs at a lower rate: `make model`'s decoder); the weights file's
+  hash is part of the run, so a resume from a changed file is refused.
 """
 
 from __future__ import annotations
@@ -59,6 +62,7 @@ class Config:
     learning_rate: float = 1e-3
     validation_fraction: float = 0.05
     seed: int = 0
+    start_from: str | None = None  # a model directory: its weights of the network start the run
 
     def for_network(self, name: str) -> Config:
         """Returns this configuration with the network's default number of epochs where none is set."""
@@ -217,7 +221,13 @@ def checkpoint_path(out: str, name: str) -> str:
 
 
 def save_checkpoint(
-    path: str, name: str, description: dict, config: Config, identity: dict | list, state: Checkpoint
+    path: str,
+    name: str,
+    description: dict,
+    config: Config,
+    identity: dict | list,
+    state: Checkpoint,
+    start: str | None = None,
 ) -> None:
     """Writes the whole training state atomically (float32, exact)."""
     document = {
@@ -228,6 +238,7 @@ def save_checkpoint(
         "parameter_table": params.table_fingerprint(),
         "config": asdict(config),
         "dataset": identity,
+        "start_sha256": start,
         "epoch": state.epoch,
         "seconds": state.seconds,
         "history": json.dumps(state.history),
@@ -238,7 +249,13 @@ def save_checkpoint(
 
 
 def load_checkpoint(
-    path: str, name: str, description: dict, config: Config, identity: dict | list, template: Checkpoint
+    path: str,
+    name: str,
+    description: dict,
+    config: Config,
+    identity: dict | list,
+    template: Checkpoint,
+    start: str | None = None,
 ) -> Checkpoint:
     """Returns the checkpoint at `path` if it belongs to this very run; refuses any other."""
     document = models.restore_document(path, CHECKPOINT_FORMAT, "checkpoint")
@@ -262,6 +279,11 @@ def load_checkpoint(
         else:
             different = "another list of datasets, or another content"
         raise TrainingError(f"{path} was trained on other datasets ({different}): {fix}")
+    if document.get("start_sha256") != start:
+        raise TrainingError(
+            f"{path} started from other weights than {models.weights_path(str(config.start_from), name)} holds now: "
+            f"{fix}"
+        )
     try:
         weights = serialization.from_state_dict(template.weights, document["weights"])
         opt_state = serialization.from_state_dict(template.opt_state, document["opt_state"])
@@ -308,6 +330,7 @@ class Run:
     checkpoint_file: str
     weights_file: str
     constants: dict  # untrained variables: the refracting decoder's clear-glass and scattering bases, else none
+    start: models.Network | None = None  # the trained network the run starts from (Config.start_from), else none
 
     def variables(self, weights: dict) -> dict:
         """Returns the module's whole variables for trained `weights`."""
@@ -342,6 +365,7 @@ def create_run(
     checkpoint_file = checkpoint_path(out, name)
     os.makedirs(os.path.dirname(checkpoint_file), exist_ok=True)
     files.check_writable(weights_file)
+    start = starting_network(name, config, out, description)
     inputs, targets, training_samples = split(name, datasets, config.validation_fraction)
     steps = training_samples // config.batch_size
     root = jax.random.fold_in(jax.random.key(config.seed), NETWORKS.index(name))
@@ -367,15 +391,61 @@ def create_run(
         checkpoint_file,
         weights_file,
         constants,
+        start,
     )
 
 
+def start_path(name: str, config: Config, out: str) -> str | None:
+    """Returns the weights file that starts network `name` (None: fresh weights); refuses one that cannot."""
+    if config.start_from is None:
+        return None
+    if os.path.abspath(config.start_from) == os.path.abspath(out):
+        raise TrainingError(
+            f"start from {config.start_from} is the model directory being trained: train into another --out",
+            field="start_from",
+        )
+    path = models.weights_path(config.start_from, name)
+    if not os.path.exists(path):
+        raise TrainingError(
+            f"start from {config.start_from} has no {os.path.basename(path)}: train the {name} there first, "
+            "or give the model directory that holds it",
+            field="start_from",
+        )
+    return path
+
+
+def starting_network(name: str, config: Config, out: str, description: dict) -> models.Network | None:
+    """Returns network `name` of the model directory `config.start_from`, checked to be of this run's architecture."""
+    path = start_path(name, config, out)
+    if path is None:
+        return None
+    network = models.load(path, name=name)
+    if network.description != description:
+        raise TrainingError(
+            f"{path} is a {name} of another architecture or resolution than this run's: "
+            "start from a network trained with the same architecture on images of the same size",
+            field="start_from",
+        )
+    return network
+
+
+def start_identity(run: Run) -> str | None:
+    """Returns the SHA-256 of the weights file the run starts from (None: fresh weights)."""
+    return None if run.start is None else run.start.identity()
+
+
 def create_train_state(run: Run) -> Checkpoint:
-    """Returns the state to continue from: the run's checkpoint if there is one, else fresh weights."""
-    variables = models.initialise(run.module, run.root, models.input_shape(run.description))
-    state = Checkpoint(0, variables["params"], run.tx.init(variables["params"]))
+    """Returns the state to continue from: the run's checkpoint if there is one, else the starting network's
+    weights (`Config.start_from`) or fresh ones, with a fresh optimiser."""
+    if run.start is None:
+        weights = models.initialise(run.module, run.root, models.input_shape(run.description))["params"]
+    else:
+        weights = jax.tree_util.tree_map(lambda leaf: jnp.asarray(leaf, jnp.float32), run.start.variables["params"])
+    state = Checkpoint(0, weights, run.tx.init(weights))
     if os.path.exists(run.checkpoint_file):
-        state = load_checkpoint(run.checkpoint_file, run.name, run.description, run.config, run.identity, state)
+        state = load_checkpoint(
+            run.checkpoint_file, run.name, run.description, run.config, run.identity, state, start_identity(run)
+        )
     return state
 
 
@@ -430,6 +500,7 @@ def finish(run: Run, state: Checkpoint) -> dict:
         "wall_time_s": round(state.seconds, 1),
         "dataset": run.identity,
         "config": asdict(run.config),
+        "start_sha256": start_identity(run),
         "weights_dtype": "float16",
         "parameter_count": models.parameter_count({"params": shipped}),
         **validate(run, shipped),
@@ -462,7 +533,7 @@ def train_network(
     train_step = make_train_step(run.module, run.tx, name != models.DECODER)
     while state.epoch < config.epochs:
         state = train_epoch(run, train_step, state, reporter)
-        save_checkpoint(run.checkpoint_file, name, run.description, config, run.identity, state)
+        save_checkpoint(run.checkpoint_file, name, run.description, config, run.identity, state, start_identity(run))
         reporter.end_epoch(state.history[-1])
     return finish(run, state)
 
@@ -475,6 +546,7 @@ def train_networks(
         raise files.OutputError(f"model directory {out} is a file: give a directory for the model", field="out")
     for name in names:  # every setting checked before the model directory is made
         config.for_network(name).check(sum(each.count for each in as_datasets(data)))
+        start_path(name, config, out)
     os.makedirs(out, exist_ok=True)
     for name in names:
         yield name, train_network(name, data, out, config.for_network(name), reporter)

@@ -501,3 +501,18 @@ def test_unreachable_ray_is_one_line(tmp_path, address, fragment):
     result = run("render-dataset", tmp_path / "d", "--count", 4, "--resolution", 16, "--spp", 2, "--ray", address)
     assert_one_line_error(result, fragment, "local")
     assert not (tmp_path / "d").exists()
+
+
+def test_train_starts_from_a_model_directory(trained, tiny_dataset, tmp_path):
+    out = tmp_path / "more"
+    common = ("train", "--arch", "8", "--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8)
+    result = run(*common, "--learning-rate", 2e-4, "--start-from", trained, "--out", out)
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "encoder-8.json").read_text())
+    assert metrics["config"]["start_from"] == str(trained) and metrics["start_sha256"] is not None
+    assert_one_line_error(
+        run(*common, "--start-from", tmp_path / "none", "--out", tmp_path / "m"),
+        "--start-from",
+        "has no encoder-8.msgpack",
+    )
+    assert not (tmp_path / "m").exists()

@@ -281,3 +281,47 @@ def test_encoder_input_clips_before_averaging_as_a_saved_picture_does():
     saved = models.encoder_input(images.srgb_decode(images.srgb_encode(linear)))
     np.testing.assert_allclose(rendered, saved, atol=1e-6)
     np.testing.assert_allclose(rendered[0, 0, 0], images.srgb_encode(np.float32(0.25)), rtol=1e-6)
+
+
+def test_a_run_started_from_trained_weights_continues_from_them_and_resumes_exactly(tmp_path, data):
+    base = str(tmp_path / "base")
+    train.train_network("decoder", data, base, Config(epochs=3, batch_size=8, learning_rate=3e-3), decoder=TINY_DECODER)
+    started = models.load(models.weights_path(base, "decoder"))
+    config = Config(epochs=2, batch_size=8, learning_rate=1e-3, start_from=base)
+    run = train.create_run("decoder", data, str(tmp_path / "next"), config, TINY_DECODER)
+    state = train.create_train_state(run)
+    assert state.epoch == 0 and weights_equal(state.weights, started.variables["params"])
+    whole = train.train_network("decoder", data, str(tmp_path / "whole"), config, decoder=TINY_DECODER)
+    assert whole["start_sha256"] == started.identity() and whole["config"]["start_from"] == base
+    assert whole["validation_loss"] < started.info["metrics"]["validation_loss"]
+    parts = str(tmp_path / "parts")
+    with pytest.raises(KeyboardInterrupt):
+        train.train_network("decoder", data, parts, config, StopAfterOneEpoch(), TINY_DECODER)
+    resumed = train.train_network("decoder", data, parts, config, decoder=TINY_DECODER)
+    assert [r["epoch"] for r in resumed["history"]] == [1, 2]
+    assert weights_equal(
+        models.load(models.weights_path(parts, "decoder")).variables,
+        models.load(models.weights_path(str(tmp_path / "whole"), "decoder")).variables,
+    )
+    # the start changed under an unfinished run: its checkpoint is refused, not silently mixed
+    with pytest.raises(KeyboardInterrupt):
+        train.train_network("decoder", data, str(tmp_path / "changed"), config, StopAfterOneEpoch(), TINY_DECODER)
+    other = str(tmp_path / "other")
+    train.train_network("decoder", data, other, Config(epochs=1, batch_size=8), decoder=TINY_DECODER)
+    shutil.copy(models.weights_path(other, "decoder"), models.weights_path(base, "decoder"))
+    with pytest.raises(TrainingError, match=r"started from other weights than .*base/decoder\.msgpack holds now"):
+        train.train_network("decoder", data, str(tmp_path / "changed"), config, decoder=TINY_DECODER)
+
+
+def test_a_start_that_cannot_start_the_run_is_refused(tmp_path, data):
+    base = str(tmp_path / "base")
+    train.train_network("encoder-8", data, base, Config(epochs=1, batch_size=8))
+    with pytest.raises(TrainingError, match=r"start from .*base has no decoder\.msgpack: train the decoder there"):
+        list(train.train_networks(["encoder-8", "decoder"], data, str(tmp_path / "m"), Config(1, 8, start_from=base)))
+    assert not os.path.exists(tmp_path / "m")  # refused before anything was made or trained
+    with pytest.raises(TrainingError, match="is the model directory being trained: train into another --out"):
+        train.train_network("encoder-8", data, base, Config(1, 8, start_from=base))
+    train.train_network("decoder", data, base, Config(epochs=1, batch_size=8), decoder=TINY_DECODER)
+    other = models.Decoder(resolution=32, hidden=16, base_channels=16, stage_channels=(16, 8, 8))
+    with pytest.raises(TrainingError, match=r"decoder\.msgpack is a decoder of another architecture"):
+        train.train_network("decoder", data, str(tmp_path / "m"), Config(1, 8, start_from=base), decoder=other)
