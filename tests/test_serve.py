@@ -184,7 +184,7 @@ def test_a_mitsuba_render_reports_progress_and_can_be_cancelled(url):
     assert code == 202
     _, done = wait(url, answer["job"])
     assert done["state"] == "done" and done["progress"] == 1.0 and done["result"]["spp"] == 16
-    code, answer = post_job(url + "api/render", {"values": presets.preset("jade").tolist(), "size": 64, "spp": 4096})
+    code, answer = post_job(url + "api/render", {"values": presets.preset("jade").tolist(), "size": 32, "spp": 2048})
     job = answer["job"]
     deadline = time.monotonic() + 60
     while json.loads(request(f"{url}api/jobs/{job}")[1])["progress"] == 0 and time.monotonic() < deadline:
