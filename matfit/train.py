@@ -420,7 +420,10 @@ def starting_network(name: str, config: Config, out: str, description: dict) -> 
     if path is None:
         return None
     network = models.load(path, name=name)
-    if network.description != description:
+    # Described again from its module: a file written before a field of the architecture existed
+    # (the shipped decoder predates `absorption`) holds that field's default implicitly.
+    described = models.architecture(name, network.resolution, network.module if name == models.DECODER else None)
+    if described != description:
         raise TrainingError(
             f"{path} is a {name} of another architecture or resolution than this run's: "
             "start from a network trained with the same architecture on images of the same size",
