@@ -15,7 +15,7 @@ directory, in the Flax examples' steps: `create_run` (module, data split, optimi
 - at the end the weights are rounded to float16 (what ships), validated, and written to
   `<out>/<name>.msgpack` with their metrics, plus a readable `<out>/<name>.json`;
 - `Config.start_from` names a model directory whose weights of the same network start the run
-  instead of fresh ones (more epochs at a lower rate: `make model`'s decoder); the weights file's
+  instead of fresh ones (more epochs at a lower rate: README, "Starting from trained weights"); its file's
   hash is part of the run, so a resume from a changed file is refused.
 """
 
