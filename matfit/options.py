@@ -46,7 +46,8 @@ Sampler = Annotated[
     Literal[tuple(params.SAMPLERS)],
     typer.Option(
         help="How parameters are drawn: the training distribution, or one of its corners (a supplement): "
-        "dense-media (milky, jade-like) or glass (transmissive dielectrics with a white or grey base colour)."
+        "dense-media (milky, jade-like), glass (transmissive dielectrics with a white or grey base colour) or "
+        "tinted-glass (those dielectrics with an absorbing, coloured medium: amber-like)."
     ),
 ]
 Spp = Annotated[int, typer.Option(min=1, max=dataset.MAX_SPP, help="Samples per pixel (of the renders).")]

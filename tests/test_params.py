@@ -97,8 +97,27 @@ def test_glass_sampler_draws_white_and_grey_dielectrics_clear_tinted_and_milky()
     np.testing.assert_array_equal(params.sample_index(0, 5, "glass"), params.sample_index(0, 5, "glass"))
 
 
+def test_tinted_glass_sampler_draws_absorbing_coloured_media_in_white_and_grey_dielectrics():
+    unit = np.stack([params.sample_index(0, i, "tinted-glass") for i in range(2000)])
+    assert unit.min() >= 0.0 and unit.max() <= 1.0
+    physical = params.from_unit(unit)
+    column = {name: physical[:, params.INDEX[name]] for name in params.NAMES}
+    assert column["spec_trans"].min() >= 0.95 and column["metallic"].max() <= 0.05
+    assert np.ptp(physical[:, :3], axis=1).max() <= 0.05  # the glass sampler's base colours
+    assert column["scattering"].max() <= 0.05  # absorbing only
+    assert column["density"].min() >= 0.25 and column["density"].max() <= 2.5
+    assert np.mean(column["density"]) == pytest.approx(1.375, abs=0.05)
+    medium = physical[:, params.INDEX["medium_color_r"] : params.INDEX["medium_color_b"] + 1]
+    assert np.mean(medium, axis=0) == pytest.approx([0.505] * 3, abs=0.03)  # uniform over [0.01, 1] per channel
+    # amber's kind of tint (a channel at most 0.15, another at least 0.8): 0.142 for three independent channels
+    amber_like = (medium.min(axis=1) <= 0.15) & (medium.max(axis=1) >= 0.8)
+    assert np.mean(amber_like) == pytest.approx(0.15, abs=0.04)
+    np.testing.assert_array_equal(params.sample_index(7, 3, "tinted-glass"), params.sample_index(7, 3, "tinted-glass"))
+
+
 def test_unknown_sampler_is_refused():
-    with pytest.raises(ParameterError, match="unknown sampler 'milk': use uniform or dense-media or glass"):
+    expected = "unknown sampler 'milk': use uniform or dense-media or glass or tinted-glass"
+    with pytest.raises(ParameterError, match=expected):
         params.sample_index(0, 0, "milk")
 
 
