@@ -52,6 +52,13 @@ def test_sampling_covers_the_corners():
     assert np.mean(samples[:, params.INDEX["phase_g"]] < 0.5) == pytest.approx(0.5, abs=0.04)
 
 
+def drawn(sampler: str, count: int = 2000) -> np.ndarray:
+    """Returns `count` physical vectors of a sampler (seed 0), after checking that they lie in the unit cube."""
+    unit = np.stack([params.sample_index(0, i, sampler) for i in range(count)])
+    assert unit.min() >= 0.0 and unit.max() <= 1.0
+    return params.from_unit(unit)
+
+
 def test_dense_media_sampler_draws_dense_transmissive_nearly_lossless_media():
     unit = np.stack([params.sample_index(0, i, "dense-media") for i in range(2000)])
     assert unit.min() >= 0.0 and unit.max() <= 1.0
@@ -78,9 +85,7 @@ def test_dense_media_sampler_draws_dense_transmissive_nearly_lossless_media():
 
 
 def test_glass_sampler_draws_white_and_grey_dielectrics_clear_tinted_and_milky():
-    unit = np.stack([params.sample_index(0, i, "glass") for i in range(2000)])
-    assert unit.min() >= 0.0 and unit.max() <= 1.0
-    physical = params.from_unit(unit)
+    physical = drawn("glass")
     column = {name: physical[:, params.INDEX[name]] for name in params.NAMES}
     assert column["spec_trans"].min() >= 0.95 and column["metallic"].max() <= 0.05
     colour = physical[:, :3]
@@ -98,9 +103,7 @@ def test_glass_sampler_draws_white_and_grey_dielectrics_clear_tinted_and_milky()
 
 
 def test_tinted_glass_sampler_draws_absorbing_coloured_media_in_white_and_grey_dielectrics():
-    unit = np.stack([params.sample_index(0, i, "tinted-glass") for i in range(2000)])
-    assert unit.min() >= 0.0 and unit.max() <= 1.0
-    physical = params.from_unit(unit)
+    physical = drawn("tinted-glass")
     column = {name: physical[:, params.INDEX[name]] for name in params.NAMES}
     assert column["spec_trans"].min() >= 0.95 and column["metallic"].max() <= 0.05
     assert np.ptp(physical[:, :3], axis=1).max() <= 0.05  # the glass sampler's base colours
