@@ -63,9 +63,9 @@ presets: $(BIN)/matfit
 
 # The shipped model from nothing: 22,000 training renders (5% held out), two supplements that only the
 # decoder trains on (4,000 renders from the dense-media corner of the parameter space: milk, jade, rare in
-# the first set; 6,000 white and grey dielectrics: glass), 300 clean references at 2048 spp from another seed (their own noise well under the
-# figures they judge), the decoder and nine encoders, then the model card (which also renders every
-# preset at 4096 spp, once). Every step resumes where it stopped; see README for the time it takes.
+# the first set; 6,000 white and grey dielectrics: glass), 300 clean references at 2048 spp from another
+# seed (their own noise well under the figures they judge), the decoder and nine encoders, then the model
+# card (which also renders every preset at 4096 spp, once). Every step resumes where it stopped; see README for the time it takes.
 MODEL ?= data/models/default
 model: $(BIN)/matfit
 	@mkdir -p datasets

@@ -114,7 +114,7 @@ def test_tinted_glass_sampler_draws_absorbing_coloured_media_in_white_and_grey_d
     assert np.mean(medium, axis=0) == pytest.approx([0.505] * 3, abs=0.03)  # uniform over [0.01, 1] per channel
     # amber's kind of tint (a channel at most 0.15, another at least 0.8): 0.142 for three independent channels
     amber_like = (medium.min(axis=1) <= 0.15) & (medium.max(axis=1) >= 0.8)
-    assert np.mean(amber_like) == pytest.approx(0.15, abs=0.04)
+    assert np.mean(amber_like) == pytest.approx(0.142, abs=0.025)  # 0.1525 in these 2000 draws
     np.testing.assert_array_equal(params.sample_index(7, 3, "tinted-glass"), params.sample_index(7, 3, "tinted-glass"))
 
 
