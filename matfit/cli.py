@@ -261,13 +261,22 @@ def train(
             "(e.g. more epochs at a lower --learning-rate)."
         ),
     ] = None,
+    loss: Annotated[
+        str,
+        typer.Option(
+            help="The decoder's loss: srgb (L2 on the encoded renders, the paper's) or linear (learns the "
+            "encoding of the mean render, unbiased by render noise)."
+        ),
+    ] = "srgb",
 ) -> None:
     """Train the decoder and/or the encoders; run the same command again to resume after an interruption."""
     from matfit import train as train_module
     from matfit.progress import TrainingProgress
 
     names = train_module.parse_arch(arch)
-    config = train_module.Config(epochs, batch_size, learning_rate, seed=seed, start_from=options.text(start_from))
+    config = train_module.Config(
+        epochs, batch_size, learning_rate, seed=seed, start_from=options.text(start_from), loss=loss
+    )
     data = [dataset.open_dataset(str(path)) for path in dataset_paths]
     with TrainingProgress() as progress:
         for name, metrics in train_module.train_networks(names, data, str(out), config, progress):

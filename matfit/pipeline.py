@@ -35,6 +35,11 @@ def srgb_targets(data: Dataset) -> np.ndarray:
     return convert(data, images.srgb_encode, data.resolution)
 
 
+def linear_targets(data: Dataset) -> np.ndarray:
+    """Returns every image linear, negative values set to 0, float16 (count, R, R, 3): the decoder's linear loss."""
+    return convert(data, lambda linear: np.maximum(linear, 0.0), data.resolution)
+
+
 def encoder_inputs(data: Dataset) -> np.ndarray:
     """Returns every image as the encoders see it (`models.encoder_input`), float16 (count, 32, 32, 3)."""
     side = models.ENCODER_RESOLUTION
@@ -46,9 +51,12 @@ def encoder_inputs(data: Dataset) -> np.ndarray:
     return convert(data, models.encoder_input, side)
 
 
-def training_arrays(name: str, data: Dataset) -> tuple[np.ndarray, np.ndarray]:
-    """Returns (inputs, targets) of network `name` for every sample: (x, image) for the decoder, else (image, x)."""
+def training_arrays(name: str, data: Dataset, linear: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (inputs, targets) of network `name` for every sample: (x, image) for the decoder, else (image, x).
+
+    The decoder's images are sRGB-encoded, or with `linear` linear (`train.linear_residual`).
+    """
     unit = data.unit_params()
     if name == models.DECODER:
-        return unit, srgb_targets(data)
+        return unit, linear_targets(data) if linear else srgb_targets(data)
     return encoder_inputs(data), unit

@@ -5,7 +5,9 @@ directory, in the Flax examples' steps: `create_run` (module, data split, optimi
 `create_train_state` (fresh or resumed), `train_epoch`, `finish`:
 
 - the last `validation_fraction` of the samples are held out and never trained on;
-- the decoder learns parameters -> sRGB image (L2 on sRGB values, as the paper's RMSE);
+- the decoder learns parameters -> sRGB image (L2 on sRGB values, as the paper's RMSE), or with
+  `Config.loss = "linear"` the sRGB encoding of the mean linear render (`linear_residual`: the
+  16-spp targets' noise no longer darkens what it learns);
   an encoder learns `models.encoder_input(image)` -> parameters (L2 on the unit cube);
 - Adam with a warm-up + cosine schedule over the whole run, so a run is defined by its settings;
 - after every epoch the whole training state (weights, optimiser, history) is written atomically
@@ -51,6 +53,12 @@ DEFAULT_EPOCHS = {
     "encoder-9": 20,
 }
 MAX_EPOCHS = 10000
+# What the decoder learns: "srgb" the mean of the sRGB-encoded renders (the paper's L2 on sRGB
+# values), "linear" the sRGB encoding of the mean linear render (`linear_residual`).
+LOSSES = ("srgb", "linear")
+# The linear loss's per-pixel residual is clipped to this many full sRGB scales: a firefly of a
+# 16-spp render (linear values up to ~8) would otherwise dominate a batch's gradient (README).
+RESIDUAL_CLIP = 1.0
 
 
 @dataclass(frozen=True)
@@ -63,6 +71,7 @@ class Config:
     validation_fraction: float = 0.05
     seed: int = 0
     start_from: str | None = None  # a model directory: its weights of the network start the run
+    loss: str = "srgb"  # the decoder's: one of LOSSES
 
     def for_network(self, name: str) -> Config:
         """Returns this configuration with the network's default number of epochs where none is set."""
@@ -70,6 +79,8 @@ class Config:
 
     def check(self, samples: int) -> None:
         """Raises TrainingError for values that cannot train on `samples` samples."""
+        if self.loss not in LOSSES:
+            raise TrainingError(f"loss {self.loss!r} is unknown: use {' or '.join(LOSSES)}", field="loss")
         if self.epochs is None or not 1 <= self.epochs <= MAX_EPOCHS:
             raise TrainingError(f"epochs {self.epochs} is out of range: use 1 to {MAX_EPOCHS}", field="epochs")
         if not 0.0 < self.learning_rate <= 1.0:
@@ -108,14 +119,17 @@ def as_datasets(data: Dataset | Sequence[Dataset]) -> list[Dataset]:
     return datasets
 
 
-def split(name: str, datasets: list[Dataset], fraction: float) -> tuple[np.ndarray, np.ndarray, int]:
+def split(
+    name: str, datasets: list[Dataset], fraction: float, linear: bool = False
+) -> tuple[np.ndarray, np.ndarray, int]:
     """Returns (inputs, targets, training samples) of network `name` over several datasets.
 
     The last `fraction` of each dataset is held out, and the held-out samples are placed after every
     training sample: `inputs[:training]` is what trains, the rest what validates. For one dataset
-    this is its own order, as before several were allowed.
+    this is its own order, as before several were allowed. `linear`: the decoder's targets are the
+    linear renders (`pipeline.training_arrays`).
     """
-    parts = [pipeline.training_arrays(name, data) for data in datasets]
+    parts = [pipeline.training_arrays(name, data, linear) for data in datasets]
     kept = [data.count - validation_count(data.count, fraction) for data in datasets]
     order = [(x[:n], y[:n]) for (x, y), n in zip(parts, kept, strict=True)]
     order += [(x[n:], y[n:]) for (x, y), n in zip(parts, kept, strict=True)]
@@ -152,11 +166,41 @@ def optimiser(config: Config, steps_per_epoch: int) -> optax.GradientTransformat
     return optax.adam(schedule)
 
 
-def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool):
+def linear_residual(prediction: jax.Array, linear: jax.Array) -> jax.Array:
+    """Returns the decoder's residual against a linear target, in sRGB units and with no gradient.
+
+    (linear - decode(prediction)) times the sRGB curve's slope at the prediction, clipped to
+    +-RESIDUAL_CLIP: to first order the sRGB error, but zero on average where the prediction
+    encodes the mean linear render. The plain sRGB loss's optimum is the mean of the encoded
+    renders instead, which a 16-spp render's noise darkens (the curve is concave and clips at 1):
+    ~0.5 of 255 over the training sets, 1-1.6 inside milk (README, the networks). The slope is
+    the prediction's, not the target's, so that the noise does not bias it either.
+    """
+    prediction = jax.lax.stop_gradient(prediction)
+    decoded = models.srgb_decode(prediction)
+    slope = jnp.where(decoded <= 0.0031308, 12.92, (1.055 / 2.4) * jnp.maximum(decoded, 0.0031308) ** (1 / 2.4 - 1))
+    return jnp.clip(slope * (linear - decoded), -RESIDUAL_CLIP, RESIDUAL_CLIP)
+
+
+def image_loss(prediction: jax.Array, target: jax.Array, loss: str = "srgb") -> jax.Array:
+    """Returns the L2 loss of predictions against targets; "linear": of decoded images against linear renders.
+
+    "linear"'s value is the mean square of `linear_residual`, its gradient -2 residual / n: an L2
+    loss on a target that lies `residual` away from the prediction.
+    """
+    if loss == "linear":
+        residual = linear_residual(prediction, target)
+        return jnp.mean((prediction - jax.lax.stop_gradient(prediction + residual)) ** 2)
+    return jnp.mean((prediction - target) ** 2)
+
+
+def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool, loss: str = "srgb"):
     """Returns the jitted train_step(state, constants, x, y, key) -> (state, loss) of a module.
 
     state = (weights, optimiser state); constants: the module's untrained variables (the refracting
-    decoder's bases), passed in rather than captured so that they are not compiled in.
+    decoder's bases), passed in rather than captured so that they are not compiled in. With `loss`
+    "linear" (the decoder only) y is the linear render and the loss is the mean squared
+    `linear_residual`, whose gradient pulls each pixel towards the encoding of the mean render.
     """
 
     def loss_fn(weights, constants, x, y, key):
@@ -164,7 +208,7 @@ def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool):
             prediction = module.apply({"params": weights}, x, train=True, rngs={"dropout": key})
         else:
             prediction = module.apply({"params": weights, **constants}, x)
-        return jnp.mean((prediction - y) ** 2)
+        return image_loss(prediction, y, "srgb" if is_encoder else loss)
 
     @jax.jit
     def train_step(state, constants, x, y, key):
@@ -366,7 +410,8 @@ def create_run(
     os.makedirs(os.path.dirname(checkpoint_file), exist_ok=True)
     files.check_writable(weights_file)
     start = starting_network(name, config, out, description)
-    inputs, targets, training_samples = split(name, datasets, config.validation_fraction)
+    linear = name == models.DECODER and config.loss == "linear"
+    inputs, targets, training_samples = split(name, datasets, config.validation_fraction, linear)
     steps = training_samples // config.batch_size
     root = jax.random.fold_in(jax.random.key(config.seed), NETWORKS.index(name))
     module = models.build(description)
@@ -486,7 +531,10 @@ def validate(run: Run, weights: dict) -> dict:
     """Returns the validation figures of `weights` on the held-out samples."""
     predictions = models.apply_in_batches(run.module, run.variables(weights), run.inputs[run.training_samples :])
     held_out = slice(run.training_samples, None)
-    return validation_metrics(run.name, predictions, run.targets[held_out], run.inputs[held_out])
+    targets = run.targets[held_out]
+    if run.name == models.DECODER and run.config.loss == "linear":  # judged as ever: against the encoded renders
+        targets = images.srgb_encode(targets)
+    return validation_metrics(run.name, predictions, targets, run.inputs[held_out])
 
 
 def finish(run: Run, state: Checkpoint) -> dict:
@@ -533,7 +581,7 @@ def train_network(
     state = create_train_state(run)
     if state.epoch == config.epochs and os.path.exists(run.weights_file):
         return models.load(run.weights_file).info["metrics"]
-    train_step = make_train_step(run.module, run.tx, name != models.DECODER)
+    train_step = make_train_step(run.module, run.tx, name != models.DECODER, config.loss)
     while state.epoch < config.epochs:
         state = train_epoch(run, train_step, state, reporter)
         save_checkpoint(run.checkpoint_file, name, run.description, config, run.identity, state, start_identity(run))

@@ -516,3 +516,7 @@ def test_train_starts_from_a_model_directory(trained, tiny_dataset, tmp_path):
         "has no encoder-8.msgpack",
     )
     assert not (tmp_path / "m").exists()
+    assert_one_line_error(
+        run(*common, "--loss", "l1", "--out", tmp_path / "m"), "loss 'l1' is unknown: use srgb or linear"
+    )
+    assert not (tmp_path / "m").exists()

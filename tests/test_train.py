@@ -4,6 +4,7 @@ import os
 import shutil
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -286,7 +287,7 @@ def test_encoder_input_clips_before_averaging_as_a_saved_picture_does():
 
 def test_a_run_started_from_trained_weights_continues_from_them_and_resumes_exactly(tmp_path, data):
     base = str(tmp_path / "base")
-    train.train_network("decoder", data, base, Config(epochs=3, batch_size=8, learning_rate=3e-3), decoder=TINY_DECODER)
+    train.train_network("decoder", data, base, Config(epochs=8, batch_size=8, learning_rate=3e-3), decoder=TINY_DECODER)
     # written before a field of the architecture existed (the shipped decoder predates `absorption`): still this run's
     older = models.load(models.weights_path(base, "decoder"))
     description = {key: value for key, value in older.description.items() if key != "absorption"}
@@ -331,3 +332,56 @@ def test_a_start_that_cannot_start_the_run_is_refused(tmp_path, data):
     other = models.Decoder(resolution=32, hidden=16, base_channels=16, stage_channels=(16, 8, 8))
     with pytest.raises(TrainingError, match=r"decoder\.msgpack is a decoder of another architecture"):
         train.train_network("decoder", data, str(tmp_path / "m"), Config(1, 8, start_from=base), decoder=other)
+
+
+def test_the_linear_loss_learns_the_encoding_of_the_mean_render_where_the_srgb_loss_learns_a_darker_one():
+    # One pixel of mean 0.6, rendered with noise (gamma-distributed, 15% of the values above 1):
+    # the sRGB loss's optimum, the mean of the encodings, lies 18.4 of 255 below the encoding of
+    # the mean; the linear loss's lies at it, but for the 0.2 that clipping the residual costs.
+    linear = np.random.default_rng(0).gamma(2.0, 0.3, 200_000).astype(np.float32)
+    truth = float(images.srgb_encode(linear.mean()))
+
+    def optimum(loss: str) -> float:
+        target = jnp.asarray(linear if loss == "linear" else images.srgb_encode(linear))
+        slope = jax.grad(lambda p: train.image_loss(jnp.full(target.shape, p), target, loss))
+        low, high = 0.0, 1.0
+        for _ in range(30):  # the loss is convex in p: bisect on the sign of its slope
+            low, high = ((low + high) / 2, high) if slope((low + high) / 2) < 0 else (low, (low + high) / 2)
+        return low
+
+    assert optimum("srgb") == pytest.approx(float(images.srgb_encode(linear).mean()), abs=1e-6)
+    assert (truth - optimum("srgb")) * 255 == pytest.approx(18.38, abs=0.01)
+    assert (truth - optimum("linear")) * 255 == pytest.approx(0.22, abs=0.01)
+
+
+def test_the_linear_residual_is_clipped_to_one_full_scale():
+    prediction = jnp.array([0.5, 0.5, 0.0, 1.0])
+    residual = train.linear_residual(prediction, jnp.array([8.0, 0.0, 0.5, 1.0]))
+    # 0.5 encodes 0.2140 linear, where the curve rises 1.0804 per linear unit: -0.2140 x 1.0804
+    np.testing.assert_allclose(residual, [1.0, -0.2312, 1.0, 0.0], atol=2e-4)
+
+
+def test_a_decoder_trained_with_the_linear_loss_is_judged_against_the_encoded_renders(tmp_path, data):
+    inputs, targets, _ = train.split("decoder", [data], 0.05, linear=True)
+    np.testing.assert_array_equal(targets, np.maximum(np.asarray(data.images), 0).astype(np.float16))
+    metrics = train.train_network(
+        "decoder",
+        data,
+        str(tmp_path),
+        Config(epochs=8, batch_size=8, learning_rate=3e-3, loss="linear"),
+        decoder=TINY_DECODER,
+    )
+    assert metrics["config"]["loss"] == "linear"
+    # Its loss holds the 4-spp targets' noise in linear light: the picture's error tells more.
+    judged = [record["validation_rmse"] for record in metrics["history"]]
+    assert judged[-1] < 0.85 * judged[0]
+    network = models.load(str(tmp_path / "decoder.msgpack"))
+    predictions = models.apply(network.module, network.variables, inputs[46:])
+    expected = images.rmse(np.asarray(predictions, np.float64), pipeline.srgb_targets(data)[46:].astype(np.float64))
+    assert metrics["validation_rmse"] == pytest.approx(float(expected.mean()), abs=0.05)
+    with pytest.raises(TrainingError, match=r"other settings \(loss linear \(now srgb\)\)"):
+        train.train_network(
+            "decoder", data, str(tmp_path), Config(epochs=8, batch_size=8, learning_rate=3e-3), decoder=TINY_DECODER
+        )
+    with pytest.raises(TrainingError, match="loss 'l1' is unknown: use srgb or linear"):
+        train.train_network("decoder", data, str(tmp_path / "other"), Config(epochs=1, loss="l1"))
