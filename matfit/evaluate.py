@@ -199,9 +199,22 @@ def describe_training(decoder: dict) -> str:
     if extras:
         listed = extras[0] if len(extras) == 1 else ", ".join(extras[:-1]) + " and " + extras[-1]
         sentence += f", the decoder also on {listed}, the encoders on the first set alone"
-    fraction = decoder.get("config", {}).get("validation_fraction", 0.05)
+    config = decoder.get("config", {})
+    fraction = config.get("validation_fraction", 0.05)
     held_out = decoder.get("validation_samples", "?")
-    return f"{sentence}; the last {100 * fraction:.0f}% of each set ({held_out} renders) were held out for validation."
+    sentence += f"; the last {100 * fraction:.0f}% of each set ({held_out} renders) were held out for validation."
+    if config.get("start_from"):
+        start = decoder.get("start_sha256") or "?"
+        sentence += (
+            f" The decoder's last {decoder.get('epochs', '?')} epochs started from trained weights (SHA-256 "
+            f"{start[:12]}...) at a peak learning rate of {config.get('learning_rate', '?')}."
+        )
+    if config.get("loss") == "linear":
+        sentence += (
+            " The decoder learned the encoding of the mean linear render (`--loss linear`), not the mean of the "
+            "encoded noisy renders, which is darker."
+        )
+    return sentence
 
 
 def card(model: models.Model, evaluation: dict) -> str:

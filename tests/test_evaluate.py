@@ -74,3 +74,20 @@ def test_the_card_says_what_the_decoder_trained_on():
         "the decoder also on 4000 drawn by the dense-media sampler (seed 2) and 6000 drawn by the glass sampler "
         "(seed 3), the encoders on the first set alone; the last 5% of each set (1600 renders)" in three
     )
+    assert "started from" not in three and "--loss linear" not in three
+    tuned = {
+        **one,
+        "epochs": 5,
+        "start_sha256": "f8f0b09830f73b2e" + "0" * 48,
+        "config": {
+            "validation_fraction": 0.05,
+            "start_from": "runs/decoder-base",
+            "learning_rate": 2e-4,
+            "loss": "linear",
+        },
+    }
+    assert evaluate.describe_training(tuned).endswith(
+        "were held out for validation. The decoder's last 5 epochs started from trained weights (SHA-256 "
+        "f8f0b09830f7...) at a peak learning rate of 0.0002. The decoder learned the encoding of the mean linear "
+        "render (`--loss linear`), not the mean of the encoded noisy renders, which is darker."
+    )
