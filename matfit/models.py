@@ -83,6 +83,11 @@ def srgb_encode(linear: jax.Array) -> jax.Array:
     return jnp.where(x <= 0.0031308, 12.92 * x, 1.055 * jnp.maximum(x, 0.0031308) ** (1.0 / 2.4) - 0.055)
 
 
+def srgb_slope(linear: jax.Array) -> jax.Array:
+    """Returns the slope of `srgb_encode`'s curve at linear values in [0, 1], ignoring its clip (1.055/2.4 at 1)."""
+    return jnp.where(linear <= 0.0031308, 12.92, (1.055 / 2.4) * jnp.maximum(linear, 0.0031308) ** (1 / 2.4 - 1))
+
+
 def srgb_decode(encoded: jax.Array) -> jax.Array:
     """Returns linear values of sRGB-encoded ones in [0, 1]."""
     return jnp.where(encoded <= 0.04045, encoded / 12.92, ((jnp.maximum(encoded, 0.04045) + 0.055) / 1.055) ** 2.4)

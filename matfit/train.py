@@ -178,8 +178,8 @@ def linear_residual(prediction: jax.Array, linear: jax.Array) -> jax.Array:
     """
     prediction = jax.lax.stop_gradient(prediction)
     decoded = models.srgb_decode(prediction)
-    slope = jnp.where(decoded <= 0.0031308, 12.92, (1.055 / 2.4) * jnp.maximum(decoded, 0.0031308) ** (1 / 2.4 - 1))
-    return jnp.clip(slope * (linear - decoded), -RESIDUAL_CLIP, RESIDUAL_CLIP)
+    # The curve's own slope, not its clip's: a prediction at 1 is still pulled down.
+    return jnp.clip(models.srgb_slope(decoded) * (linear - decoded), -RESIDUAL_CLIP, RESIDUAL_CLIP)
 
 
 def image_loss(prediction: jax.Array, target: jax.Array, loss: str = "srgb") -> jax.Array:
