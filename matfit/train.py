@@ -381,6 +381,11 @@ class Run:
         return {"params": weights, **self.constants}
 
     @property
+    def linear(self) -> bool:
+        """Whether the targets are linear renders (the decoder with `Config.loss` "linear"), not encoded ones."""
+        return self.name == models.DECODER and self.config.loss == "linear"
+
+    @property
     def network_index(self) -> int:
         """Returns the network's place in NETWORKS, which separates its random streams from the others'."""
         return NETWORKS.index(self.name)
@@ -410,7 +415,7 @@ def create_run(
     os.makedirs(os.path.dirname(checkpoint_file), exist_ok=True)
     files.check_writable(weights_file)
     start = starting_network(name, config, out, description)
-    linear = name == models.DECODER and config.loss == "linear"
+    linear = name == models.DECODER and config.loss == "linear"  # `Run.linear`, before the run exists
     inputs, targets, training_samples = split(name, datasets, config.validation_fraction, linear)
     steps = training_samples // config.batch_size
     root = jax.random.fold_in(jax.random.key(config.seed), NETWORKS.index(name))
@@ -532,7 +537,7 @@ def validate(run: Run, weights: dict) -> dict:
     predictions = models.apply_in_batches(run.module, run.variables(weights), run.inputs[run.training_samples :])
     held_out = slice(run.training_samples, None)
     targets = run.targets[held_out]
-    if run.name == models.DECODER and run.config.loss == "linear":  # judged as ever: against the encoded renders
+    if run.linear:  # judged as ever: against the encoded renders
         targets = images.srgb_encode(targets)
     return validation_metrics(run.name, predictions, targets, run.inputs[held_out])
 
