@@ -39,6 +39,8 @@ WEIGHTS_FORMAT = "matfit-weights"
 WEIGHTS_VERSION = 1
 WEIGHTS_SUFFIX = ".msgpack"
 DECODER = "decoder"
+# The extra path length's softplus sharpness: D = softplus(k z) / k starts at ln 2 / k (0.04 radii) with slope 1/2.
+PATH_SHARPNESS = 16.0
 
 
 def upsample(x: jax.Array) -> jax.Array:
@@ -206,6 +208,12 @@ class Decoder(nn.Module):
     spec_trans and by a second predicted full-resolution map (starting at 1) and added in linear light.
 
     With `medium_inputs`, the dense layers also see `medium_features` of the parameters.
+
+    With `coarse_absorption`, the glass layer is also multiplied per colour by exp(-D tau) (`absorbed`),
+    D >= 0 an extra path length in radii predicted once per 2 x 2 pixels (`extra_path`: one more 3x3
+    convolution of the half-resolution features, ~1% of the forward pass) that starts near 0, so that
+    it can be grown on a trained decoder (`train.GROWABLE`) and fine-tuned: absorption that the
+    transmittance under-learns (amber's blue) follows from the medium's known extinction.
     """
 
     resolution: int = 64
@@ -218,6 +226,7 @@ class Decoder(nn.Module):
     medium_inputs: bool = False
     medium_grid: Sequence[int] = ()
     absorption: bool = False
+    coarse_absorption: bool = False
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -260,11 +269,19 @@ class Decoder(nn.Module):
             transmittance = 1.5 * nn.sigmoid(out[..., :3])
             if self.absorption:
                 transmittance = transmittance * absorbed(inputs, nn.softplus(out[..., 3:]))
+            if self.coarse_absorption:
+                transmittance = transmittance * absorbed(inputs, self.extra_path(features))
             linear = srgb_decode(direct) + transmittance * glass
             if self.medium_grid:
                 linear = linear + self.scattered(inputs, features)
             direct = srgb_encode(linear)
         return direct.reshape(*batch_shape, self.resolution, self.resolution, 3)
+
+    def extra_path(self, features: jax.Array) -> jax.Array:
+        """Returns the extra path length D >= 0 (N, R, R, 1) in radii, one per 2 x 2 pixels: a 3x3 convolution of
+        the half-resolution features, upsampled, through a sharp softplus that starts near 0 (ln 2 / 16)."""
+        logit = nn.Conv(1, (3, 3), kernel_init=nn.initializers.zeros, name="path")(features)
+        return nn.softplus(PATH_SHARPNESS * upsample(logit)) / PATH_SHARPNESS
 
     def scattered(self, inputs: jax.Array, features: jax.Array) -> jax.Array:
         """Returns the medium's scattered light (N, R, R, 3), linear: the scattering basis read at its values."""

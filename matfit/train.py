@@ -18,7 +18,8 @@ directory, in the Flax examples' steps: `create_run` (module, data split, optimi
   `<out>/<name>.msgpack` with their metrics, plus a readable `<out>/<name>.json`;
 - `Config.start_from` names a model directory whose weights of the same network start the run
   instead of fresh ones (more epochs at a lower rate: README, "Starting from trained weights"); its file's
-  hash is part of the run, so a resume from a changed file is refused.
+  hash is part of the run, so a resume from a changed file is refused. The run's decoder may have a
+  `GROWABLE` layer the start lacks (`grafted`): it starts fresh, near the identity, the rest as trained.
 """
 
 from __future__ import annotations
@@ -59,6 +60,9 @@ LOSSES = ("srgb", "linear")
 # The linear loss's per-pixel residual is clipped to this many full sRGB scales: a firefly of a
 # 16-spp render (linear values up to ~8) would otherwise dominate a batch's gradient (README).
 RESIDUAL_CLIP = 1.0
+
+# Decoder fields whose layer starts near the identity, so that `Config.start_from` may add it to trained weights.
+GROWABLE = ("coarse_absorption",)
 
 
 @dataclass(frozen=True)
@@ -473,13 +477,24 @@ def starting_network(name: str, config: Config, out: str, description: dict) -> 
     # Described again from its module: a file written before a field of the architecture existed
     # (the shipped decoder predates `absorption`) holds that field's default implicitly.
     described = models.architecture(name, network.resolution, network.module if name == models.DECODER else None)
-    if described != description:
+    # A layer that starts as (nearly) the identity may be added to trained weights: it starts fresh.
+    grown = {field: description[field] for field in GROWABLE if description.get(field) and not described.get(field)}
+    if {**described, **grown} != description:
         raise TrainingError(
             f"{path} is a {name} of another architecture or resolution than this run's: "
             "start from a network trained with the same architecture on images of the same size",
             field="start_from",
         )
     return network
+
+
+def grafted(fresh: dict, trained: dict) -> dict:
+    """Returns `fresh` weights with every trained leaf in its place (as float32); the layers only `fresh`
+    has (a `GROWABLE` one) keep their initial values."""
+    out = dict(fresh)
+    for key, value in trained.items():
+        out[key] = grafted(fresh[key], value) if isinstance(value, dict) else jnp.asarray(value, jnp.float32)
+    return out
 
 
 def start_identity(run: Run) -> str | None:
@@ -490,10 +505,9 @@ def start_identity(run: Run) -> str | None:
 def create_train_state(run: Run) -> Checkpoint:
     """Returns the state to continue from: the run's checkpoint if there is one, else the starting network's
     weights (`Config.start_from`) or fresh ones, with a fresh optimiser."""
-    if run.start is None:
-        weights = models.initialise(run.module, run.root, models.input_shape(run.description))["params"]
-    else:
-        weights = jax.tree_util.tree_map(lambda leaf: jnp.asarray(leaf, jnp.float32), run.start.variables["params"])
+    weights = models.initialise(run.module, run.root, models.input_shape(run.description))["params"]
+    if run.start is not None:
+        weights = grafted(weights, run.start.variables["params"])
     state = Checkpoint(0, weights, run.tx.init(weights))
     if os.path.exists(run.checkpoint_file):
         state = load_checkpoint(

@@ -319,9 +319,37 @@ def test_an_absorbing_decoder_tints_the_glass_layer_by_the_medium_and_round_trip
     )
 
 
+def test_a_coarse_absorption_layer_starts_near_the_decoder_without_it_and_learns_to_absorb(tmp_path):
+    plain = models.Decoder(resolution=16, hidden=16, base_channels=8, stage_channels=(8,), glass_grid=(3, 2))
+    coarse = plain.clone(coarse_absorption=True)
+    basis = np.random.default_rng(4).uniform(0.0, 0.5, size=(3, 2, 16, 16, 3)).astype(np.float32)
+    trained = models.with_bases(plain, dict(models.initialise(plain, jax.random.key(0), (19,))), basis)
+    fresh = models.initialise(coarse, jax.random.key(1), (19,))["params"]
+    assert set(fresh) - set(trained["params"]) == {"path"}  # one layer more, the others named as before
+    grown = {**trained, "params": {**trained["params"], "path": fresh["path"]}}
+    amber = params.to_unit(presets.preset("amber-glass"))
+    clear = amber.copy()
+    clear[params.INDEX["density"]] = 0.0
+    x = jnp.asarray(np.stack([amber, clear]), jnp.float32)
+    before, after = models.apply(plain, trained, x), models.apply(coarse, grown, x)
+    # a path of ln 2 / 16 radii: clear glass unchanged, amber's blue (tau 2.53 a radius) dimmed by exp(-0.11)
+    np.testing.assert_allclose(after[1], before[1], atol=1e-6)
+    direct = models.srgb_decode(models.apply(plain, models.with_bases(plain, trained, basis * 0.0), x)[0])
+    kept = jnp.sum(models.srgb_decode(after[0]) - direct, axis=(0, 1)) / jnp.sum(
+        models.srgb_decode(before[0]) - direct, axis=(0, 1)
+    )
+    np.testing.assert_allclose(kept[2], np.exp(np.log(2.0) / models.PATH_SHARPNESS * np.log(0.08)), rtol=0.02)
+    # the layer learns: the picture's blue falls as its bias grows, with a finite, non-zero gradient
+    blue = jax.grad(lambda w: jnp.sum(models.apply(coarse, {**grown, "params": w}, x)[0, ..., 2]))(grown["params"])
+    assert float(blue["path"]["bias"][0]) < 0.0
+    assert models.architecture("decoder", 16, coarse)["coarse_absorption"] is True
+    loaded = saved_and_loaded(tmp_path, coarse, grown)
+    np.testing.assert_allclose(models.apply(loaded.module, loaded.variables, x), after, atol=1e-2)
+
+
 def test_decoder_descriptions_without_refraction_fields_still_build():
     description = models.architecture("decoder", 64)
-    for key in ("coordinates", "glass_grid", "medium_inputs", "medium_grid", "absorption"):
+    for key in ("coordinates", "glass_grid", "medium_inputs", "medium_grid", "absorption", "coarse_absorption"):
         description.pop(key)
     assert models.build(description) == models.Decoder()
 

@@ -334,6 +334,31 @@ def test_a_start_that_cannot_start_the_run_is_refused(tmp_path, data):
         train.train_network("decoder", data, str(tmp_path / "m"), Config(1, 8, start_from=base), decoder=other)
 
 
+def test_a_run_may_grow_a_coarse_absorption_layer_on_trained_weights_but_not_drop_one(tmp_path, data, monkeypatch):
+    monkeypatch.setattr(dataset, "BASIS_SPP", 16)  # the graft's logic, not the basis's noise
+    copy = tmp_path / "data"
+    shutil.copytree(data.path, copy)
+    copied = dataset.open_dataset(str(copy))
+    plain = models.Decoder(resolution=32, hidden=16, base_channels=8, stage_channels=(8, 8, 8), glass_grid=(2, 2))
+    coarse = plain.clone(coarse_absorption=True)
+    base = str(tmp_path / "base")
+    train.train_network("decoder", copied, base, Config(epochs=1, batch_size=8), decoder=plain)
+    started = models.load(models.weights_path(base, "decoder"))
+    run = train.create_run("decoder", copied, str(tmp_path / "grown"), Config(1, 8, start_from=base), coarse)
+    state = train.create_train_state(run)
+    grown = dict(state.weights)
+    path = grown.pop("path")  # the new layer starts fresh (a zero kernel); every trained weight is the start's
+    assert weights_equal(grown, started.variables["params"]) and not np.any(np.asarray(path["kernel"]))
+    metrics = train.train_network(
+        "decoder", copied, str(tmp_path / "grown"), Config(1, 8, start_from=base), decoder=coarse
+    )
+    assert metrics["start_sha256"] == started.identity()
+    with pytest.raises(TrainingError, match=r"decoder\.msgpack is a decoder of another architecture"):
+        train.create_run(
+            "decoder", copied, str(tmp_path / "dropped"), Config(1, 8, start_from=str(tmp_path / "grown")), plain
+        )
+
+
 def test_the_linear_loss_learns_the_encoding_of_the_mean_render_where_the_srgb_loss_learns_a_darker_one():
     # One pixel of mean 0.6, rendered with noise (gamma-distributed, 15% of the values above 1):
     # the sRGB loss's optimum, the mean of the encodings, lies 18.4 of 255 below the encoding of
