@@ -39,8 +39,6 @@ WEIGHTS_FORMAT = "matfit-weights"
 WEIGHTS_VERSION = 1
 WEIGHTS_SUFFIX = ".msgpack"
 DECODER = "decoder"
-# The extra path length's softplus sharpness: D = softplus(k z) / k starts at ln 2 / k (0.04 radii) with slope 1/2.
-PATH_SHARPNESS = 16.0
 
 
 def upsample(x: jax.Array) -> jax.Array:
@@ -209,11 +207,14 @@ class Decoder(nn.Module):
 
     With `medium_inputs`, the dense layers also see `medium_features` of the parameters.
 
-    With `coarse_absorption`, the glass layer is also multiplied per colour by exp(-D tau) (`absorbed`),
-    D >= 0 an extra path length in radii predicted once per 2 x 2 pixels (`extra_path`: one more 3x3
-    convolution of the half-resolution features, ~1% of the forward pass) that starts near 0, so that
-    it can be grown on a trained decoder (`train.GROWABLE`) and fine-tuned: absorption that the
-    transmittance under-learns (amber's blue) follows from the medium's known extinction.
+    With `coarse_absorption`, each colour's transmittance logit is also lowered by E tau, tau that
+    colour's extinction per radius (known from the parameters) and E a path length in radii, of
+    either sign, predicted once per 2 x 2 pixels (`path_length`: one more 3x3 convolution of the
+    half-resolution features). Where little light is left, 1.5 sigmoid(z - E tau) ~ 1.5 sigmoid(z)
+    exp(-E tau): Beer-Lambert couples the three colours through the medium's own extinction (a
+    saturated amber keeps red and loses blue along the same path), and the transmittance stays
+    bounded whatever E. E starts at exactly 0 (zero kernel and bias), so the layer can be grown on
+    a trained decoder (`train.GROWABLE`) without changing what it draws.
     """
 
     resolution: int = 64
@@ -266,22 +267,24 @@ class Decoder(nn.Module):
                 bias_init=nn.initializers.constant(start.reshape(-1)),
             )
             out = depth_to_space(logit(features))
-            transmittance = 1.5 * nn.sigmoid(out[..., :3])
+            colour_logits = out[..., :3]
+            if self.coarse_absorption:
+                colour_logits = (
+                    colour_logits - self.path_length(features) * medium_physical(inputs)[0][:, None, None, :]
+                )
+            transmittance = 1.5 * nn.sigmoid(colour_logits)
             if self.absorption:
                 transmittance = transmittance * absorbed(inputs, nn.softplus(out[..., 3:]))
-            if self.coarse_absorption:
-                transmittance = transmittance * absorbed(inputs, self.extra_path(features))
             linear = srgb_decode(direct) + transmittance * glass
             if self.medium_grid:
                 linear = linear + self.scattered(inputs, features)
             direct = srgb_encode(linear)
         return direct.reshape(*batch_shape, self.resolution, self.resolution, 3)
 
-    def extra_path(self, features: jax.Array) -> jax.Array:
-        """Returns the extra path length D >= 0 (N, R, R, 1) in radii, one per 2 x 2 pixels: a 3x3 convolution of
-        the half-resolution features, upsampled, through a sharp softplus that starts near 0 (ln 2 / 16)."""
-        logit = nn.Conv(1, (3, 3), kernel_init=nn.initializers.zeros, name="path")(features)
-        return nn.softplus(PATH_SHARPNESS * upsample(logit)) / PATH_SHARPNESS
+    def path_length(self, features: jax.Array) -> jax.Array:
+        """Returns the path length E (N, R, R, 1) in radii, of either sign, one per 2 x 2 pixels: a 3x3
+        convolution of the half-resolution features (N, R/2, R/2, C), upsampled; exactly 0 at initialisation."""
+        return upsample(nn.Conv(1, (3, 3), kernel_init=nn.initializers.zeros, name="path")(features))
 
     def scattered(self, inputs: jax.Array, features: jax.Array) -> jax.Array:
         """Returns the medium's scattered light (N, R, R, 3), linear: the scattering basis read at its values."""
