@@ -39,6 +39,7 @@ WEIGHTS_FORMAT = "matfit-weights"
 WEIGHTS_VERSION = 1
 WEIGHTS_SUFFIX = ".msgpack"
 DECODER = "decoder"
+PATH_START = 0.0  # the coarse absorption layer's path length at initialisation, in radii
 
 
 def upsample(x: jax.Array) -> jax.Array:
@@ -284,7 +285,8 @@ class Decoder(nn.Module):
     def path_length(self, features: jax.Array) -> jax.Array:
         """Returns the path length E (N, R, R, 1) in radii, of either sign, one per 2 x 2 pixels: a 3x3
         convolution of the half-resolution features (N, R/2, R/2, C), upsampled; exactly 0 at initialisation."""
-        return upsample(nn.Conv(1, (3, 3), kernel_init=nn.initializers.zeros, name="path")(features))
+        start = nn.initializers.constant(PATH_START)
+        return upsample(nn.Conv(1, (3, 3), kernel_init=nn.initializers.zeros, bias_init=start, name="path")(features))
 
     def scattered(self, inputs: jax.Array, features: jax.Array) -> jax.Array:
         """Returns the medium's scattered light (N, R, R, 3), linear: the scattering basis read at its values."""
