@@ -214,8 +214,8 @@ class Decoder(nn.Module):
     half-resolution features). Where little light is left, 1.5 sigmoid(z - E tau) ~ 1.5 sigmoid(z)
     exp(-E tau): Beer-Lambert couples the three colours through the medium's own extinction (a
     saturated amber keeps red and loses blue along the same path), and the transmittance stays
-    bounded whatever E. E starts at exactly 0 (zero kernel and bias), so the layer can be grown on
-    a trained decoder (`train.GROWABLE`) without changing what it draws.
+    bounded whatever E. E starts at `PATH_START` (0: a zero kernel and bias), so the layer can be grown
+    on a trained decoder (`train.GROWABLE`) without changing what it draws (README: measured, not shipped).
     """
 
     resolution: int = 64
@@ -284,7 +284,7 @@ class Decoder(nn.Module):
 
     def path_length(self, features: jax.Array) -> jax.Array:
         """Returns the path length E (N, R, R, 1) in radii, of either sign, one per 2 x 2 pixels: a 3x3
-        convolution of the half-resolution features (N, R/2, R/2, C), upsampled; exactly 0 at initialisation."""
+        convolution of the half-resolution features (N, R/2, R/2, C), upsampled; PATH_START at initialisation."""
         start = nn.initializers.constant(PATH_START)
         return upsample(nn.Conv(1, (3, 3), kernel_init=nn.initializers.zeros, bias_init=start, name="path")(features))
 
