@@ -39,7 +39,6 @@ WEIGHTS_FORMAT = "matfit-weights"
 WEIGHTS_VERSION = 1
 WEIGHTS_SUFFIX = ".msgpack"
 DECODER = "decoder"
-PATH_START = 0.0  # the coarse absorption layer's path length at initialisation, in radii
 
 
 def upsample(x: jax.Array) -> jax.Array:
@@ -214,7 +213,7 @@ class Decoder(nn.Module):
     half-resolution features). Where little light is left, 1.5 sigmoid(z - E tau) ~ 1.5 sigmoid(z)
     exp(-E tau): Beer-Lambert couples the three colours through the medium's own extinction (a
     saturated amber keeps red and loses blue along the same path), and the transmittance stays
-    bounded whatever E. E starts at `PATH_START` (0: a zero kernel and bias), so the layer can be grown
+    bounded whatever E. E starts at `path_start` (0: a zero kernel and bias), so the layer can be grown
     on a trained decoder (`train.GROWABLE`) without changing what it draws (README: measured, not shipped).
     """
 
@@ -229,6 +228,7 @@ class Decoder(nn.Module):
     medium_grid: Sequence[int] = ()
     absorption: bool = False
     coarse_absorption: bool = False
+    path_start: float = 0.0  # the coarse absorption layer's path length at initialisation, in radii
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -284,8 +284,8 @@ class Decoder(nn.Module):
 
     def path_length(self, features: jax.Array) -> jax.Array:
         """Returns the path length E (N, R, R, 1) in radii, of either sign, one per 2 x 2 pixels: a 3x3
-        convolution of the half-resolution features (N, R/2, R/2, C), upsampled; PATH_START at initialisation."""
-        start = nn.initializers.constant(PATH_START)
+        convolution of the half-resolution features (N, R/2, R/2, C), upsampled; `path_start` at initialisation."""
+        start = nn.initializers.constant(self.path_start)
         return upsample(nn.Conv(1, (3, 3), kernel_init=nn.initializers.zeros, bias_init=start, name="path")(features))
 
     def scattered(self, inputs: jax.Array, features: jax.Array) -> jax.Array:

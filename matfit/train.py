@@ -62,7 +62,7 @@ LOSSES = ("srgb", "linear")
 RESIDUAL_CLIP = 1.0
 
 # Decoder fields whose layer starts near the identity, so that `Config.start_from` may add it to trained weights.
-GROWABLE = ("coarse_absorption",)
+GROWABLE = ("coarse_absorption", "path_start")
 
 
 @dataclass(frozen=True)

@@ -341,6 +341,8 @@ def test_a_coarse_absorption_layer_grows_on_a_decoder_without_changing_it_and_ab
             models.apply(plain, models.with_bases(plain, trained, basis * 0.0), x)
         )
 
+    longer = models.initialise(coarse.clone(path_start=2.0), jax.random.key(1), (19,))["params"]["path"]
+    assert float(longer["bias"][0]) == 2.0 and not np.any(np.asarray(longer["kernel"]))
     kept = jnp.sum(glass_layer(2.0), axis=(1, 2)) / jnp.sum(glass_layer(0.0), axis=(1, 2))
     assert 0.0 < float(kept[0, 2]) < float(kept[0, 1]) < float(kept[0, 0]) < 1.0
     np.testing.assert_allclose(kept[1], 1.0, rtol=1e-5)
@@ -354,7 +356,15 @@ def test_a_coarse_absorption_layer_grows_on_a_decoder_without_changing_it_and_ab
 
 def test_decoder_descriptions_without_refraction_fields_still_build():
     description = models.architecture("decoder", 64)
-    for key in ("coordinates", "glass_grid", "medium_inputs", "medium_grid", "absorption", "coarse_absorption"):
+    for key in (
+        "coordinates",
+        "glass_grid",
+        "medium_inputs",
+        "medium_grid",
+        "absorption",
+        "coarse_absorption",
+        "path_start",
+    ):
         description.pop(key)
     assert models.build(description) == models.Decoder()
 
