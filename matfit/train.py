@@ -61,7 +61,8 @@ LOSSES = ("srgb", "linear")
 # 16-spp render (linear values up to ~8) would otherwise dominate a batch's gradient (README).
 RESIDUAL_CLIP = 1.0
 
-# Decoder fields whose layer starts near the identity, so that `Config.start_from` may add it to trained weights.
+# Decoder fields that add a layer, so that `Config.start_from` may add it to trained weights: it starts fresh
+# (with `path_start` 0 the decoder then draws what it drew; other starts change the picture at once).
 GROWABLE = ("coarse_absorption", "path_start")
 
 
@@ -386,8 +387,8 @@ class Run:
 
     @property
     def linear(self) -> bool:
-        """Whether the targets are linear renders (the decoder with `Config.loss` "linear"), not encoded ones."""
-        return self.name == models.DECODER and self.config.loss == "linear"
+        """Whether the targets are linear renders (`linear_targets`), not encoded ones."""
+        return linear_targets(self.name, self.config)
 
     @property
     def network_index(self) -> int:
@@ -419,7 +420,7 @@ def create_run(
     os.makedirs(os.path.dirname(checkpoint_file), exist_ok=True)
     files.check_writable(weights_file)
     start = starting_network(name, config, out, description)
-    linear = name == models.DECODER and config.loss == "linear"  # `Run.linear`, before the run exists
+    linear = linear_targets(name, config)
     inputs, targets, training_samples = split(name, datasets, config.validation_fraction, linear)
     steps = training_samples // config.batch_size
     root = jax.random.fold_in(jax.random.key(config.seed), NETWORKS.index(name))
@@ -447,6 +448,11 @@ def create_run(
         constants,
         start,
     )
+
+
+def linear_targets(name: str, config: Config) -> bool:
+    """Whether network `name` trains on linear renders: the decoder with `Config.loss` "linear"."""
+    return name == models.DECODER and config.loss == "linear"
 
 
 def start_path(name: str, config: Config, out: str) -> str | None:
