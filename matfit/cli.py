@@ -268,6 +268,13 @@ def train(
             "encoding of the mean render, unbiased by render noise)."
         ),
     ] = "srgb",
+    coarse_absorption: Annotated[
+        bool,
+        typer.Option(
+            help="The decoder also predicts a path length per 2 x 2 pixels that dims each colour by its medium's "
+            "extinction (Beer-Lambert); with --start-from a decoder without it, the layer is added."
+        ),
+    ] = False,
 ) -> None:
     """Train the decoder and/or the encoders; run the same command again to resume after an interruption."""
     from matfit import train as train_module
@@ -279,7 +286,7 @@ def train(
     )
     data = [dataset.open_dataset(str(path)) for path in dataset_paths]
     with TrainingProgress() as progress:
-        for name, metrics in train_module.train_networks(names, data, str(out), config, progress):
+        for name, metrics in train_module.train_networks(names, data, str(out), config, progress, coarse_absorption):
             progress.note(f"{train_module.summary(name, metrics)} -> {out}")
 
 

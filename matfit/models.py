@@ -435,6 +435,24 @@ def encoder_input(linear: np.ndarray) -> np.ndarray:
     return images.srgb_encode(images.box_downsample(clipped, ENCODER_RESOLUTION))
 
 
+# The coarse absorption layer's path length at initialisation when trained from scratch, in radii:
+# Beer-Lambert from the first step (grown on a trained decoder the layer starts at 0: README).
+COARSE_PATH_START = 1.0
+
+
+def trained_decoder(resolution: int, coarse_absorption: bool = False) -> Decoder:
+    """Returns the decoder `matfit train` trains on images of `resolution` pixels (`--coarse-absorption`: with the
+    coarse absorption layer, its path length starting at COARSE_PATH_START)."""
+    path_start = COARSE_PATH_START if coarse_absorption else 0.0
+    return Decoder(
+        resolution=resolution,
+        glass_grid=scene.GLASS_GRID,
+        medium_inputs=True,
+        coarse_absorption=coarse_absorption,
+        path_start=path_start,
+    )
+
+
 def architecture(name: str, resolution: int, decoder: Decoder | None = None) -> dict:
     """Returns the plain-data description that rebuilds network `name` ("decoder" or "encoder-N").
 
@@ -442,8 +460,7 @@ def architecture(name: str, resolution: int, decoder: Decoder | None = None) -> 
     always read ENCODER_RESOLUTION pixels.
     """
     if name == DECODER:
-        # what `matfit train` trains
-        decoder = decoder or Decoder(resolution=resolution, glass_grid=scene.GLASS_GRID, medium_inputs=True)
+        decoder = decoder or trained_decoder(resolution)
         fields = {
             field.name: getattr(decoder, field.name)
             for field in dataclasses.fields(Decoder)

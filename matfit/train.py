@@ -615,9 +615,17 @@ def train_network(
 
 
 def train_networks(
-    names: list[str], data: Dataset | Sequence[Dataset], out: str, config: Config, reporter: Reporter | None = None
+    names: list[str],
+    data: Dataset | Sequence[Dataset],
+    out: str,
+    config: Config,
+    reporter: Reporter | None = None,
+    coarse_absorption: bool = False,
 ):
-    """Trains the named networks one after another into model directory `out`; yields (name, metrics) for each."""
+    """Trains the named networks one after another into model directory `out`; yields (name, metrics) for each.
+
+    With `coarse_absorption` the decoder has the coarse absorption layer (`models.trained_decoder`).
+    """
     if os.path.exists(out) and not os.path.isdir(out):
         raise files.OutputError(f"model directory {out} is a file: give a directory for the model", field="out")
     for name in names:  # every setting checked before the model directory is made
@@ -625,7 +633,8 @@ def train_networks(
         start_path(name, config, out)
     os.makedirs(out, exist_ok=True)
     for name in names:
-        yield name, train_network(name, data, out, config.for_network(name), reporter)
+        decoder = models.trained_decoder(as_datasets(data)[0].resolution, coarse_absorption)
+        yield name, train_network(name, data, out, config.for_network(name), reporter, decoder)
 
 
 def summary(name: str, metrics: dict) -> str:

@@ -252,6 +252,20 @@ def test_finished_networks_are_not_trained_again(trained, tiny_dataset):
     assert models.load(str(trained / "encoder-8.msgpack")).info["metrics"]["wall_time_s"] == before
 
 
+def test_train_coarse_absorption_grows_the_layer_on_a_plain_decoder(trained, tiny_dataset, tmp_path):
+    out = tmp_path / "coarse"
+    arguments = ("--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8, "--coarse-absorption")
+    result = run("train", "--arch", "decoder", *arguments, "--start-from", trained, "--out", out)
+    assert result.exit_code == 0, result.output
+    coarse, plain = models.load(str(out / "decoder.msgpack")), models.load(str(trained / "decoder.msgpack"))
+    assert coarse.module.coarse_absorption and coarse.module.path_start == models.COARSE_PATH_START
+    assert not plain.module.coarse_absorption
+    assert set(coarse.variables["params"]) - set(plain.variables["params"]) == {"path"}
+    assert float(coarse.variables["params"]["path"]["bias"][0]) == pytest.approx(1.0, abs=0.05)  # one epoch at 1e-3
+    # The plain run's directory holds a decoder of the other architecture: resuming it with the layer is refused.
+    assert_one_line_error(run("train", "--arch", "decoder", *arguments, "--out", trained), "architecture")
+
+
 def black_png(path, side):
     """Writes a valid black side x side PNG cheaply (black rows compress to almost nothing)."""
     import struct
