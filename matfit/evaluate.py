@@ -167,6 +167,11 @@ def describe_decoder(description: dict) -> str:
             "; the transmittance of its medium is Beer-Lambert's, exp(-L tau) per colour, tau known from the "
             "parameters, L a predicted path length per pixel"
         )
+    if description.get("coarse_absorption"):
+        sentence += (
+            "; each colour's transmittance is dimmed by its medium's extinction along a predicted path length "
+            "per 2 x 2 pixels (Beer-Lambert)"
+        )
     grid = description.get("medium_grid") or []
     if grid:
         sentence += (
