@@ -1,6 +1,8 @@
 import dataclasses
+import hashlib
 import json
 import os
+import pathlib
 import shutil
 
 import jax
@@ -410,3 +412,61 @@ def test_a_decoder_trained_with_the_linear_loss_is_judged_against_the_encoded_re
         )
     with pytest.raises(TrainingError, match="loss 'l1' is unknown: use srgb or linear"):
         train.train_network("decoder", data, str(tmp_path / "other"), Config(epochs=1, loss="l1"))
+
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent  # the repository
+
+
+def makefile_model_commands() -> list[list[str]]:
+    """Returns the `make model` recipe's matfit commands, each split into words (after `$(BIN)/matfit`)."""
+    recipe = (ROOT / "Makefile").read_text().split("\nmodel:", 1)[1].split("\n\n", 1)[0]
+    return [line.split()[1:] for line in recipe.splitlines()[1:] if line.strip().startswith("$(BIN)/matfit")]
+
+
+def options_of(words: list[str]) -> dict[str, list[str]]:
+    """Returns every `--name value` of a command (repeated options in order; a flag's value is "")."""
+    found: dict[str, list[str]] = {}
+    for k, word in enumerate(words):
+        if word.startswith("--"):
+            value = words[k + 1] if k + 1 < len(words) and not words[k + 1].startswith("--") else ""
+            found.setdefault(word, []).append(value)
+    return found
+
+
+def test_make_model_trains_what_ships():
+    """The shipped decoder's and encoders' datasets (down to their parameters' hashes), its schedule and its
+    architecture are what the Makefile's `model` recipe renders and trains."""
+    commands = makefile_model_commands()
+    rendered = {}
+    for words in (w for w in commands if w[0] == "render-dataset"):
+        found = options_of(words)
+        sampler = found.get("--sampler", ["uniform"])[0]
+        count, seed = int(found["--count"][0]), int(found["--seed"][0])
+        units = [params.sample_index(seed, i, sampler) for i in range(count)]
+        values = np.stack([params.from_unit(unit) for unit in units]).astype(np.float32)
+        rendered[words[1]] = {
+            "count": count,
+            "resolution": int(found["--resolution"][0]),
+            "spp": int(found["--spp"][0]),
+            "seed": seed,
+            "sampler": sampler,
+            "params_sha256": hashlib.sha256(values.tobytes()).hexdigest(),
+        }
+    decoder_data = (ROOT / "Makefile").read_text().split("\nDECODER_DATA = ", 1)[1].split("\n", 1)[0].split()
+    trains = [[part for w in words for part in (decoder_data if w == "$(DECODER_DATA)" else [w])] for words in commands]
+    trains = [options_of(words) for words in trains if words[0] == "train"]
+    shipped = ROOT / "data" / "models" / "default"
+    for network, found in (("decoder", trains[1]), ("encoder-1", trains[2])):
+        metrics = json.loads((shipped / f"{network}.json").read_text())
+        identities = metrics["dataset"] if isinstance(metrics["dataset"], list) else [metrics["dataset"]]
+        trained_on = [{**each, "sampler": each.get("sampler", "uniform")} for each in identities]
+        expected = [rendered[path] for path in found["--dataset"]]
+        assert [{key: each[key] for key in expected[0]} for each in trained_on] == expected, network
+    decoder = json.loads((shipped / "decoder.json").read_text())["config"]
+    last = trains[1]
+    assert decoder["epochs"] == int(last["--epochs"][0]) and decoder["loss"] == last["--loss"][0]
+    assert decoder["learning_rate"] == float(last["--learning-rate"][0])
+    assert decoder["start_from"] == last["--start-from"][0] == trains[0]["--out"][0]
+    architecture = models.load(str(shipped / "decoder.msgpack")).description
+    assert architecture == models.architecture("decoder", 64, models.trained_decoder(64, "--coarse-absorption" in last))
+    assert ("--coarse-absorption" in trains[0]) == ("--coarse-absorption" in last)
