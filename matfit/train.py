@@ -632,8 +632,8 @@ def train_networks(
         config.for_network(name).check(sum(each.count for each in as_datasets(data)))
         start_path(name, config, out)
     os.makedirs(out, exist_ok=True)
+    decoder = models.trained_decoder(as_datasets(data)[0].resolution, coarse_absorption)
     for name in names:
-        decoder = models.trained_decoder(as_datasets(data)[0].resolution, coarse_absorption)
         yield name, train_network(name, data, out, config.for_network(name), reporter, decoder)
 
 
