@@ -42,9 +42,9 @@ def test_preset_references_are_rendered_once_and_kept(tiny_dataset, monkeypatch)
 
 
 def test_the_card_says_how_the_decoder_draws_glass():
-    shipped = evaluate.describe_decoder(models.architecture("decoder", 64))
-    assert "17 x 6 basis of clear-glass Mitsuba renders" in shipped and "features of the medium" in shipped
-    assert "grey-medium" not in shipped and "Beer-Lambert" not in shipped
+    default = evaluate.describe_decoder(models.architecture("decoder", 64))  # `matfit train` without options
+    assert "17 x 6 basis of clear-glass Mitsuba renders" in default and "features of the medium" in default
+    assert "grey-medium" not in default and "Beer-Lambert" not in default
     coarse = evaluate.describe_decoder(models.architecture("decoder", 64, models.trained_decoder(64, True)))
     assert "path length per 2 x 2 pixels (Beer-Lambert)" in coarse
     scattering = models.Decoder(glass_grid=(17, 6), medium_grid=(9, 6))
