@@ -96,6 +96,57 @@ def test_upsample_pool_and_shuffle_match_their_definitions():
     np.testing.assert_array_equal(shuffled[:, 3, 5, 1], x[:, 1, 2, (2 * 1 + 1) * 2 + 1])
 
 
+def _conv_of_upsampled(x, kernel):
+    return jax.lax.conv_general_dilated(
+        models.upsample(x), kernel, (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+    )
+
+
+def test_the_upsampling_folded_into_a_convolution_is_the_convolution_of_the_upsampled_map():
+    x = jax.random.normal(jax.random.key(0), (2, 3, 5, 4))  # not square: rows and columns are not mixed up
+    kernel = jax.random.normal(jax.random.key(1), (3, 3, 4, 6))
+    folded = models.upsampled_conv(x, kernel)
+    assert folded.shape == (2, 6, 10, 6)
+    np.testing.assert_allclose(folded, _conv_of_upsampled(x, kernel), rtol=1e-5, atol=1e-5)
+    # and so are its gradients, with respect to the map and to the kernel
+    probe = jax.random.normal(jax.random.key(2), folded.shape)
+    grads = [
+        jax.grad(lambda x, k, f=f: jnp.sum(f(x, k) * probe), argnums=(0, 1))(x, kernel)
+        for f in (models.upsampled_conv, _conv_of_upsampled)
+    ]
+    for ours, theirs in zip(*grads, strict=True):
+        np.testing.assert_allclose(ours, theirs, rtol=1e-4, atol=1e-4)
+
+
+def test_the_decoder_folds_its_upsampling_without_changing_its_weights_or_what_it_draws():
+    decoder = models.Decoder(resolution=32, hidden=32, base_channels=16, stage_channels=(8, 6), convs_per_stage=2)
+    variables = models.initialise(decoder, jax.random.key(0), (19,))
+    names = sorted(variables["params"])
+    assert names == ["Conv_0", "Conv_1", "Conv_2", "Conv_3", "Conv_4", "Dense_0", "Dense_1", "Dense_2", "background"]
+    assert variables["params"]["Conv_0"]["kernel"].shape == (3, 3, 16, 8)  # a plain 3x3 kernel on the source
+    # the same network written out with explicit upsampling and plain convolutions
+    p = variables["params"]
+    y = jax.random.uniform(jax.random.key(1), (3, 19))
+    x = y
+    for k in range(3):
+        x = jax.nn.gelu(x @ p[f"Dense_{k}"]["kernel"] + p[f"Dense_{k}"]["bias"][None])
+    x = x.reshape(-1, 4, 4, 16)
+
+    def conv(x, name):
+        return (
+            jax.lax.conv_general_dilated(
+                x, p[name]["kernel"], (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+            )
+            + p[name]["bias"][None, None, None]
+        )
+
+    for stage in range(2):
+        x = jax.nn.gelu(conv(models.upsample(x), f"Conv_{2 * stage}"))
+        x = jax.nn.gelu(conv(x, f"Conv_{2 * stage + 1}"))
+    expected = jax.nn.sigmoid(models.depth_to_space(conv(x, "Conv_4")) + p["background"][None])
+    np.testing.assert_allclose(models.apply(decoder, variables, y), expected, atol=1e-5)
+
+
 def test_a_weights_file_of_another_network_is_refused(tmp_path):
     decoder = models.Decoder(resolution=32, hidden=64, base_channels=32, stage_channels=(32,))
     network = models.Network(
