@@ -6,8 +6,9 @@ targets. Only the modules live here; training is `train.py`'s job.
 
 Decoder phi: 19 unit-cube parameters -> (H, W, 3) sRGB-encoded image in [0, 1]. Fully connected
 layers to a 4 x 4 feature map, then stages of nearest-neighbour upsampling + 3x3 convolutions
-(measured faster than transposed convolutions on this CPU). No layer grows with the image: a
-larger output only adds upsampling stages.
+(measured faster than transposed convolutions on this CPU; the upsampling folded into the
+convolution, `upsampled_conv`). No layer grows with the image: a larger output only adds
+upsampling stages.
 
 Encoders phi^-1_(1..9): image -> 19 unit-cube parameters, exactly the paper's Appendix A:
 Conv2D(filters, 3, 1) + MaxPool(2, 2) blocks, FC(neurons, dropout) layers, an FC(19) output
@@ -60,7 +61,7 @@ def _phases(kernel: jax.Array, axis: int) -> jax.Array:
     return jnp.stack([even, odd], axis=axis)
 
 
-def upsampled_conv(inputs: jax.Array, kernel: jax.Array, *_, **__) -> jax.Array:
+def upsampled_conv(inputs: jax.Array, kernel: jax.Array, window_strides=(1, 1), padding="SAME", **_) -> jax.Array:
     """Returns the SAME 3x3 convolution of `upsample(inputs)` (N, 2H, 2W, O), computed on the H x W source.
 
     Each output pixel of a 3x3 convolution of a nearest-upsampled map sees only 2 x 2 source
@@ -68,10 +69,12 @@ def upsampled_conv(inputs: jax.Array, kernel: jax.Array, *_, **__) -> jax.Array:
     phases are one 2x2 convolution of the source padded by one pixel, with four 2x2 kernels summed
     from the 3x3 one (4 O outputs), each phase read at its offset and the four interleaved:
     16 multiply-adds per source pixel and filter instead of 36, the same function up to rounding.
-    Its signature is `lax.conv_general_dilated`'s, so `nn.Conv(..., conv_general_dilated=upsampled_conv)`
+    It is called as `lax.conv_general_dilated`, so `nn.Conv(..., conv_general_dilated=upsampled_conv)`
     keeps the plain convolution's weights (a 3x3 kernel, the same names); the other arguments are
-    those of a stride-1 SAME convolution in NHWC / HWIO and are not read.
+    those of a stride-1 SAME convolution in NHWC / HWIO (the layouts are not read).
     """
+    if tuple(window_strides) != (1, 1) or padding != "SAME" or kernel.shape[:2] != (3, 3):
+        raise ValueError(f"upsampled_conv is a 3x3 SAME convolution of stride 1, not {kernel.shape[:2]} {padding}")
     n, h, w, _ = inputs.shape
     out = kernel.shape[-1]
     phases = _phases(_phases(kernel, 0), 2)  # (row phase, row tap, column phase, column tap, I, O)
@@ -215,7 +218,8 @@ class Decoder(nn.Module):
     Two dense layers to a 4 x 4 x `base_channels` map; then one stage per doubling up to half
     the resolution: nearest upsampling and `convs_per_stage` 3x3 convolutions with
     `stage_channels[k]` filters (the last entry repeats for larger images; with `coordinates`,
-    each convolution also sees every pixel's x and y); then a 3x3 convolution shuffled into
+    each convolution also sees every pixel's x and y; without, the upsampling is computed inside
+    the stage's first convolution, `upsampled_conv`, at less than half the cost); then a 3x3 convolution shuffled into
     full-resolution channels (sub-pixel convolution: no convolution runs at full resolution,
     where it would cost the most), plus a learned per-pixel `background` logit image before the
     sigmoid: the scene around the object hardly changes with the material, so the convolutions
