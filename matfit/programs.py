@@ -34,6 +34,7 @@ import json
 import os
 import platform
 import struct
+import threading
 from collections.abc import Callable
 from typing import Any
 
@@ -120,6 +121,7 @@ class Program:
         self.dynamic_names = tuple(name for name in self.signature.parameters if name not in self.static_argnames)
         self.jitted = jax.jit(function, static_argnames=self.static_argnames)
         self.loaded: dict[tuple, Callable] = {}
+        self.lock = threading.Lock()
         functools.update_wrapper(self, function)
 
     def __call__(self, *args, **kwargs):
@@ -136,7 +138,10 @@ class Program:
         key = (statics, tree, shapes, _directory)
         program = self.loaded.get(key)
         if program is None:
-            program = self.loaded[key] = self.program(statics, tree, shapes)
+            with self.lock:  # threads calling one new program at once (the gradient stage's workers) read it once
+                program = self.loaded.get(key)
+                if program is None:
+                    program = self.loaded[key] = self.program(statics, tree, shapes)
         return program(*values)
 
     def program(self, statics: tuple, tree, shapes: tuple) -> Callable:

@@ -87,3 +87,14 @@ def test_narrowing_lets_the_best_start_go_on_alone_as_it_would_have_in_the_batch
 def test_narrowing_rejects_a_count_below_one():
     with pytest.raises(ValueError, match="narrow_after 0"):
         gradient.minimise(rosenbrock, jnp.zeros((2, 19), jnp.float32), None, 5, narrow_after=0)
+
+
+def test_starts_shared_among_threads_end_where_one_batch_ends_them_for_the_same_budget():
+    starts = jnp.asarray(np.random.default_rng(5).uniform(size=(5, 19)), jnp.float32)  # shares of 3 and 2
+    runs = [gradient.minimise(rosenbrock, starts, None, 40, narrow_after=15, workers=w) for w in (1, 2, 3)]
+    for ends, values, spent in runs:
+        assert spent == 5 * 15 + 25
+        np.testing.assert_allclose(ends, runs[0][0], atol=1e-4)
+        np.testing.assert_allclose(values, runs[0][1], rtol=1e-4)
+    with pytest.raises(ValueError, match="workers 0"):
+        gradient.minimise(rosenbrock, starts, None, 5, workers=0)
