@@ -219,9 +219,9 @@ class Decoder(nn.Module):
     the resolution: nearest upsampling and `convs_per_stage` 3x3 convolutions with
     `stage_channels[k]` filters (the last entry repeats for larger images; with `coordinates`,
     each convolution also sees every pixel's x and y; without, the upsampling is computed inside
-    the stage's first convolution, `upsampled_conv`, at less than half the cost); then a 3x3 convolution shuffled into
-    full-resolution channels (sub-pixel convolution: no convolution runs at full resolution,
-    where it would cost the most), plus a learned per-pixel `background` logit image before the
+    the stage's first convolution, `upsampled_conv`, at less than half the cost); then a 3x3
+    convolution shuffled into full-resolution channels (sub-pixel convolution: no convolution
+    runs at full resolution, where it would cost the most), plus a learned per-pixel `background` logit image before the
     sigmoid: the scene around the object hardly changes with the material, so the convolutions
     only learn what does.
 
