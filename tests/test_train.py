@@ -417,10 +417,13 @@ def test_a_decoder_trained_with_the_linear_loss_is_judged_against_the_encoded_re
 ROOT = pathlib.Path(__file__).resolve().parent.parent  # the repository
 
 
-def makefile_model_commands() -> list[list[str]]:
-    """Returns the `make model` recipe's matfit commands, each split into words (after `$(BIN)/matfit`)."""
-    recipe = (ROOT / "Makefile").read_text().split("\nmodel:", 1)[1].split("\n\n", 1)[0]
-    return [line.split()[1:] for line in recipe.splitlines()[1:] if line.strip().startswith("$(BIN)/matfit")]
+def makefile_model_commands(makefile: str) -> list[list[str]]:
+    """Returns the `make model` recipe's matfit commands, each split into words (after `$(BIN)/matfit`), with
+    `$(DECODER_DATA)` replaced by its definition's words."""
+    decoder_data = makefile.split("\nDECODER_DATA = ", 1)[1].split("\n", 1)[0].split()
+    recipe = makefile.split("\nmodel:", 1)[1].split("\n\n", 1)[0]
+    commands = [line.split()[1:] for line in recipe.splitlines()[1:] if line.strip().startswith("$(BIN)/matfit")]
+    return [[part for w in words for part in (decoder_data if w == "$(DECODER_DATA)" else [w])] for words in commands]
 
 
 def options_of(words: list[str]) -> dict[str, list[str]]:
@@ -436,7 +439,7 @@ def options_of(words: list[str]) -> dict[str, list[str]]:
 def test_make_model_trains_what_ships():
     """The shipped decoder's and encoders' datasets (down to their parameters' hashes), its schedule and its
     architecture are what the Makefile's `model` recipe renders and trains."""
-    commands = makefile_model_commands()
+    commands = makefile_model_commands((ROOT / "Makefile").read_text())
     rendered = {}
     for words in (w for w in commands if w[0] == "render-dataset"):
         found = options_of(words)
@@ -452,9 +455,7 @@ def test_make_model_trains_what_ships():
             "sampler": sampler,
             "params_sha256": hashlib.sha256(values.tobytes()).hexdigest(),
         }
-    decoder_data = (ROOT / "Makefile").read_text().split("\nDECODER_DATA = ", 1)[1].split("\n", 1)[0].split()
-    trains = [[part for w in words for part in (decoder_data if w == "$(DECODER_DATA)" else [w])] for words in commands]
-    trains = [options_of(words) for words in trains if words[0] == "train"]
+    trains = [options_of(words) for words in commands if words[0] == "train"]
     shipped = ROOT / "data" / "models" / "default"
     for network, found in (("decoder", trains[1]), ("encoder-1", trains[2])):
         metrics = json.loads((shipped / f"{network}.json").read_text())
