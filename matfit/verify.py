@@ -9,7 +9,8 @@ that beats the start must beat it again in a second render of both with another 
 (`CONFIRM_SEED`): with one render, a lead within the render's noise kept answers that an
 independent judge found worse than the start (2 of 20 reachable targets, `matfit bench-fit`).
 
-With `corrections`, the best of those renders starts rounds of correction (`correct.py`: the fit
+With `corrections`, the candidates are the start and the best end (CORRECTED_CANDIDATES), and
+the better of their renders starts rounds of correction (`correct.py`: the fit
 run again on the target less the decoder's error at the point, as its render shows it), each from
 the last round's point. A round's residual comes from a render with its own seed (`SEED` + round),
 so that it does not carry the last one's noise. The last round's point is the answer if it beats
@@ -32,7 +33,10 @@ import numpy as np
 from matfit import correct, fit, images, models, params
 from matfit.errors import FitError
 
-CANDIDATES = 5  # the start and up to four end points: every end of the default 4-start fit
+CANDIDATES = 5  # without correction: the start and up to four end points, every end of the default 4-start fit
+# With correction the ends' renders only choose where the rounds start, and the start with the best end alone judged as
+# well as all five (README "Fitting", item 3) for three renders fewer.
+CORRECTED_CANDIDATES = 2
 SPP = 64  # ranks the candidates as 128 spp does within the judge's noise, in half the time: `bench.verification_table`
 SEED = 1_000_003  # not a seed of the training set's images
 CONFIRM_SEED = 1_000_033  # the second opinion on an end point's lead; neither SEED nor a training image's seed
@@ -72,7 +76,7 @@ def verify(
     result: fit.Result,
     target: np.ndarray,
     weights: np.ndarray | None = None,
-    count: int = CANDIDATES,
+    count: int | None = None,
     spp: int = SPP,
     corrections: int = 0,
     model: models.Model | None = None,
@@ -81,6 +85,8 @@ def verify(
     given).
 
     `renderer` renders at the target's resolution; every candidate uses the same seed and `spp` samples.
+    `count`: how many candidates (`candidates`) to render; by default CANDIDATES, or CORRECTED_CANDIDATES with
+    `corrections`.
     `corrections`: rounds of `correct.step` from the best of the fit's candidates ("corrected-1",
     ...; they need the fit's `model`); the last one's point is kept if it beats the start in renders
     with CONFIRM_SEED (`confirmation`), else the rule of the module docstring chooses.
@@ -90,6 +96,7 @@ def verify(
         raise ValueError("correction needs the fit's model")
     started = time.perf_counter()
     weights = np.ones(target.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
+    count = (CORRECTED_CANDIDATES if corrections else CANDIDATES) if count is None else count
     pool = candidates(result, count)
 
     def rendered(name: str, seed: int) -> np.ndarray:

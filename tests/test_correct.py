@@ -55,6 +55,9 @@ def test_verification_with_corrections_keeps_only_what_mitsuba_prefers(model):
     result = fit.fit(model, target, fit.Settings(method="lbfgsb", starts=2, iterations=10))
     checked = verify.verify(renderer, result, target, corrections=2, model=model)
     assert checked.corrections == 2 and set(checked.decoded) == {"corrected-1", "corrected-2"}
+    # the rounds start from the better of the start and the best end: the other end is not rendered
+    assert len(verify.candidates(result)) == 3
+    assert set(checked.figures) - {"corrected-1"} == {"start", "end-1"} == set(checked.points) - set(checked.decoded)
     for name in checked.decoded:  # phi of each round's point, as the decoder draws it
         np.testing.assert_allclose(checked.decoded[name], decoded(model, checked.points[name]), atol=1e-5)
 
