@@ -272,9 +272,10 @@ def train(
         bool,
         typer.Option(
             help="The decoder also predicts a path length per 2 x 2 pixels that dims each colour by its medium's "
-            "extinction (Beer-Lambert); with --start-from a decoder without it, the layer is added."
+            "extinction (Beer-Lambert), as the shipped one does; with --start-from a decoder without it, the layer "
+            "is added. --no-coarse-absorption trains the plain decoder."
         ),
-    ] = False,
+    ] = True,
 ) -> None:
     """Train the decoder and/or the encoders; run the same command again to resume after an interruption."""
     from matfit import train as train_module

@@ -168,9 +168,8 @@ def test_ray_without_the_extra_is_one_line(tmp_path, monkeypatch):
 @pytest.fixture(scope="module")
 def trained(tiny_dataset, tmp_path_factory):
     out = tmp_path_factory.mktemp("model")
-    result = run(
-        "train", "--arch", "decoder,8", "--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8, "--out", out
-    )
+    arguments = ("--arch", "decoder,8", "--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8)
+    result = run("train", *arguments, "--no-coarse-absorption", "--out", out)  # plain: a test grows the layer on it
     assert result.exit_code == 0, result.output
     return out
 
@@ -254,7 +253,7 @@ def test_finished_networks_are_not_trained_again(trained, tiny_dataset):
 
 def test_train_coarse_absorption_grows_the_layer_on_a_plain_decoder(trained, tiny_dataset, tmp_path):
     out = tmp_path / "coarse"
-    arguments = ("--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8, "--coarse-absorption")
+    arguments = ("--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8)  # the layer is the default
     result = run("train", "--arch", "decoder", *arguments, "--start-from", trained, "--out", out)
     assert result.exit_code == 0, result.output
     coarse, plain = models.load(str(out / "decoder.msgpack")), models.load(str(trained / "decoder.msgpack"))
