@@ -9,17 +9,17 @@ that beats the start must beat it again in a second render of both with another 
 (`CONFIRM_SEED`): with one render, a lead within the render's noise kept answers that an
 independent judge found worse than the start (2 of 20 reachable targets, `matfit bench-fit`).
 
-With `corrections`, the candidates are the start and the best end (CORRECTED_CANDIDATES), and
-the better of their renders starts rounds of correction (`correct.py`: the fit
-run again on the target less the decoder's error at the point, as its render shows it), each from
-the last round's point. A round's residual comes from a render with its own seed (`SEED` + round),
-so that it does not carry the last one's noise. The last round's point is the answer if it beats
-the start in renders of both with CONFIRM_SEED (which no round used); otherwise verification's
-rule above decides. Measured on the 20 reachable targets of `matfit bench-fit`, judged by
-independent 1024-spp renders: taking the last round's point so guarded judged 1.578 after two
-rounds, against 1.588 when it joined the candidates and the 64-spp renders chose among them all
-(they preferred worse points: a candidate's render noise is part of its RMSE), and 1.713 for
-verification alone; every answer no worse than the start (20/20).
+With `corrections`, the candidates are the start and the best end (CORRECTED_CANDIDATES), and the
+better of their renders starts rounds of correction (`correct.py`: the fit run again on the target
+less the decoder's error at the point, as its render shows it), each from the last round's point. A
+round's residual comes from a render with its own seed (`SEED` + round), so that it does not carry
+the last one's noise. The last round's point is the answer if it beats the start in renders of both
+with CONFIRM_SEED (which no round used); otherwise verification's rule above decides. Measured on
+the 20 reachable targets of `matfit bench-fit`, judged by independent 1024-spp renders: taking the
+last round's point so guarded judged 1.578 after two rounds, against 1.588 when it joined the
+candidates and the 64-spp renders chose among them all (they preferred worse points: a candidate's
+render noise is part of its RMSE), and 1.713 for verification alone; every answer no worse than the
+start (20/20).
 """
 
 from __future__ import annotations
