@@ -8,6 +8,7 @@ Options that several commands take are declared once, in `options`.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import json
 import os
@@ -179,22 +180,36 @@ def fit_command(
     corrections: options.Corrections = None,
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
-    from matfit import fitfile
+    from matfit import render as render_module
 
-    text = options.text
-    outputs = fitfile.Outputs(str(output), text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
-    settings = Settings(
-        method,
-        evaluations,
-        box,
-        polish_steps=polish_steps,
-        starts=starts,
-        iterations=iterations,
-        narrow_after=narrow_after,
-    )
-    outcome = fitfile.run(
-        str(target), str(model_path), settings, outputs, text(mask), seed, text(init), verify, refine, corrections
-    )
+    # Verification's Mitsuba starts in a child process now, on the other core, while this one imports JAX.
+    with render_module.Process() if verify and not refine else contextlib.nullcontext() as renderer:
+        from matfit import fitfile
+
+        text = options.text
+        outputs = fitfile.Outputs(str(output), text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
+        settings = Settings(
+            method,
+            evaluations,
+            box,
+            polish_steps=polish_steps,
+            starts=starts,
+            iterations=iterations,
+            narrow_after=narrow_after,
+        )
+        outcome = fitfile.run(
+            str(target),
+            str(model_path),
+            settings,
+            outputs,
+            text(mask),
+            seed,
+            text(init),
+            verify,
+            refine,
+            corrections,
+            renderer,
+        )
     echo_lines(outcome.notices)
     log(outcome.summary(str(output)))
 

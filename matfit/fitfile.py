@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from matfit import files, fit, images, models, params, refine, verify
+from matfit import files, fit, images, models, params, refine, render, verify
 from matfit.errors import FitError, ImageError, OutputError
 from matfit.methods import CORRECTIONS
 
@@ -132,10 +132,12 @@ def run(
     verified: bool = True,
     refine_steps: int = 0,
     corrections: int | None = None,
+    renderer: render.Process | None = None,
 ) -> Outcome:
     """Fits the image file `target` with a model (or a model directory) and writes `outputs`; returns what was found.
 
-    `init`: a params.json of the source material, whose parameters join best-of-n's candidates.
+    `init`: a params.json of the source material, whose parameters join best-of-n's candidates;
+    `renderer`: a `render.Process` to verify with (`fit_file`), or None.
     `verified`: let Mitsuba choose among the fit's final candidates (`verify.verify`), after
     `corrections` rounds of correction (`correct.py`; None: `methods.CORRECTIONS` when verified,
     else none) from the best of them; `refine_steps`:
@@ -156,6 +158,7 @@ def run(
         verified,
         refine_steps,
         outputs.needs_render,
+        renderer,
         source=init,
         corrections=corrections,
     )
@@ -185,8 +188,9 @@ def fit_file(
     Writes nothing: `run` writes the CLI's files, `serve` offers the same ones for download.
     `init_values`: the source material's physical parameters (joining best-of-n's candidates), read
     from the file `source` (recorded in the document); `renderer`: a loaded `render.Renderer` at the
-    model's resolution to reuse, or None (one is made when verification, refinement or a render
-    output needs it).
+    model's resolution to reuse, a `render.Process` (started early by the caller; it loads the scene
+    here, and cannot refine), or None (a `render.Background` is made when verification, refinement or
+    a render output needs one).
     """
     settings.check()
     if refine_steps < 0:
@@ -206,14 +210,17 @@ def fit_file(
     model = load_model(model) if isinstance(model, str) else model
     target_srgb, weights, notices = read_target(target, model.resolution, mask)
     background = on_start = None
-    if renderer is None and (verified or refine_steps or needs_render):
-        from matfit.render import Background
+    if isinstance(renderer, render.Process):
+        if refine_steps:
+            raise ValueError("refinement renders through Mitsuba in this process: give a Renderer, or none")
+        background, renderer = renderer, None
+        background.load(model.resolution, verify.SPP)
+    elif renderer is None and (verified or refine_steps or needs_render):
+        background = render.Background(model.resolution, verify.SPP)  # loads while the fit runs
+    if background is not None and verified:
 
-        background = Background(model.resolution, verify.SPP)  # loads while the fit runs
-        if verified:
-
-            def on_start(start: np.ndarray) -> None:
-                verify.prefetch_start(background, start, corrections)
+        def on_start(start: np.ndarray) -> None:
+            verify.prefetch_start(background, start, corrections)
 
     result = fit.fit(model, target_srgb, settings, weights, extra=extra, seed=seed, on_start=on_start)
     outcome = Outcome(result, target_srgb, result.unit, result.image, result.rmse, notices=notices)

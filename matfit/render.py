@@ -12,9 +12,15 @@ Mitsuba is asked for the variant, and `DRJIT_LIBLLVM_PATH` is pointed at it.
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import os
+import pickle
 import re
+import signal
+import subprocess
+import sys
+import threading
 import time
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
@@ -252,6 +258,185 @@ class Background:
         return job.result() if job is not None else renderer.render(values, seed, spp)
 
 
+class Process:
+    """A `Renderer` in a child process, which imports Mitsuba as soon as it is made, beside whatever the caller loads.
+
+    A cold `matfit fit` spends its first second importing JAX on one core; Mitsuba's import and the
+    choice of its variant (~0.4 s) then take the other, where on a thread they would wait for the
+    interpreter, which both imports hold. Made at once, before the caller's own heavy imports,
+    `load(resolution, spp)` then loads the scene, and `prefetch` and `render` behave as
+    `Background`'s: requests are answered in order, a prefetched (values, seed, spp) is rendered
+    once, and the images are those of `Renderer.render` in this process, seed for seed. A failure
+    in the child (no usable variant, a bad material) is raised here as its RenderError. The child
+    ignores Ctrl-C (it is in a session of its own) and ends when this side closes its requests
+    (`close`, or this process ending any way, `kill -9` included): it never outlives the caller.
+    """
+
+    PIPE_BYTES = 1 << 20  # room for the replies of every prefetched render, so the child never waits for a read
+
+    def __init__(self, variant: str | None = None):
+        requests_read, requests_write = os.pipe()
+        replies_read, replies_write = os.pipe()
+        with contextlib.suppress(AttributeError, OSError):  # Linux: a pipe holds more than 64 KiB if asked
+            import fcntl
+
+            fcntl.fcntl(replies_write, fcntl.F_SETPIPE_SZ, self.PIPE_BYTES)
+        package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        environment = dict(
+            os.environ, PYTHONPATH=os.pathsep.join(filter(None, (package, os.environ.get("PYTHONPATH"))))
+        )
+        arguments = [sys.executable, "-m", "matfit.render", str(requests_read), str(replies_write), variant or ""]
+        try:
+            self._child = subprocess.Popen(
+                arguments, pass_fds=(requests_read, replies_write), start_new_session=True, env=environment
+            )
+        finally:
+            os.close(requests_read)
+            os.close(replies_write)
+        self._requests = os.fdopen(requests_write, "wb")
+        self._replies = os.fdopen(replies_read, "rb")
+        self._ready: tuple | None = None  # the child's first reply: (variant, notice)
+        self._pending: list[tuple] = []  # keys of the renders asked for and not yet read, in order
+        self._answers: dict[tuple, object] = {}  # key -> image, or the RenderError of its render
+        self._resolution: int | None = None
+
+    @property
+    def variant(self) -> str:
+        """The variant the child renders with (waits until it has imported Mitsuba)."""
+        return self._started()[0]
+
+    @property
+    def notice(self) -> str | None:
+        """The child's notice about its variant (the scalar fallback), if any."""
+        return self._started()[1]
+
+    def load(self, resolution: int, spp: int) -> None:
+        """Has the child load the scene at `resolution` (and warm its kernels) before the first render."""
+        self._resolution = resolution
+        self._send(("load", resolution, spp))
+        self._pending.append(("load", resolution))
+
+    def prefetch(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> None:
+        """Asks for a render now, for a later `render` of the same arguments."""
+        key = Background._key(values, seed, spp)
+        if key not in self._answers and key not in self._pending:
+            self._send(("render", np.asarray(values, np.float64), int(seed), spp))
+            self._pending.append(key)
+
+    def render(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> np.ndarray:
+        """Returns what `Renderer.render` returns: the linear float32 (H, W, 3) image of a material."""
+        if self._resolution is None:
+            raise RenderError("the render process has no scene yet: call load(resolution, spp) first")
+        key = Background._key(values, seed, spp)
+        self.prefetch(values, seed, spp)
+        while key not in self._answers:
+            self._receive()
+        answer = self._answers.pop(key)
+        if isinstance(answer, RenderError):
+            raise answer
+        return answer
+
+    def renderer(self) -> Process:
+        """Returns this process once the child has started (raises its failure to start): as `Background.renderer`."""
+        self._started()
+        return self
+
+    def close(self) -> None:
+        """Ends the child: it sees its requests end and exits by itself once its render in hand is done (nobody waits
+        for it: the caller may be about to exit). A child never asked for anything (the caller failed first) is
+        killed at once: it holds nothing but Mitsuba's import."""
+        with contextlib.suppress(OSError):
+            self._requests.close()
+        if self._ready is None and not self._pending:
+            self._child.kill()
+        with contextlib.suppress(OSError):
+            self._replies.close()
+        threading.Thread(target=self._child.wait, name="matfit-render-reaper", daemon=True).start()
+
+    def __enter__(self) -> Process:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _started(self) -> tuple:
+        while self._ready is None:
+            self._receive()
+        return self._ready
+
+    def _send(self, request: tuple) -> None:
+        try:
+            pickle.dump(request, self._requests, protocol=pickle.HIGHEST_PROTOCOL)
+            self._requests.flush()
+        except (BrokenPipeError, ValueError):  # ended, or closed: the reason is the child's
+            self._failed()
+
+    def _receive(self) -> None:
+        """Reads the child's next reply and files it: its start, a load, or the oldest pending render."""
+        try:
+            kind, *body = pickle.load(self._replies)
+        except (EOFError, OSError, pickle.UnpicklingError, ValueError):
+            self._failed()
+        if kind == "ready":
+            self._ready = tuple(body)
+            return
+        if kind == "failed":  # it could not start: every later request would fail the same way
+            self._ready = self._ready or ("", None)
+            raise RenderError(body[0])
+        key = self._pending.pop(0)
+        answer = RenderError(body[0]) if kind == "error" else body[0]
+        if key[0] == "load":
+            if isinstance(answer, RenderError):
+                raise answer
+            return
+        self._answers[key] = answer
+
+    def _failed(self):
+        code = self._child.poll()
+        raise RenderError(
+            f"the render process ended unexpectedly (exit code {code}): run `matfit render` on a preset to see "
+            "Mitsuba's own message"
+        )
+
+
+def serve_requests(requests: int, replies: int, variant: str | None) -> None:
+    """The child of `Process`: imports Mitsuba, then answers its requests, read from the file descriptor `requests`, on
+    `replies`, until they end."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    with os.fdopen(requests, "rb") as incoming, os.fdopen(replies, "wb") as outgoing:
+
+        def reply(*message) -> None:
+            pickle.dump(message, outgoing, protocol=pickle.HIGHEST_PROTOCOL)
+            outgoing.flush()
+
+        try:
+            chosen, notice = choose_variant(variant)
+            mitsuba(chosen)
+        except Exception as error:  # RenderError, or Mitsuba failing to import
+            reply("failed", str(error) if isinstance(error, RenderError) else f"Mitsuba could not start: {error}")
+            return
+        reply("ready", chosen, notice)
+        renderer = None
+        while True:
+            try:
+                request = pickle.load(incoming)
+            except (EOFError, OSError, pickle.UnpicklingError):  # the caller closed its end, or ended
+                return
+            try:
+                if request[0] == "load":
+                    _, resolution, spp = request
+                    renderer = Renderer(resolution, spp, chosen)
+                    renderer.render(params.DEFAULTS, spp=1)  # warms the kernels, as Background does
+                    reply("done", None)
+                else:
+                    _, values, seed, spp = request
+                    reply("done", renderer.render(values, seed, spp))
+            except RenderError as error:
+                reply("error", str(error))
+            except Exception as error:  # anything else Mitsuba raises: the caller reports it in one line
+                reply("error", f"Mitsuba failed: {type(error).__name__}: {error}")
+
+
 @dataclass
 class Rendered:
     """What `render_file` did: the variant it rendered with, notices (such as the scalar fallback), seconds."""
@@ -283,3 +468,7 @@ def render_without_sphere(resolution: int, spp: int, variant: str | None = None,
     mi = mitsuba(chosen)
     empty = mi.load_dict(to_mitsuba(mi, scene.scene(resolution, spp, sphere=False)))
     return np.array(mi.render(empty, seed=int(seed), spp=int(spp)), dtype=np.float32)
+
+
+if __name__ == "__main__":  # `Process`'s child: python -m matfit.render REQUESTS REPLIES VARIANT
+    serve_requests(int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] or None)

@@ -1,3 +1,9 @@
+import os
+import signal
+import subprocess
+import sys
+import time
+
 import numpy as np
 import pytest
 
@@ -161,3 +167,66 @@ def test_a_renderer_that_fails_in_the_background_raises_for_whoever_waits():
         background.renderer()
     with pytest.raises(RenderError, match="unknown variant 'no_such_variant'"):
         background.render(params.DEFAULTS, seed=1)
+
+
+def test_a_render_process_renders_what_one_in_this_process_does_and_answers_prefetches(renderer):
+    material = params.from_unit(params.sample_index(0, 3))
+    other = params.from_unit(params.sample_index(0, 4))
+    with render.Process() as child:
+        assert child.variant == renderer.variant and child.renderer() is child
+        with pytest.raises(RenderError, match="load"):
+            child.render(material, seed=4)
+        child.load(renderer.resolution, renderer.spp)
+        child.prefetch(material, seed=4)
+        child.prefetch(other, seed=2, spp=8)
+        expected = renderer.render(material, seed=4)
+        np.testing.assert_allclose(child.render(material, seed=4), expected, atol=1e-5)
+        np.testing.assert_allclose(child.render(other, seed=2, spp=8), renderer.render(other, seed=2, spp=8), atol=1e-5)
+        assert not np.allclose(child.render(material, seed=5), expected, atol=1e-3)
+        bad = params.DEFAULTS.copy()
+        bad[0] = np.nan
+        with pytest.raises(RenderError, match="19 finite values"):  # the child's error, raised here
+            child.render(bad)
+        assert child.render(material, seed=4).shape == (renderer.resolution,) * 2 + (3,)  # it goes on
+    assert child._child.wait(timeout=10) == 0  # it ends by itself once its requests do
+
+
+def test_a_render_process_that_cannot_start_raises_its_reason():
+    with render.Process("no_such_variant") as child:
+        child.load(16, 4)
+        with pytest.raises(RenderError, match="unknown variant 'no_such_variant'"):
+            child.render(params.DEFAULTS, seed=1)
+    assert child._child.wait(timeout=10) == 0
+
+
+def running(pid: int) -> bool:
+    """Returns whether a process exists and has not ended (a zombie waiting for its parent has ended)."""
+    try:
+        with open(f"/proc/{pid}/stat") as file:
+            return file.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def test_a_render_process_ends_with_its_caller_even_a_killed_one():
+    script = (
+        "import time\n"
+        "from matfit import render, params\n"
+        "child = render.Process()\n"
+        "child.load(16, 4)\n"
+        "child.render(params.DEFAULTS, seed=1)\n"
+        "print(child._child.pid, flush=True)\n"
+        "time.sleep(60)\n"
+    )
+    caller = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    pid = int(caller.stdout.readline())
+    assert running(pid)
+    caller.send_signal(signal.SIGKILL)
+    caller.wait()
+    caller.stdout.close()
+    deadline = time.monotonic() + 10
+    while running(pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if running(pid):
+        os.kill(pid, signal.SIGKILL)
+        pytest.fail("the render process outlived its killed caller")
