@@ -277,18 +277,19 @@ class Process:
     def __init__(self, variant: str | None = None):
         requests_read, requests_write = os.pipe()
         replies_read, replies_write = os.pipe()
-        with contextlib.suppress(AttributeError, OSError):  # Linux: a pipe holds more than 64 KiB if asked
+        with contextlib.suppress(ImportError, AttributeError, OSError):  # Linux: a pipe holds more than 64 KiB if asked
             import fcntl
 
             fcntl.fcntl(replies_write, fcntl.F_SETPIPE_SZ, self.PIPE_BYTES)
+        # The child imports this very matfit, wherever it lies, whatever the working directory holds.
         package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-        environment = dict(
-            os.environ, PYTHONPATH=os.pathsep.join(filter(None, (package, os.environ.get("PYTHONPATH"))))
+        code = (
+            f"import sys; sys.path.insert(0, {package!r}); from matfit import render; "
+            f"render.serve_requests({requests_read}, {replies_write}, {variant!r})"
         )
-        arguments = [sys.executable, "-m", "matfit.render", str(requests_read), str(replies_write), variant or ""]
         try:
             self._child = subprocess.Popen(
-                arguments, pass_fds=(requests_read, replies_write), start_new_session=True, env=environment
+                [sys.executable, "-c", code], pass_fds=(requests_read, replies_write), start_new_session=True
             )
         finally:
             os.close(requests_read)
@@ -468,7 +469,3 @@ def render_without_sphere(resolution: int, spp: int, variant: str | None = None,
     mi = mitsuba(chosen)
     empty = mi.load_dict(to_mitsuba(mi, scene.scene(resolution, spp, sphere=False)))
     return np.array(mi.render(empty, seed=int(seed), spp=int(spp)), dtype=np.float32)
-
-
-if __name__ == "__main__":  # `Process`'s child: python -m matfit.render REQUESTS REPLIES VARIANT
-    serve_requests(int(sys.argv[1]), int(sys.argv[2]), sys.argv[3] or None)
