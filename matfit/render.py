@@ -266,10 +266,11 @@ class Process:
     interpreter, which both imports hold. Made at once, before the caller's own heavy imports,
     `load(resolution, spp)` then loads the scene, and `prefetch` and `render` behave as
     `Background`'s: requests are answered in order, a prefetched (values, seed, spp) is rendered
-    once, and the images are those of `Renderer.render` in this process, seed for seed. A failure
-    in the child (no usable variant, a bad material) is raised here as its RenderError. The child
-    ignores Ctrl-C (it is in a session of its own) and ends when this side closes its requests
-    (`close`, or this process ending any way, `kill -9` included): it never outlives the caller.
+    once, and the images are those of `Renderer.render` in this process, seed for seed (up to the
+    last bits, as two renders in one process are). A failure in the child (no usable variant, a bad
+    material) is raised here as its RenderError. The child ignores Ctrl-C (it is in a session of its
+    own) and ends when this side closes its requests (`close`, or this process ending any way,
+    `kill -9` included): it never outlives the caller for longer than the render in hand.
     """
 
     PIPE_BYTES = 1 << 20  # room for the replies of every prefetched render, so the child never waits for a read
