@@ -17,7 +17,7 @@ the last one's noise. The last round's point is the answer if it beats the start
 with CONFIRM_SEED (which no round used); otherwise the best end, if its lead over the start holds in
 a render of it with CONFIRM_SEED too, or else the start. The start is rendered with CONFIRM_SEED
 only, unless the rounds start from it (they need its residual): its guard render also decides where
-the rounds start, against the ends' renders with SEED, one render fewer in a cold fit (~0.25 s).
+the rounds start, against the ends' renders with SEED: one render fewer, 0.1 s of a cold fit.
 That choice is made across two seeds; judged at 1024 spp (README, "Fitting", stop 36) the answers
 were the same as with the start's SEED render: 20 reachable targets 1.548 against 1.547, 8 suite
 edits 6.626 against 6.628, six presets 1.863 both, every one no worse than its start. Measured on
