@@ -14,10 +14,11 @@ from __future__ import annotations
 
 import contextlib
 import glob
+import json
 import os
-import pickle
 import re
 import signal
+import struct
 import subprocess
 import sys
 import threading
@@ -315,14 +316,14 @@ class Process:
     def load(self, resolution: int, spp: int) -> None:
         """Has the child load the scene at `resolution` (and warm its kernels) before the first render."""
         self._resolution = resolution
-        self._send(("load", resolution, spp))
+        self._send({"load": [int(resolution), int(spp)]})
         self._pending.append(("load", resolution))
 
     def prefetch(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> None:
         """Asks for a render now, for a later `render` of the same arguments."""
         key = Background._key(values, seed, spp)
         if key not in self._answers and key not in self._pending:
-            self._send(("render", np.asarray(values, np.float64), int(seed), spp))
+            self._send({"seed": int(seed), "spp": spp}, np.asarray(values, np.float64))
             self._pending.append(key)
 
     def render(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> np.ndarray:
@@ -366,27 +367,26 @@ class Process:
             self._receive()
         return self._ready
 
-    def _send(self, request: tuple) -> None:
+    def _send(self, header: dict, array: np.ndarray | None = None) -> None:
         try:
-            pickle.dump(request, self._requests, protocol=pickle.HIGHEST_PROTOCOL)
-            self._requests.flush()
+            write_message(self._requests, header, array)
         except (BrokenPipeError, ValueError):  # ended, or closed: the reason is the child's
             self._failed()
 
     def _receive(self) -> None:
         """Reads the child's next reply and files it: its start, a load, or the oldest pending render."""
         try:
-            kind, *body = pickle.load(self._replies)
-        except (EOFError, OSError, pickle.UnpicklingError, ValueError):
+            header, image = read_message(self._replies)
+        except (EOFError, OSError, ValueError):
             self._failed()
-        if kind == "ready":
-            self._ready = tuple(body)
+        if "ready" in header:
+            self._ready = (header["ready"], header["notice"])
             return
-        if kind == "failed":  # it could not start: every later request would fail the same way
+        if "failed" in header:  # it could not start: every later request would fail the same way
             self._ready = self._ready or ("", None)
-            raise RenderError(body[0])
+            raise RenderError(header["failed"])
         key = self._pending.pop(0)
-        answer = RenderError(body[0]) if kind == "error" else body[0]
+        answer = RenderError(header["error"]) if "error" in header else image
         if key[0] == "load":
             if isinstance(answer, RenderError):
                 raise answer
@@ -406,37 +406,70 @@ def serve_requests(requests: int, replies: int, variant: str | None) -> None:
     `replies`, until they end."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     with os.fdopen(requests, "rb") as incoming, os.fdopen(replies, "wb") as outgoing:
-
-        def reply(*message) -> None:
-            pickle.dump(message, outgoing, protocol=pickle.HIGHEST_PROTOCOL)
-            outgoing.flush()
-
         try:
             chosen, notice = choose_variant(variant)
             mitsuba(chosen)
         except Exception as error:  # RenderError, or Mitsuba failing to import
-            reply("failed", str(error) if isinstance(error, RenderError) else f"Mitsuba could not start: {error}")
+            failure = str(error) if isinstance(error, RenderError) else f"Mitsuba could not start: {error}"
+            write_message(outgoing, {"failed": failure})
             return
-        reply("ready", chosen, notice)
+        write_message(outgoing, {"ready": chosen, "notice": notice})
         renderer = None
         while True:
             try:
-                request = pickle.load(incoming)
-            except (EOFError, OSError, pickle.UnpicklingError):  # the caller closed its end, or ended
+                request, values = read_message(incoming)
+            except (EOFError, OSError, ValueError):  # the caller closed its end, or ended
                 return
             try:
-                if request[0] == "load":
-                    _, resolution, spp = request
-                    renderer = Renderer(resolution, spp, chosen)
+                if "load" in request:
+                    renderer = Renderer(*request["load"], chosen)
                     renderer.render(params.DEFAULTS, spp=1)  # warms the kernels, as Background does
-                    reply("done", None)
+                    write_message(outgoing, {"done": True})
                 else:
-                    _, values, seed, spp = request
-                    reply("done", renderer.render(values, seed, spp))
+                    image = renderer.render(values, request["seed"], request["spp"])
+                    write_message(outgoing, {"done": True}, image)
             except RenderError as error:
-                reply("error", str(error))
+                write_message(outgoing, {"error": str(error)})
             except Exception as error:  # anything else Mitsuba raises: the caller reports it in one line
-                reply("error", f"Mitsuba failed: {type(error).__name__}: {error}")
+                write_message(outgoing, {"error": f"Mitsuba failed: {type(error).__name__}: {error}"})
+
+
+FRAME = struct.Struct("<II")  # a message's header length, then its array's length (0: none)
+
+
+def write_message(file, header: dict, array: np.ndarray | None = None) -> None:
+    """Writes one message of `Process`'s pipes: a JSON header and, if given, a float array (its dtype and shape
+    named in the header). Data only: reading a message runs no code."""
+    data = b""
+    if array is not None:
+        array = np.ascontiguousarray(array)
+        header = {**header, "dtype": array.dtype.str, "shape": list(array.shape)}
+        data = array.tobytes()
+    text = json.dumps(header).encode()
+    file.write(FRAME.pack(len(text), len(data)) + text + data)
+    file.flush()
+
+
+def read_message(file) -> tuple[dict, np.ndarray | None]:
+    """Returns (header, array or None) of the next message `write_message` wrote; EOFError when the pipe ended."""
+
+    def exactly(size: int) -> bytes:
+        data = file.read(size)
+        if len(data) != size:
+            raise EOFError("the pipe ended inside a message")
+        return data
+
+    sizes = file.read(FRAME.size)
+    if not sizes:
+        raise EOFError("the pipe ended")
+    if len(sizes) != FRAME.size:
+        raise EOFError("the pipe ended inside a message")
+    text_size, data_size = FRAME.unpack(sizes)
+    header = json.loads(exactly(text_size))
+    if not data_size:
+        return header, None
+    array = np.frombuffer(bytearray(exactly(data_size)), dtype=np.dtype(header["dtype"])).reshape(header["shape"])
+    return header, array
 
 
 @dataclass

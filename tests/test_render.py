@@ -1,3 +1,4 @@
+import io
 import os
 import signal
 import subprocess
@@ -230,3 +231,22 @@ def test_a_render_process_ends_with_its_caller_even_a_killed_one():
     if running(pid):
         os.kill(pid, signal.SIGKILL)
         pytest.fail("the render process outlived its killed caller")
+
+
+def test_render_process_messages_round_trip_and_a_cut_one_is_the_pipes_end():
+    image = np.arange(2 * 3 * 3, dtype=np.float32).reshape(2, 3, 3)
+    pipe = io.BytesIO()
+    render.write_message(pipe, {"done": True}, image)
+    render.write_message(pipe, {"error": "a material is 19 finite values"})
+    whole = pipe.getvalue()
+    pipe.seek(0)
+    header, array = render.read_message(pipe)
+    assert header["done"] is True and array.dtype == np.float32
+    np.testing.assert_array_equal(array, image)
+    array[0, 0, 0] = -1  # the caller's own copy
+    assert render.read_message(pipe) == ({"error": "a material is 19 finite values"}, None)
+    with pytest.raises(EOFError, match="ended"):
+        render.read_message(pipe)
+    for cut in (3, 12, len(whole) // 2):
+        with pytest.raises(EOFError, match="inside a message"):
+            render.read_message(io.BytesIO(whole[:cut]))
