@@ -302,6 +302,7 @@ class Process:
         self._pending: list[tuple] = []  # keys of the renders asked for and not yet read, in order
         self._answers: dict[tuple, object] = {}  # key -> image, or the RenderError of its render
         self._resolution: int | None = None
+        self._failure: RenderError | None = None  # the child's reason for not starting, raised again at every use
 
     @property
     def variant(self) -> str:
@@ -350,7 +351,7 @@ class Process:
         killed at once: it holds nothing but Mitsuba's import."""
         with contextlib.suppress(OSError):
             self._requests.close()
-        if self._ready is None and not self._pending:
+        if self._ready is None and not self._pending and self._failure is None:
             self._child.kill()
         with contextlib.suppress(OSError):
             self._replies.close()
@@ -375,6 +376,8 @@ class Process:
 
     def _receive(self) -> None:
         """Reads the child's next reply and files it: its start, a load, or the oldest pending render."""
+        if self._failure is not None:
+            raise self._failure
         try:
             header, image = read_message(self._replies)
         except (EOFError, OSError, ValueError):
@@ -382,9 +385,9 @@ class Process:
         if "ready" in header:
             self._ready = (header["ready"], header["notice"])
             return
-        if "failed" in header:  # it could not start: every later request would fail the same way
-            self._ready = self._ready or ("", None)
-            raise RenderError(header["failed"])
+        if "failed" in header:  # it could not start, and has ended: every later use fails the same way
+            self._failure = RenderError(header["failed"])
+            raise self._failure
         key = self._pending.pop(0)
         answer = RenderError(header["error"]) if "error" in header else image
         if key[0] == "load":

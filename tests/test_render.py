@@ -195,8 +195,11 @@ def test_a_render_process_renders_what_one_in_this_process_does_and_answers_pref
 def test_a_render_process_that_cannot_start_raises_its_reason():
     with render.Process("no_such_variant") as child:
         child.load(16, 4)
+        for _ in range(2):  # the reason, every time it is asked, not a pipe's end
+            with pytest.raises(RenderError, match="unknown variant 'no_such_variant'"):
+                child.render(params.DEFAULTS, seed=1)
         with pytest.raises(RenderError, match="unknown variant 'no_such_variant'"):
-            child.render(params.DEFAULTS, seed=1)
+            child.renderer()
     assert child._child.wait(timeout=10) == 0
 
 
