@@ -144,7 +144,8 @@ def verify(
         name = "start"
         renders[name] = rendered(name, SEED)
         figures[name] = figure(renders[name])
-    fits = dict(figures)  # the fit's candidates rendered with SEED
+    # The fit's candidates as verification's rule compares them: the start by its SEED render if the rounds needed one.
+    fits = {"start": figures.get("start", confirmation["start"]), **{n: f for n, f in figures.items() if n != "start"}}
     unit, image = pool[name], renders[name]
     decoded = result.decoded(unit)
     decoded = model.decode(unit)[0] if decoded is None else decoded
@@ -158,13 +159,12 @@ def verify(
     second = confirm((name,))
     if confirmation[name] < confirmation["start"]:
         return answer(name, second[name], confirmation[name], confirmation["start"])
-    # The rounds lost: the best end if its lead over the start holds in a render of it with CONFIRM_SEED.
-    best = min((end for end in fits if end != "start"), key=fits.get, default="start")
-    if best != "start" and fits[best] < fits.get("start", confirmation["start"]):
-        second = confirm((best,))
-        if confirmation[best] < confirmation["start"]:
-            return answer(best, second[best], confirmation[best], confirmation["start"])
-    return answer("start", start_image, confirmation["start"], confirmation["start"])
+    # The rounds lost: verification's rule, every figure of `answer` from CONFIRM_SEED's renders.
+    best = min(fits, key=fits.get)  # the start comes first, so a tie keeps the start
+    second = confirm((best,)) if best != "start" else {}
+    chosen = keep(fits, confirmation)
+    image = start_image if chosen == "start" else second[chosen]
+    return answer(chosen, image, confirmation[chosen], confirmation["start"])
 
 
 def prefetch_start(renderer, start: np.ndarray, corrections: int = 0, spp: int = SPP) -> None:
