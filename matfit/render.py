@@ -408,6 +408,14 @@ def serve_requests(requests: int, replies: int, variant: str | None) -> None:
     """The child of `Process`: imports Mitsuba, then answers its requests, read from the file descriptor `requests`, on
     `replies`, until they end."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        answer_requests(requests, replies, variant)
+    except BrokenPipeError:  # the caller ended (Ctrl-C, kill -9) while this answered: nobody is left to tell
+        os._exit(0)  # not sys.exit: the interpreter's own final flush would hit the same closed pipe
+
+
+def answer_requests(requests: int, replies: int, variant: str | None) -> None:
+    """`serve_requests`'s loop: starts Mitsuba, then answers each request on `replies` until `requests` ends."""
     with os.fdopen(requests, "rb") as incoming, os.fdopen(replies, "wb") as outgoing:
         try:
             chosen, notice = choose_variant(variant)

@@ -253,3 +253,22 @@ def test_render_process_messages_round_trip_and_a_cut_one_is_the_pipes_end():
     for cut in (3, 12, len(whole) // 2):
         with pytest.raises(EOFError, match="inside a message"):
             render.read_message(io.BytesIO(whole[:cut]))
+
+
+def test_a_render_process_whose_caller_left_ends_without_a_word():
+    # The caller's end of the replies is closed before the child's first message (Ctrl-C or kill -9 while it starts).
+    requests_read, requests_write = os.pipe()
+    replies_read, replies_write = os.pipe()
+    code = f"from matfit import render; render.serve_requests({requests_read}, {replies_write}, 'scalar_rgb')"
+    child = subprocess.Popen(
+        [sys.executable, "-c", code], pass_fds=(requests_read, replies_write), stderr=subprocess.PIPE, text=True
+    )
+    os.close(requests_read)
+    os.close(replies_write)
+    os.close(replies_read)
+    try:
+        assert child.wait(timeout=60) == 0
+        assert child.stderr.read() == ""
+    finally:
+        os.close(requests_write)
+        child.stderr.close()
