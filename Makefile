@@ -70,7 +70,7 @@ presets: $(BIN)/matfit
 # 20 epochs, then 5 more at a fifth of the rate learning the encoding of the mean render (`--loss linear`: milk
 # 4.84 -> 3.03) with the tinted supplement too (amber 4.64 -> 3.71 with the layer). Every step resumes where it
 # stopped; see README for the time it takes.
-MODEL ?= data/models/default
+MODEL ?= matfit/data/model
 DECODER_DATA = --dataset datasets/train --dataset datasets/dense-media --dataset datasets/glass
 model: $(BIN)/matfit
 	@mkdir -p datasets
@@ -85,7 +85,7 @@ model: $(BIN)/matfit
 	$(BIN)/matfit evaluate --model $(MODEL) --references datasets/reference --card
 
 examples: $(BIN)/matfit
-	$(BIN)/python -m matfit.examples data/examples
+	$(BIN)/python -m matfit.examples matfit/data/examples
 
 clean:
 	rm -rf $(VENV) $(BLENDER_VENV) *.egg-info .pytest_cache .ruff_cache

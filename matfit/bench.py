@@ -803,10 +803,9 @@ def serve_speed(
     import threading
     import urllib.request
 
-    from matfit import serve
+    from matfit import serve, shipped
 
-    folder = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "data", "examples")
-    examples = [os.path.join(folder, f"{name}.png") for name in ("recoloured", "desaturated", "painted-highlight")]
+    examples = [str(shipped.EXAMPLES / f"{name}.png") for name in ("recoloured", "desaturated", "painted-highlight")]
     contents = []
     for path in examples:
         with open(path, "rb") as file:

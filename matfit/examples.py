@@ -1,11 +1,11 @@
-"""The example edits shipped in data/examples: a preset rendered, then changed as in a 2D editor.
+"""The example edits shipped in matfit/data/examples: a preset rendered, then changed as in a 2D editor.
 
 - recoloured.png: red plastic with its hue turned by 120 degrees (green plastic);
 - desaturated.png: copper with 85% of its saturation taken out (a grey metal);
 - painted-highlight.png: red plastic with a sharp white highlight painted on (a local edit that
   asks for a glossier coat).
 
-Run `make examples` (python -m matfit.examples data/examples) to make them again.
+Run `make examples` (python -m matfit.examples matfit/data/examples) to make them again.
 """
 
 from __future__ import annotations
@@ -42,5 +42,5 @@ def make(directory: str, size: int = SIZE, spp: int = SPP) -> list[str]:
 
 
 if __name__ == "__main__":
-    for written_path in make(sys.argv[1] if len(sys.argv) > 1 else "data/examples"):
+    for written_path in make(sys.argv[1] if len(sys.argv) > 1 else "matfit/data/examples"):
         print(f"wrote {written_path}")

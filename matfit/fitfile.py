@@ -20,7 +20,6 @@ from matfit.errors import FitError, ImageError, OutputError
 from matfit.methods import CORRECTIONS
 
 PROJECT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-DEFAULT_MODEL = os.path.join(PROJECT, "data", "models", "default")  # shipped in the repository
 MAX_RENDER_SIZE = 4096
 
 

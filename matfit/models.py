@@ -705,7 +705,8 @@ def load_model(directory: str) -> Model:
     """Returns the decoder and every encoder found in a model directory (at least one encoder)."""
     if not os.path.isdir(directory):
         raise WeightsError(
-            f"model directory {directory} does not exist: train one with `matfit train` or use data/models/default"
+            f"model directory {directory} does not exist: train one with `matfit train`, "
+            "or leave out --model to use the shipped one"
         )
     decoder = load(weights_path(directory, DECODER), name=DECODER)
     encoders = {}

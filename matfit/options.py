@@ -10,11 +10,11 @@ from typing import Annotated, Literal
 
 import typer
 
-from matfit import dataset, params
+from matfit import dataset, params, shipped
 from matfit.methods import CORRECTIONS, MAX_EVALUATIONS, MIN_EVALUATIONS, Box, Method
 from matfit.render import VARIANTS
 
-DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "data" / "models" / "default"  # shipped in the repository
+DEFAULT_MODEL = shipped.MODEL
 MAX_SIZE = 4096
 
 

@@ -36,11 +36,10 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from importlib import resources
 
 import numpy as np
 
-from matfit import export, files, fit, fitfile, images, interrupt, models, params, presets, verify
+from matfit import export, files, fit, fitfile, images, interrupt, models, params, presets, shipped, verify
 from matfit.errors import ImageError, MatfitError, OutputError, ParameterError
 
 MAX_UPLOAD_BYTES = 50 * 1024 * 1024  # an upload larger than this is refused before it is read
@@ -365,7 +364,6 @@ def create_app(studio: Studio, watch: str | None = None):
     from starlette.responses import FileResponse, JSONResponse, Response, StreamingResponse
     from starlette.routing import Route
 
-    static = resources.files("matfit") / "static"
     events: list[asyncio.Queue] = []
 
     def error(message: str, status: int = 400) -> JSONResponse:
@@ -375,7 +373,7 @@ def create_app(studio: Studio, watch: str | None = None):
         name = request.path_params.get("name", "index.html")
         if name not in ("index.html", "app.js", "style.css"):
             return error(f"no page {name!r}: open /", 404)
-        return FileResponse(str(static / name))
+        return FileResponse(str(shipped.STATIC / name))
 
     async def parameters(request: Request) -> Response:
         return JSONResponse(

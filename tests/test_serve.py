@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 from helpers import random_model
 
-from matfit import fit, images, params, presets, serve
+from matfit import fit, images, params, presets, serve, shipped
 
-EXAMPLE = os.path.join(os.path.dirname(__file__), "..", "data", "examples", "recoloured.png")
-OTHER = os.path.join(os.path.dirname(__file__), "..", "data", "examples", "desaturated.png")
+EXAMPLE = str(shipped.EXAMPLES / "recoloured.png")
+OTHER = str(shipped.EXAMPLES / "desaturated.png")
 CHROMIUM = "/usr/bin/chromium"
 
 

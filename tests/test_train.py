@@ -456,7 +456,7 @@ def test_make_model_trains_what_ships():
             "params_sha256": hashlib.sha256(values.tobytes()).hexdigest(),
         }
     trains = [options_of(words) for words in commands if words[0] == "train"]
-    shipped = ROOT / "data" / "models" / "default"
+    shipped = ROOT / "matfit" / "data" / "model"
     for network, found in (("decoder", trains[1]), ("encoder-1", trains[2])):
         metrics = json.loads((shipped / f"{network}.json").read_text())
         identities = metrics["dataset"] if isinstance(metrics["dataset"], list) else [metrics["dataset"]]
