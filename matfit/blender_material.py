@@ -33,7 +33,7 @@ Where Blender's Principled BSDF differs by design (no mapping can fix it):
   metals get white; a partly metallic material gets a mixture;
 - anisotropic highlights follow the tangent: Blender's default runs around the object's local Z
   axis, matfit's sphere's around the axis pointing at the camera.
-How close it comes: `matfit blender-check` renders both (see matfit's README).
+How close it comes: `matfit blender-check` renders both (docs/blender.md#the-check).
 """
 
 import bpy

@@ -15,8 +15,8 @@ Why the images travel through Ray's object store rather than being written by th
 shared storage: the driver is the dataset's only writer, so the done flags need no locking, the
 dataset can live on the driver's local disk (no shared file system on the cluster), and two
 workers never write the same memory page of done.npy, which on NFS would lose flags. The cost is
-the transfer into the driver, measured by `python -m matfit.cluster` (README): far below what one
-driver can absorb until a cluster has thousands of cores.
+the transfer into the driver, measured by `python -m matfit.cluster` (docs/training.md#ray): far below what one
+driver can absorb until a cluster has hundreds of cores.
 """
 
 from __future__ import annotations

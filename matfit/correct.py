@@ -11,9 +11,8 @@ round costs one render and a short gradient fit, and a fixed point x* has R(x*) 
 the decoder's derivatives can tell. Verification runs the rounds and keeps the last one's point
 only if Mitsuba prefers it to the start (`verify.py`).
 
-Measured (the 20 reachable random targets of `matfit bench-fit`, judged by independent 1024-spp
-renders; the judge's own noise floor 1.478 RMSE): verification alone 1.718, one round 1.600, two
-1.589, three 1.576 (README, "Fitting").
+Each round takes the answer closer to the target than verification alone, judged by independent
+renders (`matfit bench-fit`); why two is the default: docs/fitting.md#correction.
 """
 
 from __future__ import annotations
@@ -22,9 +21,8 @@ import numpy as np
 
 from matfit import fit, gradient, models
 
-# Gradient steps of a round's fit (it starts next to the answer of the corrected target). Two rounds judged at 1024 spp
-# (README, "Fitting"): on bench-fit's 20 targets 1.583 with 30 steps, 1.572 with 15; on 20 others 1.691 and 1.687
-# (10 steps: 1.698). 15 costs half as much.
+# Gradient steps of a round's fit (it starts next to the answer of the corrected target): the fewest whose rounds judge
+# as well as twice as many, at half the cost (docs/fitting.md#correction; the measurement: docs/decisions.md).
 ITERATIONS = 15
 
 

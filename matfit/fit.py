@@ -47,14 +47,14 @@ __all__ = ["Box", "FitError", "Method", "Result", "Settings", "fit", "objective"
 
 PENALTY = 100.0
 BARRIER = 1e4
-# What one value-and-gradient of the objective costs, in objective evaluations (forward passes): measured on the
-# shipped (glass-basis) decoder on this CPU, median of 5 x 50 calls: 2.54 at batch 1 (3.30 / 1.30 ms), 2.45 at
-# batch 4 (11.98 / 4.89 ms), the gradient stage's two batch sizes (it was 1.8 with the decoder before the glass basis).
+# What one value-and-gradient of the objective costs, in objective evaluations (forward passes), so that budgets in
+# evaluations are comparable across methods: the ratio of the two calls' times on the shipped decoder at the gradient
+# stage's batch sizes; remeasure it when the decoder changes (docs/fitting.md#the-gradient-stage).
 GRADIENT_COST = 2.5
 ASPECT_TOLERANCE = 0.01
 # The grid of `media_candidates`: white dielectric spheres filled with a grey medium. The encoders, trained on
-# uniform draws where a dense white medium is rare, guess milk as an opaque white material and the fit stayed
-# there (README, "Fitting": milk's round trip 8.17 before the grid).
+# uniform draws where a dense white medium is rare, guess milk as an opaque white material and the fit stays
+# there (docs/fitting.md#best-of-n).
 MEDIA_GRID = {
     "density": (0.5, 1.0, 2.0, 4.0),
     "medium_color": (0.05, 0.2, 0.5),
@@ -102,7 +102,7 @@ def objective(x: jax.Array, args: tuple) -> jax.Array:
 
 def polish(decoder, variables, target, weights, x: jax.Array, steps: int, rate: float) -> jax.Array:
     """Returns the best point of `steps` projected Adam steps on E from x (x itself if none is better)."""
-    import optax  # only for the opt-in polish: 0.1 s of every cold start
+    import optax  # only for the opt-in polish: every cold start would pay for its import
 
     tx = optax.adam(rate)
     loss = jax.value_and_grad(lambda y: images.rmse(decoder.apply(variables, y), target, weights))
@@ -155,7 +155,7 @@ def _fit(
     ends = candidates[chosen][None]
     evaluations = jnp.array(0, jnp.float32)
     if settings.method.uses_simplex:
-        from matfit import simplex  # optimistix and equinox: imported only for Nelder-Mead (0.2 s of a cold start)
+        from matfit import simplex  # optimistix and equinox: imported only for Nelder-Mead (a cold start's time)
 
         y0 = start if settings.method == Method.optimize else candidates[chosen]
         solver = simplex.NelderMead(adaptive=settings.adaptive, initial_step=settings.initial_step)

@@ -21,18 +21,18 @@ trial point the previous step chose:
 
 Why not jaxopt's `LBFGSB`: its zoom line search evaluates a varying number of times per
 iteration inside `lax.while_loop`s; under `vmap` every start waits for the slowest, the budget is
-not known in advance, and compiling it took about a minute on this CPU.
+not known in advance, and compiling it is slow.
 
 Why the loop runs on the host (a Python loop over the compiled `step`) and not in `lax.fori_loop`:
-on XLA's CPU backend the decoder's backward pass inside a loop body ran 18 times slower than the
-same compiled call outside one (25 steps at 4 starts: 1.92 s inside `fori_loop`, unrolled or
-not, against 0.107 s as 25 calls; the forward pass alone is not affected, which is why the
-Nelder-Mead loop stays compiled). A call costs tens of microseconds of dispatch, a step 4 ms.
+on XLA's CPU backend the decoder's backward pass inside a loop body runs many times slower than
+the same compiled call outside one (unrolled or not; the forward pass alone is not affected, which
+is why the Nelder-Mead loop stays compiled), and a call costs far less dispatch than a step
+computes. See docs/fitting.md#the-gradient-stage.
 
 The starts are split among `workers` threads (WORKERS, at most one per processor), each running
 the loop over its share as a smaller batch: XLA's CPU backend runs the decoder's small
-convolutions on one thread, so one batch of 4 left the second core idle. Measured on the shipped
-decoder (2 cores): 35 steps of 4 starts 0.41 s as one batch, 0.30 s as two threads of 2. Each
+convolutions on one thread, so one batch of 4 leaves the second core idle
+(docs/fitting.md#the-gradient-stage). Each
 start's path is its own (the batch only shares the calls), so the split changes nothing but the
 rounding of the batched convolutions.
 
@@ -250,10 +250,10 @@ def minimise(
     At most `steps` steps (the first evaluates the starts); with `narrow_after`, every start takes
     that many steps, then only the best one so far goes on, alone, to `steps` (the others end
     where they are). The best start's later steps lower the decoded RMSE most; the others' ends,
-    less refined, stay candidates for Mitsuba's verification. Measured on the shipped decoder (20
-    reachable targets, README "Fitting"): 4 starts x 35 steps then the best alone to 60 reach a
-    lower decoded RMSE than 4 x 50 (2.126 against 2.128) and as good a verified answer, in 0.78 of
-    its time. The loop ends early once every start still moving has converged (checked every
+    less refined, stay candidates for Mitsuba's verification: a short shared budget then the best
+    alone reaches a lower decoded RMSE than every start running as long, and as good a verified
+    answer, in less time (docs/fitting.md#the-gradient-stage). The loop ends early once every start
+    still moving has converged (checked every
     CHECK_EVERY steps). `fn` must be the same object from call to call, or an equal one (it is a
     static argument of the compiled step). Host work in between is NumPy, not JAX (see `init`).
     `workers`: threads sharing the starts (None: WORKERS, at most one per processor).

@@ -85,8 +85,8 @@ def leave(code: int) -> None:
     """Ends a finished command's process with `code`, skipping the interpreter's teardown.
 
     Every output is complete by then (written, fsynced and renamed by `files`), and the teardown is
-    what is left: measured 0.4 s after `matfit fit` (JAX's and Dr.Jit's shutdown), a tenth of the
-    command's whole time. Child processes are stopped by the work that started them.
+    what is left: JAX's and Dr.Jit's shutdown, a noticeable share of a short command's time. Child
+    processes are stopped by the work that started them.
     """
     release_semaphores()
     with contextlib.suppress(Exception):

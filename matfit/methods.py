@@ -13,7 +13,7 @@ from enum import StrEnum
 from matfit import params
 from matfit.errors import FitError
 
-CORRECTIONS = 2  # rounds of correction (`correct.py`) a verified fit runs by default: README "Fitting" has the figures
+CORRECTIONS = 2  # rounds of correction (`correct.py`) a verified fit runs by default: docs/fitting.md#correction
 
 
 class Method(StrEnum):
@@ -54,7 +54,7 @@ MAX_ITERATIONS = 100_000
 class Settings:
     """How to fit: method, budget in objective evaluations, box handling, gradient polish steps."""
 
-    method: Method = Method.lbfgsb  # measured against hybrid 1500: README, "Fitting"
+    method: Method = Method.lbfgsb  # judged against the paper's hybrid 1500: docs/fitting.md#measured
     evaluations: int = 1500
     box: Box = Box.clip
     adaptive: bool = True
@@ -63,7 +63,7 @@ class Settings:
     polish_rate: float = 3e-3
     starts: int = 4  # L-BFGS-B starts: the best candidates of best-of-n (and Nelder-Mead's result)
     iterations: int = 60  # L-BFGS-B steps of the best start, one value-and-gradient each (`gradient.py`)
-    narrow_after: int = 35  # L-BFGS-B steps of every start; then the best goes on alone (README, "Fitting")
+    narrow_after: int = 35  # every start's L-BFGS-B steps; then the best alone (docs/fitting.md#the-gradient-stage)
 
     def __post_init__(self):
         try:  # accept the plain strings too ("hybrid"), as the library's callers write them

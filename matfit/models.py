@@ -234,8 +234,8 @@ class Decoder(nn.Module):
     scattering), then added in linear light to the direct layer (reflection, diffuse, scattering):
     image = sRGB(direct + transmittance x glass(specular, roughness)).
 
-    With `medium_grid` (T, A) (an option, not the shipped decoder's: README, "Scattered light from a
-    medium basis"), it also draws the light a medium scatters: a basis of Mitsuba renders
+    With `medium_grid` (T, A) (an option, not the shipped decoder's: docs/decisions.md, "A scattering
+    basis"), it also draws the light a medium scatters: a basis of Mitsuba renders
     of grey media on a grid of optical thickness x albedo, less their absorbing-only renders
     (`scene.medium_basis_materials`; a constant, set with `with_bases`), read per colour channel at
     that channel's thickness (`medium_weights`), weighted by the transmitted share (1 - metallic) x
@@ -250,7 +250,8 @@ class Decoder(nn.Module):
     exp(-E tau): Beer-Lambert couples the three colours through the medium's own extinction (a
     saturated amber keeps red and loses blue along the same path), and the transmittance stays
     bounded whatever E. E starts at `path_start` (0: a zero kernel and bias), so the layer can be grown
-    on a trained decoder (`train.GROWABLE`) without changing what it draws (README: measured, not shipped).
+    on a trained decoder (`train.GROWABLE`) without changing what it draws (grown so it stays near 0:
+    docs/decisions.md#the-decoder-and-its-training-data).
     """
 
     resolution: int = 64
@@ -336,7 +337,7 @@ class Decoder(nn.Module):
         basis = self.variable("constants", "medium", jnp.zeros, shape).value
         table = basis.reshape(thickness_count * albedo_count, self.resolution * self.resolution, 3)
         weights = medium_weights(inputs, self.medium_grid)
-        # One (N, T A) x (T A, R R) product per colour: at batch 1, 0.4 ms faster than one einsum over all three.
+        # One (N, T A) x (T A, R R) product per colour: faster at batch 1 than one einsum over all three.
         light = jnp.stack([weights[:, k, :] @ table[:, :, k] for k in range(3)], axis=-1)
         share = (1.0 - inputs[:, params.INDEX["metallic"]]) * inputs[:, params.INDEX["spec_trans"]]
         # Starts at 1 (1.5 sigmoid(ln 2)): the basis is right for clear glass of the default specular.
@@ -477,7 +478,7 @@ def encoder_input(linear: np.ndarray) -> np.ndarray:
 
 
 # The coarse absorption layer's path length at initialisation when trained from scratch, in radii:
-# Beer-Lambert from the first step (grown on a trained decoder the layer starts at 0: README).
+# Beer-Lambert from the first step (grown on a trained decoder the layer starts at 0: docs/decisions.md).
 COARSE_PATH_START = 1.0
 
 
@@ -616,7 +617,7 @@ def restore_variables(
             f"{path} describes an architecture this matfit cannot build ({error}): train again"
         ) from None
     # The shapes its architecture builds, traced once per architecture and matfit (`programs.remembered`): tracing
-    # the ten shipped networks' initialisation took 0.37 s of every cold start.
+    # the ten networks' initialisation would cost every cold start (docs/fitting.md#measured).
     shapes = programs.remembered(
         "shapes",
         description,
@@ -631,8 +632,8 @@ def restore_variables(
         raise WeightsError(f"{path} does not hold the weights of its architecture ({error}): train again") from None
     if stored_shapes != shapes:
         raise WeightsError(f"{path} holds weights of other shapes than its architecture: train again")
-    # One transfer of the whole tree: converting leaf by leaf with jnp.asarray took 0.8 s for the ten shipped networks,
-    # one device_put of float32 NumPy arrays 0.2 s.
+    # One transfer of the whole tree: one device_put of float32 NumPy arrays is several times faster than converting
+    # leaf by leaf with jnp.asarray.
     return module, jax.device_put(jax.tree_util.tree_map(lambda leaf: np.asarray(leaf, dtype), stored))
 
 
@@ -719,7 +720,7 @@ def load_model(directory: str) -> Model:
             f"{directory} has a decoder but no encoders: train them with `matfit train --arch 1..9 --out {directory}`"
         )
     # The encoders' weights (float16 as stored, 90% of the model's) become float32 on the device, all in one compiled
-    # program: 0.16 s in NumPy on loading; left float16, every fit's best-of-n converted them again (+40 ms a fit).
+    # program, faster than NumPy's conversion; left float16, every fit's best-of-n would convert them again.
     converted = encoders_float32(tuple(network.variables for network in encoders.values()))
     encoders = {
         arch: dataclasses.replace(network, variables=variables)

@@ -222,7 +222,7 @@ def sample_dense_media_unit(rng: np.random.Generator) -> np.ndarray:
     that 40% of the albedos lie in [0.99, 1]. Milk- and jade-like materials (dense, nearly
     lossless scattering: a white medium turns grey steeply as the albedo falls below 1) are a
     fraction of a percent of `sample_unit`'s draws; a supplement drawn from here teaches the
-    decoder that corner (README, the networks).
+    decoder that corner (docs/training.md#datasets).
     """
     out = sample_unit(rng)
     u = rng.random(3)
@@ -240,7 +240,7 @@ def sample_glass_unit(rng: np.random.Generator) -> np.ndarray:
     transmissive preset has base colour (1, 1, 1)), but `sample_unit` draws the three channels
     independently, so all three lie above 0.9 once in a thousand draws, and the decoder's error
     on glass, frosted glass, amber, jade and milk grew steadily as their base colour went from
-    grey 0.5 to white (README, the networks). Here: the other parameters as `sample_unit` draws
+    grey 0.5 to white (docs/training.md#datasets). Here: the other parameters as `sample_unit` draws
     them, then a dielectric (metallic in its bottom 5%, spec_trans in its top 5%) whose base
     colour is grey v (in the top 5% half of the time, else sqrt(u): mostly bright), exactly grey
     half of the time, else with each channel up to 0.05 below v, and half of the time the dense medium of
@@ -268,7 +268,7 @@ def sample_tinted_glass_unit(rng: np.random.Generator) -> np.ndarray:
     channel of the absorption colour uniform over its range, independently (saturated tints such
     as amber's (0.85, 0.45, 0.08) as often as pale ones). `sample_glass_unit` draws such media for
     a fraction of its half of media as drawn; amber glass stayed the decoder's worst preset after it
-    (README, the networks).
+    (docs/training.md#datasets).
     """
     out = sample_glass_unit(rng)
     u = rng.random(5)

@@ -68,7 +68,7 @@ class Refined:
     accepted: bool
     steps: int
     seconds: float  # in all: steps and acceptance renders
-    descent_seconds: float  # the steps alone (the first one of a process compiles: ~1.5 s more)
+    descent_seconds: float  # the steps alone (the first one of a process also compiles)
     losses: list[float] = field(default_factory=list)  # each step's loss (its own seed, SPP samples)
 
     @property

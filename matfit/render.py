@@ -198,7 +198,7 @@ class Renderer:
         p[keys.sigma_t] = mi.Color3f(*(float(x) for x in sigma_t))
         p[keys.albedo] = mi.Color3f(*(float(x) for x in albedo))
         # The phase function does not make its `g` opaque itself: as a literal, every new value
-        # would compile a new kernel (~0.5 s).
+        # would compile a new kernel.
         p[keys.phase_g] = self.drjit.opaque(mi.Float, float(v[index["phase_g"]]))
         p.update()
 
@@ -217,7 +217,7 @@ class Background:
     """A `Renderer` loaded, and renders made, on one background thread while the caller computes.
 
     Importing Mitsuba, loading the scene, the first `update()` of its parameters and the first
-    render's kernels take ~0.4 s that a fit need not wait for (XLA releases the interpreter), and a
+    render's kernels take time that a fit need not wait for (XLA releases the interpreter), and a
     render asked for early (`prefetch`, such as the fit's start as soon as best-of-n has chosen it)
     runs during the fit's next stage. One thread does it all, so the scene is never used by two
     renders at once; `render` waits for it before rendering itself, and answers a prefetched
@@ -263,7 +263,7 @@ class Process:
     """A `Renderer` in a child process, which imports Mitsuba as soon as it is made, beside whatever the caller loads.
 
     A cold `matfit fit` spends its first second importing JAX on one core; Mitsuba's import and the
-    choice of its variant (~0.4 s) then take the other, where on a thread they would wait for the
+    choice of its variant then take the other, where on a thread they would wait for the
     interpreter, which both imports hold. Made at once, before the caller's own heavy imports,
     `load(resolution, spp)` then loads the scene, and `prefetch` and `render` behave as
     `Background`'s: requests are answered in order, a prefetched (values, seed, spp) is rendered

@@ -3,7 +3,7 @@
 One `Studio` owns the loaded model and a Mitsuba renderer; one worker thread runs every fit and
 every Mitsuba render in turn (JAX and Dr.Jit stay on one thread, fits queue on the one model), so
 every fit after the first is a warm fit. Each request gets its own job id and its own result. The
-neural preview (the decoder alone, ~2 ms) runs beside the queue, on the request's thread.
+neural preview (the decoder alone, far cheaper than a fit) runs beside the queue, on the request's thread.
 
 The page (`matfit/static/`, plain HTML/JS, nothing fetched from the internet) talks to a small
 JSON API (Starlette, served by uvicorn):

@@ -17,7 +17,7 @@ directory, in the Flax examples' steps: `create_run` (module, data split, optimi
 - at the end the weights are rounded to float16 (what ships), validated, and written to
   `<out>/<name>.msgpack` with their metrics, plus a readable `<out>/<name>.json`;
 - `Config.start_from` names a model directory whose weights of the same network start the run
-  instead of fresh ones (more epochs at a lower rate: README, "Starting from trained weights"); its file's
+  instead of fresh ones (more epochs at a lower rate: docs/training.md#training); its file's
   hash is part of the run, so a resume from a changed file is refused. The run's decoder may have a
   `GROWABLE` layer the start lacks (`grafted`): it starts fresh, near the identity, the rest as trained.
 """
@@ -44,7 +44,7 @@ from matfit.models import NETWORKS
 
 CHECKPOINT_FORMAT = "matfit-checkpoint"
 # The paper trains the isomorphic encoders 6, 7 and 9 for different numbers of epochs.
-# Sized so that `make model` trains all ten in about 50 minutes on a 2-core CPU (README).
+# Sized so that `make model` trains them on a CPU in less time than the decoder (docs/training.md#training).
 DEFAULT_EPOCHS = {
     models.DECODER: 20,
     **{name: 10 for name in models.ENCODER_NAMES},
@@ -58,7 +58,7 @@ MAX_EPOCHS = 10000
 # values), "linear" the sRGB encoding of the mean linear render (`linear_residual`).
 LOSSES = ("srgb", "linear")
 # The linear loss's per-pixel residual is clipped to this many full sRGB scales: a firefly of a
-# 16-spp render (linear values up to ~8) would otherwise dominate a batch's gradient (README).
+# 16-spp render (linear values far above 1) would otherwise dominate a batch's gradient (docs/training.md#training).
 RESIDUAL_CLIP = 1.0
 
 # Decoder fields that add a layer, so that `Config.start_from` may add it to trained weights: it starts fresh
@@ -178,7 +178,7 @@ def linear_residual(prediction: jax.Array, linear: jax.Array) -> jax.Array:
     +-RESIDUAL_CLIP: to first order the sRGB error, but zero on average where the prediction
     encodes the mean linear render. The plain sRGB loss's optimum is the mean of the encoded
     renders instead, which a 16-spp render's noise darkens (the curve is concave and clips at 1):
-    ~0.5 of 255 over the training sets, 1-1.6 inside milk (README, the networks). The slope is
+    most inside media (docs/training.md#training). The slope is
     the prediction's, not the target's, so that the noise does not bias it either.
     """
     prediction = jax.lax.stop_gradient(prediction)
@@ -218,7 +218,7 @@ def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool, 
     @jax.jit
     def train_step(state, constants, x, y, key):
         # Batches arrive as stored (float16 images): casting here, on the accelerator, is exact
-        # and 10-17x cheaper for the host than NumPy's cast (README: data loading).
+        # and far cheaper for the host than NumPy's cast (docs/training.md#gpu).
         x, y = x.astype(jnp.float32), y.astype(jnp.float32)
         weights, opt_state = state
         loss, grads = jax.value_and_grad(loss_fn)(weights, constants, x, y, key)

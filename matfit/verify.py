@@ -6,8 +6,8 @@ renders a few candidates at the model's resolution: the best-of-n start, and the
 best neural RMSE first. Every candidate is rendered with the same seed (common random numbers),
 so their difference is mostly the material's, and the start is always among them. An end point
 that beats the start must beat it again in a second render of both with another seed
-(`CONFIRM_SEED`): with one render, a lead within the render's noise kept answers that an
-independent judge found worse than the start (2 of 20 reachable targets, `matfit bench-fit`).
+(`CONFIRM_SEED`): with one render, a lead within the render's noise keeps answers that an
+independent judge finds worse than the start (docs/fitting.md#verification).
 
 With `corrections`, the candidates are the start and the best end (CORRECTED_CANDIDATES), and the
 better of their renders starts rounds of correction (`correct.py`: the fit run again on the target
@@ -17,15 +17,11 @@ the last one's noise. The last round's point is the answer if it beats the start
 with CONFIRM_SEED (which no round used); otherwise the best end, if its lead over the start holds in
 a render of it with CONFIRM_SEED too, or else the start. The start is rendered with CONFIRM_SEED
 only, unless the rounds start from it (they need its residual): its guard render also decides where
-the rounds start, against the ends' renders with SEED: one render fewer, 0.1 s of a cold fit.
-That choice is made across two seeds; judged at 1024 spp (README, "Fitting", stop 36) the answers
-were the same as with the start's SEED render: 20 reachable targets 1.548 against 1.547, 8 suite
-edits 6.626 against 6.628, six presets 1.863 both, every one no worse than its start. Measured on
-the 20 reachable targets of `matfit bench-fit`, judged by independent 1024-spp renders: taking the
-last round's point so guarded judged 1.578 after two rounds, against 1.588 when it joined the
-candidates and the 64-spp renders chose among them all (they preferred worse points: a candidate's
-render noise is part of its RMSE), and 1.713 for verification alone; every answer no worse than the
-start (20/20).
+the rounds start, against the ends' renders with SEED: one render fewer. That choice is made
+across two seeds, and judges as the start's SEED render would. The rounds' points do not join the
+candidates: a candidate's render noise is part of its RMSE, and the 64-spp renders would prefer
+worse points. The rules and their measurements: docs/fitting.md#verification and
+docs/fitting.md#correction.
 """
 
 from __future__ import annotations
@@ -40,10 +36,12 @@ from matfit import correct, fit, images, models, params
 from matfit.errors import FitError
 
 CANDIDATES = 5  # without correction: the start and up to four end points, every end of the default 4-start fit
-# With correction the ends' renders only choose where the rounds start, and the start with the best end alone judged as
-# well as all five (README "Fitting", item 3) for three renders fewer.
+# With correction the ends' renders only choose where the rounds start, and the start with the best end alone judges as
+# well as all five for three renders fewer (docs/fitting.md#verification).
 CORRECTED_CANDIDATES = 2
-SPP = 64  # ranks the candidates as 128 spp does within the judge's noise, in half the time: `bench.verification_table`
+# 64 spp: the cheapest count whose choices match 128 spp within the judge's noise (`bench.verification_table`; see
+# docs/fitting.md#verification).
+SPP = 64
 SEED = 1_000_003  # not a seed of the training set's images
 CONFIRM_SEED = 1_000_033  # the second opinion on an end point's lead; neither SEED nor a training image's seed
 

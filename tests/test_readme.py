@@ -114,6 +114,17 @@ def test_every_relative_link_and_anchor_resolves(page):
     assert broken_links(page) == []
 
 
+def test_the_docs_sections_the_code_points_to_exist():
+    cited = re.compile(r"docs/([a-z-]+\.md)(?:#([a-z0-9_-]+))?")
+    missing = []
+    for source in sorted((ROOT / "matfit").rglob("*.py")):
+        for name, anchor in cited.findall(source.read_text()):
+            page = ROOT / "docs" / name
+            if not page.exists() or (anchor and anchor not in anchors(page)):
+                missing.append(f"{source.relative_to(ROOT)}: docs/{name}{'#' + anchor if anchor else ''}")
+    assert missing == []
+
+
 def quick_start_commands() -> list[list[str]]:
     """Returns the `matfit fit` and `matfit render` command lines of the README's quick start, as written."""
     text = README.read_text()
