@@ -32,9 +32,8 @@ computes. See docs/fitting.md#the-gradient-stage.
 The starts are split among `workers` threads (WORKERS, at most one per processor), each running
 the loop over its share as a smaller batch: XLA's CPU backend runs the decoder's small
 convolutions on one thread, so one batch of 4 leaves the second core idle
-(docs/fitting.md#the-gradient-stage). Each
-start's path is its own (the batch only shares the calls), so the split changes nothing but the
-rounding of the batched convolutions.
+(docs/fitting.md#the-gradient-stage). Each start's path is its own (the batch only shares the
+calls), so the split changes nothing but the rounding of the batched convolutions.
 
 A start whose projected gradient falls below `tolerance` stops moving (its steps still evaluate,
 as the batch does). The accepted points only ever improve, so a start's `x` is its best point.
@@ -253,9 +252,9 @@ def minimise(
     less refined, stay candidates for Mitsuba's verification: a short shared budget then the best
     alone reaches a lower decoded RMSE than every start running as long, and as good a verified
     answer, in less time (docs/fitting.md#the-gradient-stage). The loop ends early once every start
-    still moving has converged (checked every
-    CHECK_EVERY steps). `fn` must be the same object from call to call, or an equal one (it is a
-    static argument of the compiled step). Host work in between is NumPy, not JAX (see `init`).
+    still moving has converged (checked every CHECK_EVERY steps). `fn` must be the same object
+    from call to call, or an equal one (it is a static argument of the compiled step). Host work
+    in between is NumPy, not JAX (see `init`).
     `workers`: threads sharing the starts (None: WORKERS, at most one per processor).
     """
     if steps < 1:

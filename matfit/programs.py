@@ -1,13 +1,13 @@
 """Compiled programs kept across processes: matfit's compiled stages stored once as executables and read back.
 
 JAX's persistent compilation cache keeps machine code, but a new process must still trace and
-lower every jitted function to find it: 1.2 s of a cold `matfit fit` went to tracing its three
-stages (best-of-n, the gradient step, the finish) through Flax. `jit` is `jax.jit` with static
-arguments whose compiled executable, once the store is enabled, is serialized the first time
-(`jax.experimental.serialize_executable`) and loaded by later processes, which then skip tracing,
-lowering and compiling. (Storing `jax.export` programs instead still cost their lowering and JAX's
-cache look-up in every process, 0.2-0.3 s of a cold fit, of which ~0.2 s went to JAX importing
-SciPy to initialise LAPACK when an exported program is lowered on CPU.)
+lower every jitted function to find it, and tracing matfit's three stages (best-of-n, the gradient
+step, the finish) through Flax was the largest part of a cold `matfit fit` after JAX's import.
+`jit` is `jax.jit` with static arguments whose compiled executable, once the store is enabled, is
+serialized the first time (`jax.experimental.serialize_executable`) and loaded by later processes,
+which then skip tracing, lowering and compiling. (Storing `jax.export` programs instead still costs
+their lowering and JAX's cache look-up in every process, on CPU with JAX importing SciPy to
+initialise LAPACK: docs/decisions.md.)
 
 The key of a stored program holds everything it was compiled from: matfit's own source (every .py
 of the package, hashed once per process), the versions of jax, jaxlib and flax, the JAX settings
