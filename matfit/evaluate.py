@@ -312,7 +312,7 @@ def decoder_tables(evaluation: dict) -> list[str]:
         f"({references.get('integrator') or 'volpath'}); their own",
         f"noise is part of every figure (about {2.3 * (256 / spp) ** 0.5:.1f} on opaque materials at this spp, more "
         "in media:",
-        "README, the renderer).",
+        "docs/method.md#the-renderers-noise).",
         "",
         "| references | count | mean | median | p95 | target |",
         "|---|---|---|---|---|---|",

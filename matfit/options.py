@@ -78,8 +78,8 @@ Corrections = Annotated[
         min=0,
         max=MAX_CORRECTIONS,
         help="Rounds of fitting again on the target less the decoder's error at the answer, as a Mitsuba render shows "
-        f"it (~0.2 s each; default {CORRECTIONS} with verification, 0: none). A round's answer is kept only if Mitsuba "
-        "prefers it.",
+        f"it (one decoder fit and one render each; default {CORRECTIONS} with verification, 0: none). "
+        "A round's answer is kept only if Mitsuba prefers it.",
     ),
 ]
 Init = Annotated[Path | None, typer.Option(help="params.json of the source material: joins the candidates.")]
