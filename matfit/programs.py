@@ -63,14 +63,21 @@ def disable() -> None:
 
 @functools.cache
 def source_digest() -> str:
-    """Returns the SHA-256 of matfit's Python source: every .py file of the package, by name."""
-    package = os.path.dirname(os.path.abspath(__file__))
+    """Returns the SHA-256 of matfit's Python source: every .py file of the package and its subpackages."""
+    return tree_digest(os.path.dirname(os.path.abspath(__file__)))
+
+
+def tree_digest(folder: str) -> str:
+    """Returns the SHA-256 of every .py file under `folder`, at any depth, each with its path relative to `folder`."""
     digest = hashlib.sha256()
-    for name in sorted(os.listdir(package)):
-        if name.endswith(".py"):
-            digest.update(name.encode())
-            with open(os.path.join(package, name), "rb") as file:
-                digest.update(file.read())
+    for parent, folders, names in os.walk(folder):
+        folders.sort()  # os.walk visits subfolders in this list's order: sorted, the digest is the same on any disk
+        for name in sorted(names):
+            if name.endswith(".py"):
+                path = os.path.join(parent, name)
+                digest.update(os.path.relpath(path, folder).replace(os.sep, "/").encode())
+                with open(path, "rb") as file:
+                    digest.update(file.read())
     return digest.hexdigest()
 
 

@@ -174,3 +174,21 @@ def test_a_stored_executable_file_holds_its_trees_and_refuses_damage():
     for damaged in (data[:-1], data + b"x", b"not a program", data[: len(programs.MAGIC) + 4]):
         with pytest.raises(ValueError):
             programs.unpack(damaged)
+
+
+def test_the_source_digest_covers_modules_in_subpackages(tmp_path):
+    (tmp_path / "fit").mkdir()
+    (tmp_path / "errors.py").write_text("A = 1\n")
+    (tmp_path / "fit" / "search.py").write_text("B = 2\n")
+    (tmp_path / "fit" / "notes.txt").write_text("not source")
+    first = programs.tree_digest(str(tmp_path))
+    (tmp_path / "fit" / "notes.txt").write_text("other notes")
+    assert programs.tree_digest(str(tmp_path)) == first  # only Python source keys the programs
+    (tmp_path / "fit" / "search.py").write_text("B = 3\n")
+    assert programs.tree_digest(str(tmp_path)) != first  # an edit in a subpackage makes new programs
+    (tmp_path / "fit" / "search.py").write_text("B = 2\n")
+    assert programs.tree_digest(str(tmp_path)) == first
+    (tmp_path / "fit" / "search.py").rename(tmp_path / "fit" / "other.py")
+    assert programs.tree_digest(str(tmp_path)) != first  # a moved module too
+    package = os.path.dirname(os.path.abspath(programs.__file__))
+    assert programs.source_digest() == programs.tree_digest(package)
