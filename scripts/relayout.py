@@ -9,13 +9,13 @@ The layout (see PLACES below; imports point one way: app -> fit -> model -> rend
 
     matfit/            the shared base: errors, files, interrupt, params, images, programs, edits, shipped,
                        and __main__ (the entry point `python -m matfit`, allowed to import app.cli)
-    matfit/render/     scene, renderer (was render.py), presets, export, blender, blender_scene, blender_material
+    matfit/render/     scene, engine (was render.py), presets, export, blender, blender_scene, blender_material
     matfit/model/      models, dataset, cluster, pipeline, train, evaluate
     matfit/fit/        methods, search (was fit.py), simplex, gradient, correct, verify, refine, sequence,
                        fitfile, report
     matfit/app/        cli, console, options, progress, serve, bench, examples
 
-Two modules are renamed because a subpackage takes their name: `render.py` becomes `render/renderer.py` and
+Two modules are renamed because a subpackage takes their name: `render.py` becomes `render/engine.py` and
 `fit.py` becomes `fit/search.py`. Every other module keeps its name. `matfit/data` and `matfit/static` stay.
 
 What is rewritten, in matfit/, tests/, scripts/, Makefile, pyproject.toml, .ci/, README.md and docs/:
@@ -24,9 +24,9 @@ What is rewritten, in matfit/, tests/, scripts/, Makefile, pyproject.toml, .ci/,
   that file is renamed (`fit.fit(...)` -> `search.fit(...)`), unless the file binds the old or new name to something
   else, in which case it is imported `as` the old name (the report lists those files);
 - dotted names anywhere (imports, `python -m matfit.examples`, monkeypatch targets, strings, prose):
-  `matfit.render` -> `matfit.render.renderer`, `matfit.cli` -> `matfit.app.cli`;
+  `matfit.render` -> `matfit.render.engine`, `matfit.cli` -> `matfit.app.cli`;
 - `from matfit import render` inside strings (the code a child process runs) and prose: rewritten with aliases so
-  the code after it still runs (`from matfit.render import renderer as render`);
+  the code after it still runs (`from matfit.render import engine as render`);
 - paths `matfit/x.py` -> `matfit/<part>/x.py`; the bare file names `render.py`, `fit.py` in prose -> the new names;
   backticked references to a renamed module's names (`render.Renderer`) -> the new module name;
 - in moved modules, `os.path.dirname(os.path.dirname(os.path.abspath(__file__)))` (the folder holding the package)
@@ -57,7 +57,7 @@ BASE = ("__init__", "__main__", "errors", "files", "interrupt", "params", "image
 # Every module or package of matfit/ that moves: name -> "part" or "part.new_name".
 PLACES = {
     "scene": "render",
-    "render": "render.renderer",
+    "render": "render.engine",
     "presets": "render",
     "export": "render",
     "blender": "render",
@@ -91,7 +91,7 @@ STAYING_FOLDERS = ("data", "static")  # package data: never moved
 DOCSTRINGS = {
     "render": (
         "Rendering the material test scene: the scene as plain data (`scene`), the Mitsuba renderer and its child "
-        "process (`renderer`), the named materials (`presets`), the Mitsuba XML and Blender exports (`export`, "
+        "process (`engine`), the named materials (`presets`), the Mitsuba XML and Blender exports (`export`, "
         "`blender_material`) and Cycles against Mitsuba (`blender`; `blender_scene` runs inside Blender's own "
         "Python). It may import the shared base (`matfit.params`, `matfit.errors`, `matfit.images`, `matfit.files`, "
         "...) and nothing from `model`, `fit` or `app`."
