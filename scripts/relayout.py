@@ -424,7 +424,7 @@ def text_rules(found: dict[str, str], exported: dict[str, set[str]]):
     alternatives = "|".join(map(re.escape, moved))
     renamed = {name: new_place(name)[1] for name in moved if new_place(name)[1] != name}
     pattern = re.compile(
-        rf"(?P<statement>from {PACKAGE} import (?P<names>\w+(?:[ \t]*,[ \t]*\w+)*))"
+        rf"(?P<statement>from {PACKAGE} import (?P<names>\w+(?:[ \t]*,[ \t]*\w+)*)(?P<use>;[ \t]*(?P<used>\w+)\.)?)"
         rf"|(?P<path>{PACKAGE}/(?P<path_unit>{alternatives})(?P<path_end>\.py\b|/))"
         rf"|(?P<dotted>(?<![\w.]){PACKAGE}\.(?P<dotted_unit>{alternatives})\b)"
         + (
@@ -440,13 +440,16 @@ def text_rules(found: dict[str, str], exported: dict[str, set[str]]):
             names = [name.strip() for name in match["names"].split(",")]
             if not any(name in moved for name in names):
                 return match[0]
+            if names == [match["used"]] and names[0] in renamed:  # one line of code: `from matfit import x; x.y`
+                part, new = new_place(names[0])
+                return f"from {PACKAGE}.{part} import {new}; {new}."
             staying = [name for name in names if name not in moved]
             pieces = [f"from {PACKAGE} import {', '.join(staying)}"] if staying else []
             for name in names:
                 if name in moved:
                     part, new = new_place(name)
                     pieces.append(f"from {PACKAGE}.{part} import {new}{'' if new == name else f' as {name}'}")
-            return "; ".join(pieces)
+            return "; ".join(pieces) + (match["use"] or "")
         if match["path"]:
             part, new = new_place(match["path_unit"])
             return f"{PACKAGE}/{part}/{new}{match['path_end']}"
@@ -458,7 +461,14 @@ def text_rules(found: dict[str, str], exported: dict[str, set[str]]):
             return f"{renamed[match['reference_unit']]}.{match['attribute']}"
         return match[0]
 
-    return lambda text: pattern.sub(replace, text)
+    vowels = [new for new in renamed.values() if new[0] in "aeiou"]
+    article = re.compile(rf"\b([Aa]) (`(?:{'|'.join(vowels)})\.)") if vowels else None
+
+    def rewrite(text: str) -> str:
+        text = pattern.sub(replace, text)
+        return article.sub(r"\1n \2", text) if article else text  # "a `render.X`" -> "an `engine.X`"
+
+    return rewrite
 
 
 FILE_USE = re.compile(r"((?:os\.path\.dirname\()+)os\.path\.abspath\(__file__\)(\)*)")
