@@ -304,8 +304,9 @@ def check_tree(tracked: list[str], found: dict[str, str]) -> list[str]:
     if untracked:
         raise RefusedError(f"untracked files would be left behind: {', '.join(untracked)}: commit or remove them first")
     existing = [part for part in PARTS if os.path.isdir(os.path.join(PACKAGE, part))]
+    existing += [path for path in ("tests/test_layout.py",) if os.path.exists(path)]
     if existing:
-        raise RefusedError(f"the subpackages already exist: {', '.join(existing)} (the layout was moved already?)")
+        raise RefusedError(f"what the script makes already exists: {', '.join(existing)} (moved already?)")
     unknown = sorted(name for name in found if name not in PLACES and name not in BASE)
     if unknown:
         raise RefusedError(
