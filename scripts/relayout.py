@@ -7,7 +7,7 @@ Run once, at the repository root, on a clean git tree, with the project's Python
 
 The layout (see PLACES below; imports point one way: app -> fit -> model -> render -> base):
 
-    matfit/            the shared base: errors, files, interrupt, params, images, programs, edits, shipped,
+    matfit/            the shared base: errors, files, interrupt, params, images, programs, edits, shipped, documents,
                        and __main__ (the entry point `python -m matfit`, allowed to import app.cli)
     matfit/render/     scene, engine (was render.py), presets, export, blender, blender_scene, blender_material
     matfit/model/      models, dataset, cluster, pipeline, train, evaluate
@@ -53,7 +53,19 @@ from pathlib import Path
 PACKAGE = "matfit"
 # The parts, lowest first: a module may import from its own part and the parts before it.
 PARTS = ("render", "model", "fit", "app")
-BASE = ("__init__", "__main__", "errors", "files", "interrupt", "params", "images", "programs", "edits", "shipped")
+BASE = (
+    "__init__",
+    "__main__",
+    "errors",
+    "files",
+    "interrupt",
+    "params",
+    "images",
+    "programs",
+    "edits",
+    "shipped",
+    "documents",  # JSON reading and writing (branch inputfaults): params imports it
+)
 # Every module or package of matfit/ that moves: name -> "part" or "part.new_name".
 PLACES = {
     "scene": "render",
