@@ -613,11 +613,28 @@ def wrap(text: str, width: int = 116) -> str:
     return "\n".join([*lines, line])
 
 
+def table() -> str:
+    """Returns the layout as a Markdown table: each part, what it may import, its modules (renamed ones marked)."""
+    rows = ["| part | may import | modules |", "|---|---|---|"]
+    modules = {"base": [f"`{name}`" for name in BASE if not name.startswith("__")] + ["`__main__` (may import app)"]}
+    for name in PLACES:
+        part, new = new_place(name)
+        modules.setdefault(part, []).append(f"`{new}`" + ("" if new == name else f" (was `{name}.py`)"))
+    for index, part in enumerate(("base", *PARTS)):
+        below = ", ".join(("base", *PARTS)[: index + 1])
+        rows.append(f"| `matfit/{'' if part == 'base' else part + '/'}` | {below} | {', '.join(modules[part])} |")
+    return "\n".join(rows)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--dry-run", action="store_true", help="print the plan and change nothing")
     parser.add_argument("--ruff", help="the ruff executable (default: beside this Python, else on PATH)")
+    parser.add_argument("--table", action="store_true", help="print the layout as a Markdown table (for docs/)")
     arguments = parser.parse_args()
+    if arguments.table:
+        print(table())
+        return 0
     try:
         if not os.path.isfile(os.path.join(PACKAGE, "__init__.py")):
             raise RefusedError("run it at the repository root (the folder holding matfit/)")
