@@ -22,6 +22,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import os
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
@@ -33,7 +34,7 @@ import numpy as np
 from flax import serialization
 
 from matfit import files, images, params, programs, scene
-from matfit.errors import WeightsError
+from matfit.errors import OutputError, WeightsError
 
 ENCODER_RESOLUTION = 32
 WEIGHTS_FORMAT = "matfit-weights"
@@ -748,7 +749,8 @@ def enable_compilation_cache() -> None:
     does not grow without bound: each process first prunes it to `CACHE_BYTES` (least recently used first).
     JAX's own persistent compilation cache is not turned on: the store keeps the executables themselves, and an
     executable that JAX read from its cache does not survive being stored again (it fails at its next load with
-    "Function ... not found"). What earlier matfit versions kept there (`matfit/jax`) is removed.
+    "Function ... not found"). What earlier matfit versions kept there (`matfit/jax`) is removed. A store that
+    another user could have written (see `programs`) is not used, with a one-line notice on standard error.
     """
     root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     stored = os.path.join(root, "matfit", "programs")
@@ -756,5 +758,8 @@ def enable_compilation_cache() -> None:
         programs.enable(stored)
     except OSError:
         return  # no writable cache: trace and compile every time
+    except OutputError as error:  # a store others could have written to is never read: said once, then compiled
+        print(f"notice: compiled programs are not stored or read: {error}", file=sys.stderr)
+        return
     programs.prune(os.path.join(root, "matfit", "jax"), 0)
     programs.prune(stored, CACHE_BYTES["programs"])

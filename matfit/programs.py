@@ -20,8 +20,15 @@ faithful repr (one naming a memory address) cannot be keyed: such calls are trac
 Under a JAX transformation (a tracer among the arguments), or before `enable`, a `jit` function
 is plain `jax.jit`. An unreadable stored program is compiled again and rewritten. A stored file
 holds the argument and result trees (their protocol-buffer form) and the executable as JAX
-serializes it for its own compilation cache: loading one runs the machine code it holds, so the
-store is the user's own cache directory, never a file from elsewhere.
+serializes it for its own compilation cache.
+
+Loading an executable unpickles it and runs the machine code it holds, so a file that anyone else
+could have written must never be loaded. Every stored file therefore begins with an HMAC-SHA256 of
+its name and contents, keyed by a per-user secret (`KEY_NAME` beside the store, 32 random bytes,
+mode 0600); the HMAC is checked over the whole file before anything in it is parsed, and an entry
+that fails is ignored (compiled again and rewritten), never loaded. A store directory, or a key,
+that is a symbolic link, belongs to another user or that others may write is not used at all
+(`enable` raises OutputError): nothing is stored or read, and every process traces and compiles.
 """
 
 from __future__ import annotations
@@ -29,11 +36,15 @@ from __future__ import annotations
 import contextlib
 import functools
 import hashlib
+import hmac
 import inspect
 import json
 import os
 import platform
+import secrets
+import stat
 import struct
+import tempfile
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -45,20 +56,91 @@ from matfit.errors import OutputError
 
 SUFFIX = ".jaxexecutable"
 MAGIC = b"matfit executable 1\n"  # then three little-endian sizes: argument tree, result tree, executable
+KEY_NAME = "programs.key"  # the per-user secret that authenticates stored files, beside the store directory
+KEY_BYTES = 32
+SEAL_BYTES = hashlib.sha256().digest_size  # every stored file begins with its HMAC-SHA256
 _directory: str | None = None
+_key: bytes | None = None
 
 
 def enable(directory: str) -> None:
-    """Stores and reads compiled programs under `directory` from now on (it is created if needed)."""
-    global _directory
-    os.makedirs(directory, exist_ok=True)
+    """Stores and reads compiled programs under `directory` from now on (it is created, private, if needed).
+
+    Raises OutputError, and leaves the store off, for a directory or key that another user could have written.
+    """
+    global _directory, _key
+    _directory = _key = None
+    os.makedirs(directory, mode=0o700, exist_ok=True)
+    check_private(directory, "directory", f"chmod 700 {directory}")
+    _key = read_key(os.path.join(os.path.dirname(os.path.abspath(directory)), KEY_NAME))
     _directory = directory
+
+
+def check_private(path: str, kind: str, fix: str) -> os.stat_result:
+    """Returns the status of `path` (not following a link) after checking that only this user can change it."""
+    status = os.lstat(path)
+    if stat.S_ISLNK(status.st_mode):
+        raise OutputError(f"the compiled-program store's {kind} {path} is a symbolic link: remove it")
+    if status.st_uid != os.getuid():
+        raise OutputError(
+            f"the compiled-program store's {kind} {path} belongs to user {status.st_uid}, not you: remove it"
+        )
+    if status.st_mode & 0o022:
+        raise OutputError(f"the compiled-program store's {kind} {path} can be written by others: {fix}")
+    return status
+
+
+def read_key(path: str) -> bytes:
+    """Returns this user's secret that authenticates stored files, created (mode 0600, atomically) if absent."""
+    if not os.path.lexists(path):
+        handle, temporary = tempfile.mkstemp(prefix=".matfit-key-", dir=os.path.dirname(path))  # mode 0600
+        try:
+            with os.fdopen(handle, "wb") as file:
+                file.write(secrets.token_bytes(KEY_BYTES))
+                file.flush()
+                os.fsync(file.fileno())
+            with contextlib.suppress(FileExistsError):  # another process made one first: that one is used
+                os.link(temporary, path)
+        finally:
+            os.unlink(temporary)
+    status = check_private(path, "key", f"remove {path} (a new one is made)")
+    if status.st_mode & 0o077:
+        raise OutputError(
+            f"the compiled-program store's key {path} can be read by others: remove it (a new one is made)"
+        )
+    handle = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+    with os.fdopen(handle, "rb") as file:
+        key = file.read(KEY_BYTES + 1)
+    if len(key) != KEY_BYTES:
+        raise OutputError(f"the compiled-program store's key {path} is damaged: remove it (a new one is made)")
+    return key
+
+
+def seal(path: str, data: bytes) -> bytes:
+    """Returns a stored file's bytes: the HMAC of its name and `data` under this user's key, then `data`."""
+    return _seal(path, data) + data
+
+
+def opened(path: str) -> bytes:
+    """Returns the contents of a stored file whose HMAC is right; ValueError (nothing parsed) if it is not."""
+    with open(path, "rb") as file:
+        data = file.read()
+    seal, contents = data[:SEAL_BYTES], data[SEAL_BYTES:]
+    if len(seal) != SEAL_BYTES or not hmac.compare_digest(seal, _seal(path, contents)):
+        raise ValueError(f"{path} was not written by this user's matfit")
+    return contents
+
+
+def _seal(path: str, data: bytes) -> bytes:
+    if _key is None:
+        raise ValueError("no key: the store is off")
+    return hmac.new(_key, os.path.basename(path).encode() + b"\0" + data, hashlib.sha256).digest()
 
 
 def disable() -> None:
     """Stops storing and reading compiled programs (`jit` functions behave as `jax.jit`)."""
-    global _directory
-    _directory = None
+    global _directory, _key
+    _directory = _key = None
 
 
 @functools.cache
@@ -167,13 +249,12 @@ class Program:
         path = _stored_path(name, (described, str(tree), arguments), SUFFIX)
         from jax.experimental import serialize_executable
 
-        try:
-            with open(path, "rb") as file:
-                payload, in_tree, out_tree = unpack(file.read())
+        try:  # the HMAC is checked before any byte of the file is parsed or unpickled
+            payload, in_tree, out_tree = unpack(opened(path))
             compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
             touch(path)
             return compiled
-        except Exception:  # absent, damaged or foreign: compiled (again) below
+        except Exception:  # absent, damaged, unauthenticated or foreign: compiled (again) below
             pass
         specs = [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in shapes]
         try:
@@ -185,7 +266,7 @@ class Program:
         # No room, no permission (OSError, OutputError), an executable that cannot be serialized or a tree without a
         # protocol-buffer form (a custom node): used, not stored.
         with contextlib.suppress(Exception):
-            files.write_bytes(path, pack(*serialize_executable.serialize(compiled)))
+            files.write_bytes(path, seal(path, pack(*serialize_executable.serialize(compiled))))
         return compiled
 
     def _cache_size(self) -> int:
@@ -249,15 +330,14 @@ def remembered(name: str, parts: Any, compute: Callable[[], Any]) -> Any:
         return compute()
     path = _stored_path(name, repr(parts), ".json")
     try:
-        with open(path, encoding="utf-8") as file:
-            value = json.load(file)
+        value = json.loads(opened(path))
         touch(path)
         return value
-    except (OSError, ValueError):  # absent or damaged: computed again, below
+    except (OSError, ValueError, RecursionError):  # absent, damaged or unauthenticated: computed again, below
         pass
     value = compute()
     with contextlib.suppress(OSError, OutputError):  # no room or no permission: computed again next time
-        files.write_text(path, json.dumps(value))
+        files.write_bytes(path, seal(path, json.dumps(value).encode()))
     return json.loads(json.dumps(value))  # the same types as read back (lists for tuples)
 
 

@@ -1,4 +1,6 @@
 import os
+import pickle
+import stat
 
 import jax
 import jax.numpy as jnp
@@ -19,11 +21,11 @@ def scaled(x, y, factor):
 @pytest.fixture
 def store(tmp_path):
     """Returns a fresh store of programs, enabled for the test; the store is disabled again after it."""
-    previous = programs._directory
+    previous = programs._directory, programs._key
     programs.enable(str(tmp_path / "programs"))
     TRACES.clear()
     yield str(tmp_path / "programs")
-    programs._directory = previous
+    programs._directory, programs._key = previous
 
 
 def arguments(n: int = 3):
@@ -192,3 +194,62 @@ def test_the_source_digest_covers_modules_in_subpackages(tmp_path):
     assert programs.tree_digest(str(tmp_path)) != first  # a moved module too
     package = os.path.dirname(os.path.abspath(programs.__file__))
     assert programs.source_digest() == programs.tree_digest(package)
+
+
+class Planted:
+    """What a planted pickle does when it is loaded: creates the file `marker`."""
+
+    def __init__(self, marker: str):
+        self.marker = marker
+
+    def __reduce__(self):
+        return open, (self.marker, "w")
+
+
+def test_a_planted_pickle_is_never_loaded_and_the_program_is_compiled_again(store, tmp_path):
+    programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)
+    (name,) = programs.stored()
+    marker = tmp_path / "planted-code-ran"
+    trees = jax.tree_util.tree_structure(((0, 0), {})), jax.tree_util.tree_structure({"sum": 0, "y": 0})
+    planted = programs.pack(pickle.dumps(Planted(str(marker))), *trees)
+    for data in (planted, bytes(32) + planted, os.urandom(32) + planted):  # bare, or behind a made-up HMAC
+        with open(os.path.join(store, name), "wb") as file:
+            file.write(data)
+        traced = len(TRACES)
+        out = programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)
+        assert not marker.exists()
+        assert float(out["sum"]) == pytest.approx(18.0) and len(TRACES) > traced  # compiled again, not loaded
+    TRACES.clear()  # the rewritten entry is authentic: read back without tracing
+    assert float(programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)["sum"]) == 18.0
+    assert TRACES == []
+
+
+def test_a_remembered_value_is_read_only_when_authentic(store):
+    assert programs.remembered("answer", (1,), lambda: {"value": 1}) == {"value": 1}
+    (name,) = programs.stored()
+    with open(os.path.join(store, name), "w") as file:
+        file.write('{"value": 666}')
+    assert programs.remembered("answer", (1,), lambda: {"value": 2}) == {"value": 2}
+    assert programs.remembered("answer", (1,), lambda: {"value": 3}) == {"value": 2}  # the rewritten one
+
+
+def test_the_key_is_private_and_a_store_others_can_write_is_not_used(tmp_path):
+    previous = programs._directory, programs._key
+    try:
+        programs.enable(str(tmp_path / "private"))
+        key = tmp_path / "programs.key"
+        assert stat.S_IMODE(key.stat().st_mode) == 0o600 and key.stat().st_size == 32
+        assert stat.S_IMODE((tmp_path / "private").stat().st_mode) & 0o077 == 0
+        shared = tmp_path / "shared"
+        shared.mkdir()
+        shared.chmod(0o777)
+        with pytest.raises(OutputError, match=f"{shared} can be written by others: chmod 700"):
+            programs.enable(str(shared))
+        assert programs._directory is None and programs.stored() == []
+        programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)
+        assert os.listdir(shared) == []  # nothing stored there, so nothing is ever read from there
+        key.chmod(0o644)
+        with pytest.raises(OutputError, match=r"key .* can be read by others"):
+            programs.enable(str(tmp_path / "private"))
+    finally:
+        programs._directory, programs._key = previous
