@@ -218,14 +218,7 @@ def load(path: str, max_pixels: int = MAX_PIXELS) -> Loaded:
             f"{path} is {width}x{height} = {width * height / 1e6:.0f} Mpixel, more than {max_pixels / 1e6:.0f}: "
             "scale it down first"
         )
-    config = oiio.ImageSpec()
-    config.attribute("oiio:UnassociatedAlpha", 1)  # the colour as painted, not multiplied by alpha
-    with quiet_stderr():
-        buffer = oiio.ImageBuf(path, 0, 0, config)
-        pixels = buffer.get_pixels(oiio.FLOAT)
-    if buffer.has_error or pixels is None or pixels.size == 0:
-        message = first_line(buffer.geterror() if buffer.has_error else "", "no pixels")
-        raise ImageError(f"{path} is damaged or truncated ({message}): export it again")
+    pixels = decode_jpeg(path) if is_jpeg(path) else decode(path)
     pixels = np.asarray(pixels, dtype=np.float32).reshape(height, width, channels)
     notices = []
     if channels in (1, 2):
@@ -241,6 +234,49 @@ def load(path: str, max_pixels: int = MAX_PIXELS) -> Loaded:
     if os.path.splitext(path)[1].lower() not in LINEAR_EXTENSIONS:
         pixels = srgb_decode(pixels)
     return Loaded(np.ascontiguousarray(pixels), notices)
+
+
+def decode(path: str) -> np.ndarray:
+    """Returns the pixels of an image file as OpenImageIO decodes them (float); ImageError if damaged or truncated."""
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)  # the colour as painted, not multiplied by alpha
+    with quiet_stderr():
+        buffer = oiio.ImageBuf(path, 0, 0, config)
+        pixels = buffer.get_pixels(oiio.FLOAT)
+    if buffer.has_error or pixels is None or pixels.size == 0:
+        message = first_line(buffer.geterror() if buffer.has_error else "", "no pixels")
+        raise ImageError(f"{path} is damaged or truncated ({message}): export it again")
+    return pixels
+
+
+JPEG_START = b"\xff\xd8\xff"
+
+
+def is_jpeg(path: str) -> bool:
+    """Returns whether a file begins as a JPEG does (whatever its name says)."""
+    with open(path, "rb") as file:
+        return file.read(len(JPEG_START)) == JPEG_START
+
+
+def decode_jpeg(path: str) -> np.ndarray:
+    """Returns the pixels of a JPEG file (float); ImageError if it is truncated or its data is corrupt.
+
+    libjpeg only warns of a truncated file or corrupt data (and fills the rest with grey); OpenImageIO's
+    ImageBuf drops those warnings, but the reader keeps them in its error state, which is checked here.
+    """
+    with quiet_stderr():
+        reader = oiio.ImageInput.open(path)
+        if reader is None:
+            raise ImageError(
+                f"{path} is damaged or truncated ({first_line(oiio.geterror(), 'no header')}): export it again"
+            )
+        pixels = reader.read_image(oiio.FLOAT)
+        message = reader.geterror()
+        reader.close()
+    if message or pixels is None or pixels.size == 0:
+        reason = first_line(message, "no pixels").replace(f' ("{path}")', "")
+        raise ImageError(f"{path} is damaged or truncated ({reason}): export it again")
+    return pixels
 
 
 def read(path: str) -> np.ndarray:

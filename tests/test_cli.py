@@ -337,6 +337,10 @@ def test_fit_bad_inputs(trained, target, tmp_path):
     truncated = tmp_path / "truncated.png"
     truncated.write_bytes(target.read_bytes()[:200])
     assert_one_line_error(fit(truncated), "truncated.png")
+    images.write(str(tmp_path / "whole.jpg"), images.read(str(target)))
+    jpeg = (tmp_path / "whole.jpg").read_bytes()
+    (tmp_path / "truncated.jpg").write_bytes(jpeg[: (jpeg.index(b"\xff\xda") + len(jpeg)) // 2])  # a whole header
+    assert_one_line_error(fit(tmp_path / "truncated.jpg"), "truncated.jpg is damaged or truncated", "export it again")
     black_png(tmp_path / "huge.png", 7100)  # 50.4 Mpixel, over images.MAX_PIXELS
     assert_one_line_error(fit(tmp_path / "huge.png"), "huge.png is 7100x7100", "scale it down")
     nan = np.full((32, 32, 3), 0.5, np.float32)

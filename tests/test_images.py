@@ -104,6 +104,32 @@ def test_unreadable_targets_say_what_they_are(tmp_path):
         images.load(name)
 
 
+def test_a_truncated_or_corrupt_jpeg_is_refused_and_a_whole_one_read(tmp_path, capfd):
+    ramp = np.linspace(0.05, 0.9, 64, dtype=np.float32)
+    linear = np.stack(np.broadcast_arrays(ramp[:, None], ramp[None, :], 0.3), axis=-1).astype(np.float32)
+    images.write(str(tmp_path / "whole.jpg"), linear)
+    data = (tmp_path / "whole.jpg").read_bytes()
+    middle = (data.index(b"\xff\xda") + len(data)) // 2  # halfway through the coded pixels (the header is whole)
+    (tmp_path / "cut.jpg").write_bytes(data[:middle])
+    corrupt = bytearray(data)
+    corrupt[middle : middle + 50] = b"\xff" * 50  # a run of bytes overwritten in the coded data
+    (tmp_path / "corrupt.jpeg").write_bytes(bytes(corrupt))
+    (tmp_path / "named.png").write_bytes(data[:middle])  # a JPEG under another name
+    whole = images.read(str(tmp_path / "whole.jpg"))
+    assert whole.shape == (64, 64, 3) and np.abs(images.srgb_encode(whole) - images.srgb_encode(linear)).max() < 0.05
+    capfd.readouterr()
+    for name, reason in (
+        ("cut.jpg", "Premature end of JPEG file"),
+        ("corrupt.jpeg", "Corrupt JPEG data"),
+        ("named.png", "Premature end of JPEG file"),
+    ):
+        with pytest.raises(
+            ImageError, match=rf"^{tmp_path}/{name} is damaged or truncated \(JPEG error: {reason}.*\): export"
+        ):
+            images.load(str(tmp_path / name))
+    assert capfd.readouterr().err == ""
+
+
 def test_a_truncated_png_is_one_error_and_nothing_on_stderr(tmp_path, capfd):
     images.write(str(tmp_path / "whole.png"), np.random.default_rng(0).random((64, 64, 3)).astype(np.float32))
     (tmp_path / "cut.png").write_bytes((tmp_path / "whole.png").read_bytes()[:3000])
