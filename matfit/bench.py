@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import edits, files, fit, images, models, params, presets, verify
+from matfit import documents, edits, files, fit, images, models, params, presets, verify
 from matfit.errors import OutputError
 from matfit.methods import CORRECTIONS
 
@@ -784,7 +784,7 @@ def run_suite(model: models.Model, model_label: str, out: str, full: bool = Fals
     report_text = suite_report(main, optimisers, sequence_text, seeds=seeds, settings=settings)
     files.write_text(os.path.join(out, "report.md"), report_text)
     document = {"main": main, "optimisers": optimisers, "sequence": sequence_text, "settings": settings}
-    files.write_text(os.path.join(out, "report.json"), json.dumps(document, indent=1) + "\n")
+    files.write_text(os.path.join(out, "report.json"), documents.dumps(document, indent=1))
     return report_text
 
 

@@ -10,14 +10,13 @@ from __future__ import annotations
 
 import contextlib
 import functools
-import json
 import os
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from matfit import console, dataset, options, params, presets
+from matfit import console, dataset, documents, options, params, presets
 from matfit.methods import MAX_ITERATIONS, MAX_POLISH, MAX_STARTS, Box, Method, Settings
 
 app = typer.Typer(
@@ -53,7 +52,7 @@ def render(
 
     values = presets.material(options.text(params_file), preset, seed if random else None)
     if random:
-        typer.echo(json.dumps(params.params_document(values, source=f"--random --seed {seed}"), indent=2))
+        typer.echo(documents.dumps(params.params_document(values, source=f"--random --seed {seed}")), nl=False)
     done = render_module.render_file(values, str(output), size, spp, seed, variant)
     echo_lines(done.notices)
     log(f"wrote {output} ({size}x{size}, {spp} spp, {done.variant}, {done.seconds:.1f} s)")

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import files, interrupt, params, scene
+from matfit import documents, files, interrupt, params, scene
 from matfit.errors import DatasetError
 
 FORMAT = "matfit-dataset"
@@ -197,7 +197,7 @@ def _meta(settings: Settings, count: int, versions: dict) -> dict:
 
 
 def _write_json(path: str, data: dict) -> None:
-    files.write_text(path, json.dumps(data, indent=2) + "\n")
+    files.write_text(path, documents.dumps(data))
 
 
 def read_meta(path: str) -> dict:

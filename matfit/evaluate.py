@@ -17,12 +17,11 @@ returns:
 
 from __future__ import annotations
 
-import json
 import os
 
 import numpy as np
 
-from matfit import files, images, models, params, pipeline, presets
+from matfit import documents, files, images, models, params, pipeline, presets
 from matfit.dataset import Dataset
 from matfit.errors import DatasetError
 
@@ -348,6 +347,6 @@ def write_report(model: models.Model, evaluation: dict) -> tuple[str, str]:
     """Writes evaluation.json and MODEL.md into the model directory; returns their paths."""
     report = os.path.join(model.path, "evaluation.json")
     card_path = os.path.join(model.path, "MODEL.md")
-    files.write_text(report, json.dumps(evaluation, indent=2) + "\n")
+    files.write_text(report, documents.dumps(evaluation))
     files.write_text(card_path, card(model, evaluation))
     return report, card_path

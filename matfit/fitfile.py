@@ -8,14 +8,13 @@ the exports under temporary names, renaming them into place only once all of the
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from matfit import files, fit, images, models, params, refine, render, verify
+from matfit import documents, files, fit, images, models, params, refine, render, verify
 from matfit.errors import FitError, ImageError, OutputError
 from matfit.methods import CORRECTIONS
 
@@ -222,6 +221,11 @@ def fit_file(
             verify.prefetch_start(background, start, corrections)
 
     result = fit.fit(model, target_srgb, settings, weights, extra=extra, seed=seed, on_start=on_start)
+    if not np.isfinite(result.rmse):  # the decoder's images hold NaN: no figure and no answer can be trusted
+        raise FitError(
+            f"the model {model_path} decodes images that are not finite (neural RMSE {result.rmse}): "
+            "its weights are damaged; train it again or use another --model"
+        )
     outcome = Outcome(result, target_srgb, result.unit, result.image, result.rmse, notices=notices)
     if background is not None:
         renderer = background.renderer()
@@ -248,7 +252,7 @@ def fit_file(
 
 def params_text(outcome: Outcome) -> str:
     """Returns the params.json of a fit, as written."""
-    return json.dumps(outcome.document, indent=2) + "\n"
+    return documents.dumps(outcome.document)
 
 
 def document(

@@ -633,6 +633,8 @@ def restore_variables(
         raise WeightsError(f"{path} does not hold the weights of its architecture ({error}): train again") from None
     if stored_shapes != shapes:
         raise WeightsError(f"{path} holds weights of other shapes than its architecture: train again")
+    if not all(np.all(np.isfinite(np.asarray(leaf, np.float32))) for leaf in jax.tree_util.tree_leaves(stored)):
+        raise WeightsError(f"{path} holds NaN or infinite weights (a diverged or damaged network): train again")
     # One transfer of the whole tree: one device_put of float32 NumPy arrays is several times faster than converting
     # leaf by leaf with jnp.asarray.
     return module, jax.device_put(jax.tree_util.tree_map(lambda leaf: np.asarray(leaf, dtype), stored))

@@ -19,13 +19,13 @@ that redundancy is deliberate, it is how artists think of coloured glass ("what 
 from __future__ import annotations
 
 import difflib
-import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
+from matfit import documents
 from matfit.errors import ParameterError
 
 
@@ -341,6 +341,11 @@ def to_mapping(values: np.ndarray) -> dict[str, float]:
     values = np.asarray(values, dtype=np.float64)
     if values.shape != (COUNT,):
         raise ParameterError(f"expected {COUNT} parameter values, got shape {values.shape}")
+    if not np.all(np.isfinite(values)):  # a params.json never holds NaN (not JSON) nor a value the shader cannot take
+        bad = ", ".join(f"{name} {value}" for name, value in zip(NAMES, values, strict=True) if not np.isfinite(value))
+        raise ParameterError(
+            f"the parameters are not finite ({bad}): nothing is written; check the model and its weights"
+        )
     return {name: round(float(v), 6) for name, v in zip(NAMES, values, strict=True)}
 
 
@@ -352,14 +357,15 @@ def parse_params_json(text: str, source: str = "params.json") -> np.ndarray:
     name given twice is refused (JSON would silently keep the last), and so is an integer too
     long for a float.
     """
-    try:
-        data = json.loads(text, object_pairs_hook=_unique_keys, parse_int=float)
-    except json.JSONDecodeError as error:
-        raise ParameterError(
-            f"{source} is not valid JSON ({error.msg} at line {error.lineno}, column {error.colno})"
-        ) from None
-    except ParameterError as error:
-        raise ParameterError(f"{source}: {error}") from None
+    data = documents.parse(text, source, PARAMS_FIX, ParameterError, object_pairs_hook=_unique_keys, parse_int=float)
+    return from_document(data, source)
+
+
+PARAMS_FIX = 'give a params.json that matfit wrote, or a JSON object like {"roughness": 0.2}'
+
+
+def from_document(data: object, source: str) -> np.ndarray:
+    """Returns the physical vector of a parsed params.json document (see `parse_params_json`)."""
     if not isinstance(data, dict):
         raise ParameterError(
             f'{source} must hold a JSON object of parameter names and values, like {{"roughness": 0.2}}'
@@ -391,12 +397,8 @@ def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
 
 def read_file(path: str) -> np.ndarray:
     """Returns the physical parameter vector of a params.json file."""
-    try:
-        with open(path) as file:
-            text = file.read()
-    except (OSError, UnicodeDecodeError) as error:
-        raise ParameterError(f"cannot read {path}: {getattr(error, 'strerror', None) or error}") from None
-    return parse_params_json(text, path)
+    data = documents.read(path, PARAMS_FIX, ParameterError, object_pairs_hook=_unique_keys, parse_int=float)
+    return from_document(data, path)
 
 
 def params_document(values: np.ndarray, **extra: object) -> dict:

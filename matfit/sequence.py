@@ -16,7 +16,6 @@ changed; each such frame says why (`Frame.note`).
 
 from __future__ import annotations
 
-import json
 import os
 import re
 import time
@@ -25,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import files, fit, images, models, params
+from matfit import documents, files, fit, images, models, params
 from matfit.errors import SequenceError
 
 FRAME_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr")
@@ -94,8 +93,7 @@ def read_finished(path: str, expected: dict) -> tuple[Frame, dict] | None:
     if not os.path.exists(path):
         return None
     try:
-        with open(path) as file:
-            document = json.load(file)
+        document = documents.read(path, "delete it to fit that frame again", SequenceError)
         stored = document["sequence"]
         unit = np.asarray(stored["unit"], np.float64)  # exact, unlike the rounded physical values
         if unit.shape != (params.COUNT,):
@@ -109,6 +107,8 @@ def read_finished(path: str, expected: dict) -> tuple[Frame, dict] | None:
             stored["evaluations"],
             stored["seconds"],
         )
+    except SequenceError:
+        raise
     except (OSError, ValueError, KeyError, TypeError) as error:
         raise SequenceError(f"{path} is damaged ({type(error).__name__}): delete it to fit that frame again") from None
     if stored.get("settings") != expected:
@@ -225,7 +225,7 @@ def _fit_frames(model, frames, out, settings, reinit, progress, init) -> list[Fr
                     "unit": [float(u) for u in result.unit],
                 },
             )
-            files.write_text(json_path, json.dumps(document, indent=2) + "\n")
+            files.write_text(json_path, documents.dumps(document))
             results.append(frame)
         if progress is not None:
             progress(index + 1, len(frames), results[-1])

@@ -37,7 +37,7 @@ import numpy as np
 import optax
 from flax import serialization
 
-from matfit import dataset, files, images, models, params, pipeline
+from matfit import dataset, documents, files, images, models, params, pipeline
 from matfit.dataset import Dataset
 from matfit.errors import TrainingError
 from matfit.models import NETWORKS
@@ -584,7 +584,7 @@ def finish(run: Run, state: Checkpoint) -> dict:
     }
     network = models.Network(run.name, run.description, run.module, run.variables(shipped), {"metrics": metrics})
     models.save(run.weights_file, network)
-    files.write_text(os.path.splitext(run.weights_file)[0] + ".json", json.dumps(metrics, indent=2) + "\n")
+    files.write_text(os.path.splitext(run.weights_file)[0] + ".json", documents.dumps(metrics))
     return metrics
 
 

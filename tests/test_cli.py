@@ -71,6 +71,7 @@ def test_params_lists_nineteen_parameters():
         ('{"rougness": 0.2}', ("did you mean 'roughness'",)),
         ('{"roughness": 2}', ("out of range", "[0.0, 1.0]")),
         ('{"metallic": NaN}', ("'metallic' is nan",)),
+        ("[" * 100000, ("bad.json is not valid JSON (nested too deeply to read)", "give a params.json")),
     ],
 )
 def test_bad_params_files(tmp_path, content, fragments):

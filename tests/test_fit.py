@@ -196,3 +196,17 @@ def test_on_start_hears_best_of_n_winner_and_never_a_random_start(model):
     assert np.asarray(heard[0], np.float64).tobytes() == np.asarray(result.start, np.float64).tobytes()
     fit.fit(model, target, Settings(method="optimize", evaluations=40), on_start=on_start)
     assert len(heard) == 1  # optimize starts from a random point, not from best-of-n's winner
+
+
+def test_a_model_that_decodes_nan_is_refused_and_no_params_json_is_written(model, tmp_path):
+    import dataclasses
+
+    from matfit import fitfile
+
+    poisoned = jax.tree_util.tree_map(lambda leaf: np.full(np.shape(leaf), np.nan, np.float32), model.decoder.variables)
+    broken = dataclasses.replace(model, decoder=dataclasses.replace(model.decoder, variables=poisoned))
+    images.write(str(tmp_path / "edit.png"), np.full((R, R, 3), 0.3, np.float32))
+    outputs = fitfile.Outputs(str(tmp_path / "params.json"))
+    with pytest.raises(FitError, match=r"decodes images that are not finite \(neural RMSE nan\).*train it again"):
+        fitfile.run(str(tmp_path / "edit.png"), broken, Settings(method="nn"), outputs, verified=False)
+    assert not (tmp_path / "params.json").exists()  # was written with "neural_rmse": NaN, which is not JSON

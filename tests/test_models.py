@@ -460,3 +460,14 @@ def test_the_program_store_is_pruned_to_its_cap_and_the_old_jax_cache_removed_wh
     ]
     assert programs._directory == str(tmp_path / "matfit" / "programs")
     assert not programs.jax_cache_enabled()  # JAX's persistent cache stays off
+
+
+def test_a_weights_file_holding_nan_is_refused(tmp_path):
+    decoder = models.Decoder(resolution=32, hidden=64, base_channels=32, stage_channels=(32,))
+    variables = models.initialise(decoder, jax.random.key(0), (19,))
+    variables = jax.tree_util.tree_map(lambda leaf: np.asarray(leaf).copy(), variables)
+    jax.tree_util.tree_leaves(variables)[0].flat[0] = np.nan
+    network = models.Network("decoder", models.architecture("decoder", 32, decoder), decoder, variables, {})
+    models.save(str(tmp_path / "decoder.msgpack"), network)
+    with pytest.raises(models.WeightsError, match=r"decoder\.msgpack holds NaN or infinite weights.*train again"):
+        models.load(str(tmp_path / "decoder.msgpack"))

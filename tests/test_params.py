@@ -156,6 +156,8 @@ def test_params_document_round_trips_through_json():
         ('{"metallic": 0.1, "roughness": 0.2, "metallic": 0.9}', "'metallic' given more than once"),
         ('{"params": {"roughness": 0.1, "roughness": 0.2}}', "'roughness' given more than once"),
         ('{"params": [1, 2]}', '"params" must be a JSON object of names and values'),
+        ("[" * 100000, "is not valid JSON (nested too deeply to read): give a params.json that matfit wrote"),
+        ('{"params": ' * 100000, "is not valid JSON (nested too deeply to read)"),  # was a RecursionError
     ],
 )
 def test_bad_params_json_gives_one_line_errors(text, message):
@@ -200,3 +202,16 @@ def test_presets_are_valid_and_distinct():
 def test_huge_integers_passed_in_code_are_out_of_range():
     with pytest.raises(ParameterError, match="'metallic' is out of range"):
         params.from_mapping({"metallic": 10**400})
+
+
+def test_a_params_file_nested_too_deeply_is_one_line_naming_the_file(tmp_path):
+    (tmp_path / "deep.json").write_text("[" * 100000)
+    with pytest.raises(ParameterError, match=rf"^{tmp_path}/deep\.json is not valid JSON \(nested too deeply"):
+        params.read_file(str(tmp_path / "deep.json"))
+
+
+def test_parameters_that_are_not_finite_are_never_written():
+    values = presets.preset("gold").copy()
+    values[params.INDEX["roughness"]] = np.nan
+    with pytest.raises(ParameterError, match=r"not finite \(roughness nan\): nothing is written"):
+        params.params_document(values)

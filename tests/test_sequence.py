@@ -141,3 +141,9 @@ def test_another_model_is_refused_and_a_failed_first_frame_leaves_no_folder(tmp_
     with pytest.raises(KeyboardInterrupt):
         sequence.fit_sequence(model, frames, str(tmp_path / "new"), settings)
     assert not (tmp_path / "new").exists()
+
+
+def test_a_finished_frame_nested_too_deeply_is_one_line_naming_it(tmp_path):
+    (tmp_path / "f1.json").write_text("[" * 100000)
+    with pytest.raises(SequenceError, match=r"f1\.json is not valid JSON \(nested too deeply.*delete it to fit that"):
+        sequence.read_finished(str(tmp_path / "f1.json"), {})

@@ -1,0 +1,63 @@
+"""JSON documents: the one reader of every JSON file or request matfit takes, and the one writer of what it gives.
+
+Reading: a text that is not JSON, or nested deeper than Python's parser recurses (`'[' * 100000`
+raised RecursionError), is one MatfitError naming the file and the fix, never a traceback.
+Writing: JSON has no NaN or Infinity (`"neural_rmse": NaN` is refused by strict readers), so a
+figure that is not finite is written as `null`, "no figure"; parameter values are never written
+non-finite (`params.to_mapping` refuses them before a document is made).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+from matfit.errors import MatfitError, printable
+
+
+def parse(text: str | bytes, source: str, fix: str, error: type[MatfitError] = MatfitError, **options: Any) -> Any:
+    """Returns the JSON value of `text` (read from `source`); `error` naming `source` and `fix` if it is not JSON.
+
+    `options` go to `json.loads` (`object_pairs_hook`, `parse_int`); a MatfitError that a hook raises is
+    re-raised as `error`, prefixed with `source`.
+    """
+    source = printable(source)
+    try:
+        return json.loads(text, **options)
+    except json.JSONDecodeError as problem:
+        where = f"{problem.msg} at line {problem.lineno}, column {problem.colno}"
+        raise error(f"{source} is not valid JSON ({where}): {fix}") from None
+    except RecursionError:
+        raise error(f"{source} is not valid JSON (nested too deeply to read): {fix}") from None
+    except MatfitError as problem:
+        raise error(f"{source}: {problem}") from None
+    except (ValueError, UnicodeDecodeError) as problem:  # bytes that are not UTF-8, an integer of 5000 digits
+        raise error(f"{source} is not valid JSON ({str(problem).splitlines()[0]}): {fix}") from None
+
+
+def read(path: str, fix: str, error: type[MatfitError] = MatfitError, **options: Any) -> Any:
+    """Returns the JSON value of the file `path`; `error` naming the file and `fix` if it cannot be read or parsed."""
+    try:
+        with open(path, "rb") as file:
+            text = file.read()
+    except OSError as problem:
+        raise error(f"cannot read {printable(path)}: {problem.strerror or problem}") from None
+    return parse(text, path, fix, error, **options)
+
+
+def finite(value: Any) -> Any:
+    """Returns `value` (JSON data: dicts, lists, tuples, numbers, text) with every NaN or infinite float as None."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: finite(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite(item) for item in value]
+    return value
+
+
+def dumps(document: Any, indent: int | None = 2) -> str:
+    """Returns a document as strict JSON text (a non-finite figure as null), ending with a newline when indented."""
+    text = json.dumps(finite(document), indent=indent, allow_nan=False)
+    return text + "\n" if indent is not None else text

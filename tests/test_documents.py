@@ -1,0 +1,52 @@
+import json
+import math
+
+import numpy as np
+import pytest
+
+from matfit import documents
+from matfit.errors import MatfitError, SequenceError
+
+
+def test_a_figure_that_is_not_finite_is_written_as_null_and_the_text_is_strict_json():
+    document = {"neural_rmse": math.nan, "start_rmse": 2.5, "history": [1.0, math.inf, -math.inf], "nested": {"x": ()}}
+    text = documents.dumps(document)
+    assert text.endswith("}\n") and "NaN" not in text and "Infinity" not in text
+
+    def strict(constant):
+        raise AssertionError(f"{constant} is not JSON")
+
+    assert json.loads(text, parse_constant=strict) == {
+        "neural_rmse": None,
+        "start_rmse": 2.5,
+        "history": [1.0, None, None],
+        "nested": {"x": []},
+    }
+    assert documents.dumps({"a": 1}, indent=None) == '{"a": 1}'
+    with pytest.raises(TypeError):  # a NumPy scalar is not JSON data: callers convert, nothing is written silently
+        documents.dumps({"a": np.float32(1.0)})
+
+
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("[" * 100000, "nested too deeply to read"),  # was a RecursionError
+        ('{"a": ' * 100000, "nested too deeply to read"),
+        ("{oops", "Expecting property name enclosed in double quotes at line 1, column 2"),
+        (b'{"a": "\xff"}', "'utf-8' codec can't decode byte 0xff in position 7"),
+        ("", "Expecting value at line 1, column 1"),
+    ],
+)
+def test_text_that_is_not_json_is_one_line_naming_the_source_and_the_fix(text, reason):
+    with pytest.raises(SequenceError) as error:
+        documents.parse(text, "frame_1.json", "delete it", SequenceError)
+    message = str(error.value)
+    assert message.startswith("frame_1.json is not valid JSON (") and reason in message
+    assert message.endswith("): delete it") and "\n" not in message
+
+
+def test_a_file_that_cannot_be_read_is_one_line(tmp_path):
+    with pytest.raises(MatfitError, match=rf"^cannot read {tmp_path}/none\.json: No such file or directory$"):
+        documents.read(str(tmp_path / "none.json"), "check the path")
+    (tmp_path / "ok.json").write_text('{"a": [1, 2]}')
+    assert documents.read(str(tmp_path / "ok.json"), "check the path") == {"a": [1, 2]}
