@@ -21,6 +21,11 @@ JSON API (Starlette, served by uvicorn):
 Uploads are written under a private temporary folder (never under a name the browser sent) and
 read by the CLI's own reader (`fitfile.read_target`); a watched file that changes while its fit
 runs supersedes it; a file still being written (unreadable, or growing) is retried, not reported.
+A watched file deleted before or while it is fitted ends its job as an error answered 410.
+
+Request bodies are capped and counted as they arrive (nothing beyond the cap is read): MAX_JSON_BYTES
+for the JSON requests and a params.json upload, MAX_FIT_BYTES for a fit's form (a picture and a mask
+of at most MAX_UPLOAD_BYTES each); a larger body is answered 413 with a one-line message.
 """
 
 from __future__ import annotations
@@ -39,14 +44,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from matfit import export, files, fit, fitfile, images, interrupt, models, params, presets, shipped, verify
+from matfit import documents, export, files, fit, fitfile, images, interrupt, models, params, presets, shipped, verify
 from matfit.errors import ImageError, MatfitError, OutputError, ParameterError
 
 MAX_UPLOAD_BYTES = 50 * 1024 * 1024  # an upload larger than this is refused before it is read
+MAX_JSON_BYTES = 1024 * 1024  # the body of a JSON request (19 values: a few hundred bytes) or of a params.json upload
+MAX_FIT_BYTES = 2 * MAX_UPLOAD_BYTES + MAX_JSON_BYTES  # a fit's form: a picture, a mask, the initial values
 MAX_UPLOAD_PIXELS = 16_000_000  # and one with more pixels before they are decoded
 MAX_RENDER_SIZE = 1024
 MAX_RENDER_SPP = 4096
 TOO_LARGE = "upload size"  # the `field` of an upload refused for its size: answered 413, other bad uploads 400
+GONE = "gone"  # the `field` of a watched file deleted before or while it was fitted: answered 410
+VALUES_FIX = 'send {"values": [19 numbers]}, one per parameter of `matfit params`'
 RENDER_PASSES = 8  # a Mitsuba render from the page: spp split into passes, for progress and cancellation
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr")
 SETTLE_SECONDS = 0.15  # a watched file must keep its size this long before it is read
@@ -77,14 +86,14 @@ class Job:
     finished: float | None = None
 
     def answer(self) -> dict:
-        """Returns what the page is told about the job."""
+        """Returns what the page is told about the job (strict JSON: a figure that is not finite is null)."""
         answer = {"job": self.id, "kind": self.kind, "state": self.state, "stage": self.stage}
         answer["progress"] = round(self.progress, 3)
         if self.error is not None:
             answer["error"] = self.error
         if self.result is not None:
             answer["result"] = self.result
-        return answer
+        return documents.finite(answer)
 
 
 def png_data_url(srgb: np.ndarray) -> str:
@@ -213,32 +222,44 @@ class Studio:
 
     @staticmethod
     def check_picture(path: str, kind: str) -> None:
-        """Raises ImageError for a picture the CLI's reader refuses, or one with too many pixels, before queueing."""
+        """Raises ImageError for a picture the CLI's reader refuses (damaged, truncated), or one with too many pixels
+        (before its pixels are decoded), before queueing."""
         try:
             width, height, _, _ = images.header(path)
+            if width * height > MAX_UPLOAD_PIXELS:
+                raise ImageError(
+                    f"the {kind} is {width}x{height}, more than {MAX_UPLOAD_PIXELS / 1e6:.0f} Mpixel: scale it down",
+                    field=TOO_LARGE,
+                )
+            images.load(path, MAX_UPLOAD_PIXELS)
         except ImageError as error:
-            raise ImageError(str(error).replace(path, f"the uploaded {kind}")) from None
-        if width * height > MAX_UPLOAD_PIXELS:
-            raise ImageError(
-                f"the {kind} is {width}x{height}, more than {MAX_UPLOAD_PIXELS / 1e6:.0f} Mpixel: scale it down",
-                field=TOO_LARGE,
-            )
+            raise ImageError(str(error).replace(path, f"the uploaded {kind}"), field=error.field) from None
 
-    def submit_fit(self, target: str, label: str, mask: str | None = None, init: np.ndarray | None = None) -> Job:
-        """Queues a fit of the picture at `target` (a private copy or the watched file); returns its job."""
+    def submit_fit(
+        self,
+        target: str,
+        label: str,
+        mask: str | None = None,
+        init: np.ndarray | None = None,
+        *,
+        watched: bool = False,
+    ) -> Job:
+        """Queues a fit of the picture at `target` (a private copy, or the watched file); returns its job."""
         job = self.new_job("fit")
-        self.worker.submit(self._fit, job, target, label, mask, init)
+        self.worker.submit(self._fit, job, target, label, mask, init, watched)
         return job
 
-    def _fit(self, job: Job, target: str, label: str, mask: str | None, init: np.ndarray | None) -> None:
+    def _fit(self, job: Job, target: str, label: str, mask: str | None, init: np.ndarray | None, watched: bool) -> None:
         if job.cancelled.is_set():
             job.state = job.stage = "superseded" if job.state == "superseded" else "cancelled"
             return
         job.state, job.stage, job.progress = "running", "fitting", 0.1
         started = time.perf_counter()
+        picture = None
         try:
+            picture = self.snapshot(target) if watched else target  # the editor may save or delete it meanwhile
             outcome, _ = fitfile.fit_file(
-                target,
+                picture,
                 self.model,
                 self.settings,
                 mask,
@@ -246,18 +267,45 @@ class Studio:
                 renderer=self.renderer(self.model.resolution),
                 source="uploaded params.json" if init is not None else None,
             )
-            outcome.document.update(target=label, target_sha256=files.sha256(target), model=self.model_label)
+            if watched and not os.path.exists(target):
+                raise gone(target, "while it was fitted")
+            outcome.document.update(target=label, target_sha256=files.sha256(picture), model=self.model_label)
             if mask is not None:
                 outcome.document["mask"] = "painted in the page"
             outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
             job.outcome, job.result = outcome, fit_result(outcome)
             job.state, job.stage, job.progress = "done", "done", 1.0
         except MatfitError as error:
-            job.state, job.stage, job.error, job.status = "error", "error", str(error), 422
+            status = 410 if error.field == GONE else 422
+            message = str(error).replace(picture, target) if watched and picture else str(error)  # the file it names
+            job.state, job.stage, job.error, job.status = "error", "error", message, status
+        except Exception as error:  # a failure of matfit's own: the job ends (never "running" for ever), said in a line
+            message = str(error).splitlines()[0] if str(error) else type(error).__name__
+            job.state, job.stage, job.error, job.status = "error", "error", f"the fit failed: {message}", 500
         finally:
+            if watched and picture is not None:
+                with contextlib.suppress(OSError):
+                    os.unlink(picture)
+                interrupt.unregister(picture)
             job.finished = time.perf_counter()
             if job.cancelled.is_set() and job.state == "done":
                 job.state = job.stage = "superseded"
+
+    def snapshot(self, path: str) -> str:
+        """Returns a private copy of the watched file as it is now (fitted and hashed as one picture); the error GONE
+        if it was deleted."""
+        extension = os.path.splitext(path)[1].lower()
+        handle, copy = tempfile.mkstemp(suffix=extension, dir=self.folder)
+        interrupt.register(copy)
+        try:
+            with open(path, "rb") as source, os.fdopen(handle, "wb") as file:
+                while block := source.read(1 << 20):
+                    file.write(block)
+        except FileNotFoundError:
+            os.unlink(copy)
+            interrupt.unregister(copy)
+            raise gone(path, "before it was fitted") from None
+        return copy
 
     def failed(self, message: str, status: int) -> Job:
         """Returns a new job that failed before it could run (a watched file deleted or unreadable)."""
@@ -320,9 +368,14 @@ class Studio:
             if previous.state in ("queued", "running"):
                 previous.state = "superseded" if previous.state == "queued" else previous.state
                 previous.cancelled.set()
-        job = self.submit_fit(path, os.path.basename(path))
+        job = self.submit_fit(path, os.path.basename(path), watched=True)
         self.watch_jobs.append(job.id)
         return job
+
+
+def gone(path: str, when: str) -> ImageError:
+    """Returns the error of a watched file deleted `when` ("while it was fitted"), answered 410."""
+    return ImageError(f"the watched file {path} was deleted {when}: save it again from your editor", field=GONE)
 
 
 async def settled(path: str) -> tuple[str, int] | None:
@@ -395,25 +448,53 @@ def create_app(studio: Studio, watch: str | None = None):
             }
         )
 
+    def capped(request: Request, cap: int, fix: str) -> Request:
+        """Returns the request with its body counted as it arrives: an error (answered 413) once it passes `cap`
+        bytes, or at once when its Content-Length says it will. Nothing beyond the cap is read."""
+
+        def too_large() -> MatfitError:
+            return MatfitError(
+                f"the request body is more than {cap / 2**20:g} MB, the most it may be: {fix}", TOO_LARGE
+            )
+
+        length = request.headers.get("content-length", "")
+        if length.isdigit() and int(length) > cap:
+            raise too_large()
+        received = 0
+
+        async def receive():
+            nonlocal received
+            message = await request.receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > cap:
+                    raise too_large()
+            return message
+
+        return Request(request.scope, receive)
+
     async def read_upload(form, key: str, kind: str) -> str | None:
         upload = form.get(key)
         if upload is None or isinstance(upload, str):
             return None
         data = await upload.read(MAX_UPLOAD_BYTES + 1)
-        return studio.upload_path(data, upload.filename, kind)
+        return await asyncio.to_thread(studio.upload_path, data, upload.filename, kind)  # it decodes the picture
 
     async def start_fit(request: Request) -> Response:
         try:
-            async with request.form(max_files=3, max_part_size=MAX_UPLOAD_BYTES + 1) as form:
+            request = capped(request, MAX_FIT_BYTES, "upload a smaller picture")
+            async with request.form(max_files=3, max_part_size=MAX_JSON_BYTES) as form:
                 target = await read_upload(form, "image", "picture")
                 if target is None:
                     return error("no picture in the upload: choose or drop an image file")
                 mask = await read_upload(form, "mask", "mask")
                 init = form.get("init")
-                init_values = check_values(json.loads(init)) if isinstance(init, str) and init else None
+                init_values = None
+                if isinstance(init, str) and init:
+                    init_values = check_values(documents.parse(init, "the initial values", VALUES_FIX, ParameterError))
                 label = getattr(form.get("image"), "filename", None) or "upload"
         except MatfitError as problem:
-            return error(str(problem), 413 if problem.field == TOO_LARGE else 400)
+            return refused(problem)
         except (ValueError, HTTPException) as problem:  # a malformed form: Starlette raises HTTPException
             return error(f"the upload could not be read ({getattr(problem, 'detail', problem)}): choose the file again")
         job = studio.submit_fit(target, os.path.basename(label), mask, init_values)
@@ -444,19 +525,23 @@ def create_app(studio: Studio, watch: str | None = None):
         return Response(content, media_type=FILES[name], headers=disposition)
 
     async def json_body(request: Request) -> dict:
-        try:
-            body = await request.json()
-        except (ValueError, UnicodeDecodeError):
-            raise ParameterError('the request is not JSON: send {"values": [...]}') from None
-        if not isinstance(body, dict):
-            raise ParameterError('the request must be a JSON object with "values"')
-        return body
+        """Returns the request's JSON object, read up to MAX_JSON_BYTES; MatfitError (400, or 413 when too large)."""
+        body = bytearray()
+        async for chunk in capped(request, MAX_JSON_BYTES, VALUES_FIX).stream():
+            body += chunk
+        document = documents.parse(bytes(body), "the request", VALUES_FIX, ParameterError)
+        if not isinstance(document, dict):
+            raise ParameterError(f'the request must be a JSON object with "values": {VALUES_FIX}')
+        return document
+
+    def refused(problem: MatfitError) -> JSONResponse:
+        return error(str(problem), 413 if problem.field == TOO_LARGE else 400)
 
     async def preview(request: Request) -> Response:
         try:
             values = check_values((await json_body(request)).get("values"))
         except MatfitError as problem:
-            return error(str(problem))
+            return refused(problem)
         return Response(await asyncio.to_thread(studio.preview, values), media_type="image/png")
 
     async def render(request: Request) -> Response:
@@ -468,23 +553,24 @@ def create_app(studio: Studio, watch: str | None = None):
                 raise ParameterError(f"size {size!r} and spp {spp!r} must be whole numbers")
             job = studio.submit_render(values, size, spp)
         except MatfitError as problem:
-            return error(str(problem))
+            return refused(problem)
         return JSONResponse({"job": job.id}, status_code=202)
 
     async def parse_params(request: Request) -> Response:
         try:
-            async with request.form(max_files=1, max_part_size=1024 * 1024) as form:
+            request = capped(request, MAX_JSON_BYTES, "choose a params.json that matfit wrote")
+            async with request.form(max_files=1, max_part_size=MAX_JSON_BYTES) as form:
                 upload = form.get("params")
                 if upload is None or isinstance(upload, str):
                     return error("no params.json in the upload: choose one")
-                text = (await upload.read(1024 * 1024 + 1)).decode("utf-8", errors="strict")
+                text = (await upload.read(MAX_JSON_BYTES)).decode("utf-8", errors="strict")
             values = params.parse_params_json(text, upload.filename or "params.json")
         except UnicodeDecodeError:
             return error("the params.json is not UTF-8 text: choose a params.json that matfit wrote")
         except HTTPException as problem:
             return error(f"the upload could not be read ({problem.detail}): choose the file again")
         except MatfitError as problem:
-            return error(str(problem))
+            return refused(problem)
         return JSONResponse({"values": values.tolist()})
 
     async def watch_events(request: Request) -> Response:

@@ -420,3 +420,104 @@ def test_a_malformed_form_is_a_400_and_the_server_carries_on(url):
     code, answer = request(url + "api/fit", b"--nonsense without an end", headers)
     assert code == 400 and "could not be read" in json.loads(answer)["error"]
     assert start_fit(url, EXAMPLE)[0] == 202
+
+
+def test_a_truncated_jpeg_upload_is_a_400_before_it_is_queued(url, tmp_path):
+    images.write(str(tmp_path / "edit.jpg"), images.read(EXAMPLE))
+    data = (tmp_path / "edit.jpg").read_bytes()
+    body, headers = multipart({"image": ("edit.jpg", data[: (data.index(b"\xff\xda") + len(data)) // 2])})
+    code, answer = request(url + "api/fit", body, headers)
+    message = json.loads(answer)["error"]
+    assert code == 400 and message.startswith("the uploaded picture is damaged or truncated (JPEG error: Premature")
+    assert message.endswith(": export it again") and "\n" not in message
+    code, answer = start_fit(url, str(tmp_path / "edit.jpg"))
+    assert code == 202 and wait(url, answer["job"])[1]["state"] == "done"
+
+
+def test_json_nested_too_deeply_is_a_400_in_every_endpoint(url):
+    deep = "[" * 100000
+    code, answer = request(url + "api/preview", deep.encode(), {"Content-Type": "application/json"})
+    assert code == 400 and json.loads(answer)["error"].startswith("the request is not valid JSON (nested too deeply")
+    code, answer = request(url + "api/render", deep.encode(), {"Content-Type": "application/json"})
+    assert code == 400 and "nested too deeply" in json.loads(answer)["error"]
+    body, headers = multipart({"params": ("deep.json", deep.encode())})
+    code, answer = request(url + "api/params", body, headers)
+    assert code == 400 and json.loads(answer)["error"].startswith("deep.json is not valid JSON (nested too deeply")
+    with open(EXAMPLE, "rb") as file:
+        body, headers = multipart({"image": ("edit.png", file.read()), "init": deep})
+    code, answer = request(url + "api/fit", body, headers)
+    assert code == 400 and json.loads(answer)["error"].startswith("the initial values is not valid JSON (nested")
+    code, png = post_json(url + "api/preview", {"values": presets.preset("gold").tolist()})
+    assert code == 200 and png.startswith(b"\x89PNG")
+
+
+def call(app, path: str, chunks: list[bytes], headers: dict) -> tuple[int, dict, int]:
+    """Returns (status, JSON answer, how many body chunks the app did not read) of a POST sent straight to the app."""
+    messages = [{"type": "http.request", "body": chunk, "more_body": True} for chunk in chunks]
+    messages.append({"type": "http.request", "body": b"", "more_body": False})
+    sent = []
+
+    async def receive():
+        return messages.pop(0) if messages else {"type": "http.disconnect"}
+
+    async def send(message):
+        sent.append(message)
+
+    scope = {
+        "type": "http",
+        "method": "POST",
+        "path": path,
+        "raw_path": path.encode(),
+        "query_string": b"",
+        "headers": [(key.lower().encode(), value.encode()) for key, value in headers.items()],
+        "http_version": "1.1",
+        "scheme": "http",
+        "server": ("127.0.0.1", 80),
+        "client": ("127.0.0.1", 1),
+        "root_path": "",
+    }
+    serve.asyncio.run(app(scope, receive, send))
+    body = b"".join(message.get("body", b"") for message in sent if message["type"] == "http.response.body")
+    return sent[0]["status"], json.loads(body), len(messages)
+
+
+def test_request_bodies_over_their_cap_are_a_413_and_not_read_beyond_it(studio):
+    app = serve.create_app(studio)
+    json_type = {"Content-Type": "application/json"}
+    chunks = [b'{"values": [', *[b"0.5, " * 20_000] * 60, b"0.5]}"]  # 6 MB, sent without a Content-Length
+    status, answer, unread = call(app, "/api/preview", chunks, json_type)
+    assert status == 413 and answer["error"] == (
+        "the request body is more than 1 MB, the most it may be: "
+        'send {"values": [19 numbers]}, one per parameter of `matfit params`'
+    )
+    assert unread >= 50  # counted as it arrived: refused once past 1 MB, the rest never read
+    status, answer, unread = call(app, "/api/render", chunks, {**json_type, "Content-Length": "6000007"})
+    assert status == 413 and unread == len(chunks) + 1  # its length said so: nothing read at all
+    form = {"Content-Type": "multipart/form-data; boundary=xyz", "Content-Length": str(2 * 2**20)}
+    status, answer, _ = call(app, "/api/params", [b"--xyz"], form)
+    assert status == 413 and "choose a params.json that matfit wrote" in answer["error"]
+    form["Content-Length"] = str(serve.MAX_FIT_BYTES + 1)
+    status, answer, _ = call(app, "/api/fit", [b"--xyz"], form)
+    assert status == 413 and answer["error"].startswith(
+        f"the request body is more than {serve.MAX_FIT_BYTES / 2**20:g}"
+    )
+    body = json.dumps({"values": presets.preset("gold").tolist(), "size": 16, "spp": 1}).encode()
+    status, _, _ = call(app, "/api/render", [body[:100], body[100:]], json_type)
+    assert status == 202  # a body under the cap, in pieces, is read whole
+
+
+def test_a_watched_file_deleted_before_its_fit_ends_the_job_with_a_410(url, studio, tmp_path):
+    path = tmp_path / "edit.png"
+    shutil.copy(EXAMPLE, path)
+    before = set(os.listdir(studio.folder))
+    busy = threading.Event()
+    studio.worker.submit(busy.wait, 60)  # the worker is busy: the watched file's fit waits in the queue
+    job = studio.watched_change(str(path))
+    os.unlink(path)
+    busy.set()
+    status, answer = wait(url, job.id)
+    assert status == 410 and answer["state"] == "error"
+    assert (
+        answer["error"] == f"the watched file {path} was deleted before it was fitted: save it again from your editor"
+    )
+    assert set(os.listdir(studio.folder)) == before  # no snapshot left behind
