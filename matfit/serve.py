@@ -491,7 +491,7 @@ def create_app(studio: Studio, watch: str | None = None):
                 init = form.get("init")
                 init_values = None
                 if isinstance(init, str) and init:
-                    init_values = check_values(documents.parse(init, "the initial values", VALUES_FIX, ParameterError))
+                    init_values = check_values(documents.parse(init, "the init field", VALUES_FIX, ParameterError))
                 label = getattr(form.get("image"), "filename", None) or "upload"
         except MatfitError as problem:
             return refused(problem)

@@ -446,7 +446,7 @@ def test_json_nested_too_deeply_is_a_400_in_every_endpoint(url):
     with open(EXAMPLE, "rb") as file:
         body, headers = multipart({"image": ("edit.png", file.read()), "init": deep})
     code, answer = request(url + "api/fit", body, headers)
-    assert code == 400 and json.loads(answer)["error"].startswith("the initial values is not valid JSON (nested")
+    assert code == 400 and json.loads(answer)["error"].startswith("the init field is not valid JSON (nested")
     code, png = post_json(url + "api/preview", {"values": presets.preset("gold").tolist()})
     assert code == 200 and png.startswith(b"\x89PNG")
 
