@@ -330,8 +330,9 @@ def evaluate(
     from matfit import evaluate as evaluate_module
     from matfit import models
 
+    data = dataset.open_dataset(str(references))  # the cheaper check first
     model = models.load_model(str(model_path))
-    evaluation = evaluate_module.evaluate(model, dataset.open_dataset(str(references)), preset_spp)
+    evaluation = evaluate_module.evaluate(model, data, preset_spp)
     if card:
         echo_lines(f"wrote {path}" for path in evaluate_module.write_report(model, evaluation))
     typer.echo(evaluate_module.card(model, evaluation))

@@ -28,12 +28,12 @@ import os
 import shutil
 import signal
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import documents, files, interrupt, params, scene
+from matfit import documents, files, interrupt, params, render, scene
 from matfit.errors import DatasetError
 
 FORMAT = "matfit-dataset"
@@ -219,7 +219,72 @@ def read_meta(path: str) -> dict:
             f"{path} has dataset format {meta.get('format_version')}, this matfit reads {FORMAT_VERSION}: "
             "render it again"
         )
+    for field, check in META_FIELDS.items():
+        if field in meta or field in REQUIRED_META:
+            problem = check(meta.get(field, _MISSING))
+            if problem is not None:
+                shown = "missing" if field not in meta else f"{json.dumps(meta[field])[:40]}, {problem}"
+                raise DatasetError(
+                    f"{meta_path}: field {field!r} is {shown}: "
+                    f"delete {path} and render it again with `matfit render-dataset`"
+                )
     return meta
+
+
+_MISSING = object()
+
+
+def _whole(low: int, high: int) -> Callable[[object], str | None]:
+    """Returns a check that a value is a whole number in [low, high] (what is wrong, or None)."""
+
+    def check(value: object) -> str | None:
+        if value is _MISSING or isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+            return f"not a whole number from {low} to {high}"
+        return None
+
+    return check
+
+
+def _one_of(choices: Iterable[str]) -> Callable[[object], str | None]:
+    """Returns a check that a value is one of `choices`."""
+    names = tuple(choices)
+
+    def check(value: object) -> str | None:
+        return None if value in names else f"not one of {', '.join(names)}"
+
+    return check
+
+
+def _of_type(kind: type, description: str) -> Callable[[object], str | None]:
+    """Returns a check that a value is of type `kind`."""
+
+    def check(value: object) -> str | None:
+        return None if isinstance(value, kind) else f"not {description}"
+
+    return check
+
+
+def _parameter_table(value: object) -> str | None:
+    parameters = value.get("parameters") if isinstance(value, dict) else None
+    if not isinstance(parameters, list) or not all(isinstance(entry, dict) for entry in parameters):
+        return "not a parameter table"
+    return None
+
+
+# What every field of meta.json must hold: a dataset is only opened once all of them are right, so no
+# later use of a field can fail. `sampler`, `integrator` and `versions` are absent from old datasets.
+REQUIRED_META = ("count", "resolution", "spp", "seed", "variant", "parameter_table")
+META_FIELDS: dict[str, Callable[[object], str | None]] = {
+    "count": _whole(1, MAX_COUNT),
+    "resolution": _whole(MIN_RESOLUTION, MAX_RESOLUTION),
+    "spp": _whole(1, MAX_SPP),
+    "seed": _whole(0, params.MAX_SEED),
+    "variant": _one_of(render.VARIANTS),
+    "sampler": _one_of(params.SAMPLERS),
+    "integrator": _of_type(str, "a name"),
+    "versions": _of_type(dict, "an object"),
+    "parameter_table": _parameter_table,
+}
 
 
 def open_dataset(path: str, writable: bool = False) -> Dataset:
@@ -508,8 +573,6 @@ def render_dataset(
     fallback). Every argument is checked before anything is written. With `ray_address` the
     images are rendered as Ray tasks (`render_missing`).
     """
-    from matfit import render
-
     if not 1 <= workers <= MAX_WORKERS:
         raise DatasetError(f"workers {workers} is out of range: use 1 to {MAX_WORKERS}", field="workers")
     if ray_address is not None:

@@ -294,3 +294,42 @@ def test_killed_ray_worker_loses_nothing(tmp_path, long_reference, settings, loc
     assert killed, "no Ray worker was busy rendering when the test looked for one"
     dataset.render_missing(dataset.open_dataset(str(tmp_path), writable=True), 2, ray_address="local")
     assert array_bytes(tmp_path) == array_bytes(long_reference)
+
+
+@pytest.mark.parametrize(
+    ("change", "shown"),
+    [
+        pytest.param({"count": "abc"}, "'count' is \"abc\", not a whole number from 1 to", id="count-text"),
+        pytest.param({"count": None}, "'count' is missing", id="no-count"),
+        pytest.param({"resolution": 16.5}, "'resolution' is 16.5, not a whole number from 8 to 1024", id="resolution"),
+        pytest.param({"spp": True}, "'spp' is true, not a whole number", id="spp-bool"),
+        pytest.param({"seed": -1}, "'seed' is -1, not a whole number from 0 to", id="seed"),
+        pytest.param({"variant": 5}, "'variant' is 5, not one of llvm_ad_rgb, scalar_rgb", id="variant"),
+        pytest.param({"sampler": "milk"}, "'sampler' is \"milk\", not one of uniform", id="sampler"),
+        pytest.param({"parameter_table": []}, "'parameter_table' is [], not a parameter table", id="table"),
+    ],
+)
+def test_every_meta_field_is_checked_by_every_command(tmp_path, reference, change, shown):
+    """render-dataset, train and evaluate refuse a damaged meta.json in one line naming the file, the field, the fix."""
+    from typer.testing import CliRunner
+
+    from matfit.cli import app
+
+    for name in ("meta.json", *dataset.ARRAYS):
+        (tmp_path / name).write_bytes((reference / name).read_bytes())
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    meta.update(change)
+    meta = {key: value for key, value in meta.items() if value is not None}
+    (tmp_path / "meta.json").write_text(json.dumps(meta))
+    commands = [
+        ["render-dataset", tmp_path, "--count", 40, "--resolution", 16, "--spp", 2, "--seed", 3],
+        ["train", "--arch", "8", "--dataset", tmp_path, "--out", tmp_path / "model"],
+        ["evaluate", "--references", tmp_path],
+    ]
+    for command in commands:
+        result = CliRunner().invoke(app, [str(part) for part in command])
+        assert result.exit_code == 2, result.output
+        lines = result.output.splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"error: {tmp_path / 'meta.json'}: field {shown}"), lines
+        assert lines[0].endswith(f": delete {tmp_path} and render it again with `matfit render-dataset`"), lines
+    assert not (tmp_path / "model").exists()
