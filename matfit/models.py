@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 import os
 import sys
 from collections.abc import Sequence
@@ -633,19 +634,99 @@ def restore_variables(
         raise WeightsError(f"{path} does not hold the weights of its architecture ({error}): train again") from None
     if stored_shapes != shapes:
         raise WeightsError(f"{path} holds weights of other shapes than its architecture: train again")
-    if not all(np.all(np.isfinite(np.asarray(leaf, np.float32))) for leaf in jax.tree_util.tree_leaves(stored)):
-        raise WeightsError(f"{path} holds NaN or infinite weights (a diverged or damaged network): train again")
     # One transfer of the whole tree: one device_put of float32 NumPy arrays is several times faster than converting
     # leaf by leaf with jnp.asarray.
     return module, jax.device_put(jax.tree_util.tree_map(lambda leaf: np.asarray(leaf, dtype), stored))
 
 
-def load(path: str, resolution: int | None = None, name: str | None = None) -> Network:
-    """Returns the network saved at `path`, checking the parameter table and, if given, the resolution and the name."""
+# What an architecture record may hold, field by field: (type, low, high) for numbers, the length for grids. Checked
+# before anything is built, so a damaged record is refused in one line instead of failing inside Flax or allocating
+# a decoder for a million-pixel image. Resolutions: those of datasets (`dataset.MAX_RESOLUTION`) that a decoder draws.
+RESOLUTIONS = tuple(8 * 2**stage for stage in range(8))  # 8 to 1024
+WHOLE_FIELDS = {"hidden": (1, 8192), "base_channels": (1, 4096), "convs_per_stage": (0, 16)}
+FLAG_FIELDS = ("coordinates", "medium_inputs", "absorption", "coarse_absorption")
+GRID_FIELDS = ("glass_grid", "medium_grid")
+MAX_GRID = 64
+MAX_CHANNELS = 4096
+MAX_STAGES = len(RESOLUTIONS)
+MAX_PATH_START = 100.0
+
+
+def _is_whole(value: object, low: int, high: int) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and low <= value <= high
+
+
+def architecture_problem(description: dict) -> str | None:
+    """Returns what is wrong with an architecture record (`architecture(...)`), as "field 'x' is ...", or None."""
+
+    def field(name: str, expected: str) -> str:
+        return f"field {name!r} is {json.dumps(description.get(name), default=repr)[:40]}, not {expected}"
+
+    kind = description.get("kind")
+    if kind not in (DECODER, "encoder"):
+        return field("kind", "decoder or encoder")
+    if "resolution" not in description:
+        return "field 'resolution' is missing"
+    if not _is_whole(description["resolution"], RESOLUTIONS[0], RESOLUTIONS[-1]) or (
+        description["resolution"] not in RESOLUTIONS
+    ):
+        return field("resolution", f"one of {', '.join(map(str, RESOLUTIONS))}")
+    if kind == "encoder":
+        if not _is_whole(description.get("arch"), 1, len(ENCODERS)):
+            return field("arch", f"a whole number from 1 to {len(ENCODERS)}")
+        unknown = sorted(set(description) - {"kind", "arch", "resolution"})
+        return f"field {unknown[0]!r} is not part of an encoder" if unknown else None
+    known = {entry.name for entry in dataclasses.fields(Decoder)} - {"parent", "name"}
+    unknown = sorted(set(description) - known - {"kind"})
+    if unknown:
+        return f"field {unknown[0]!r} is not part of a decoder"
+    for name, (low, high) in WHOLE_FIELDS.items():
+        if name in description and not _is_whole(description[name], low, high):
+            return field(name, f"a whole number from {low} to {high}")
+    channels = description.get("stage_channels", list(Decoder.stage_channels))
+    if (
+        not isinstance(channels, list)
+        or not 1 <= len(channels) <= MAX_STAGES
+        or not all(_is_whole(value, 1, MAX_CHANNELS) for value in channels)
+    ):
+        return field("stage_channels", f"1 to {MAX_STAGES} whole numbers from 1 to {MAX_CHANNELS}")
+    for name in FLAG_FIELDS:
+        if name in description and not isinstance(description[name], bool):
+            return field(name, "true or false")
+    for name in GRID_FIELDS:
+        grid = description.get(name, [])
+        if grid != [] and not (
+            isinstance(grid, list) and len(grid) == 2 and all(_is_whole(value, 2, MAX_GRID) for value in grid)
+        ):
+            return field(name, f"[] or two whole numbers from 2 to {MAX_GRID}")
+    start = description.get("path_start", 0.0)
+    if isinstance(start, bool) or not isinstance(start, int | float) or not abs(start) <= MAX_PATH_START:
+        return field("path_start", f"a number from {-MAX_PATH_START:g} to {MAX_PATH_START:g}")
+    return None
+
+
+def non_finite_leaf(variables: dict) -> str | None:
+    """Returns the name of the first weight array holding NaN or infinity ("params/Dense_0/kernel"), or None."""
+    for keys, leaf in jax.tree_util.tree_flatten_with_path(variables)[0]:
+        if not np.isfinite(np.asarray(leaf)).all():
+            return "/".join(str(getattr(key, "key", key)) for key in keys)
+    return None
+
+
+def load(path: str, resolution: int | None = None, name: str | None = None, *, check_finite: bool = True) -> Network:
+    """Returns the network saved at `path`, checking the parameter table and, if given, the resolution and the name.
+
+    Its architecture record is checked field by field, and with `check_finite` its weights too (NaN or infinity
+    is refused: a broken network would otherwise put NaN into every result). `load_model` checks its encoders'
+    weights on the device instead, where they are converted anyway.
+    """
     document = restore_document(path, WEIGHTS_FORMAT, "weights file")
     description = document.get("architecture")
-    if not isinstance(description, dict) or "resolution" not in description:
+    if not isinstance(description, dict):
         raise WeightsError(f"{path} has no architecture description: train again")
+    problem = architecture_problem(description)
+    if problem is not None:
+        raise WeightsError(f"{path}: architecture {problem}: train it again (or copy an intact file there)")
     stored_name = describe_network(description)
     if name is not None and stored_name != name:
         raise WeightsError(
@@ -661,6 +742,11 @@ def load(path: str, resolution: int | None = None, name: str | None = None) -> N
     # `load_model` to convert all of them in one program on the device, the same numbers.
     dtype = np.float32 if stored_name == DECODER else None
     module, variables = restore_variables(path, description, document.get("variables"), dtype)
+    broken = non_finite_leaf(document["variables"]) if check_finite else None
+    if broken is not None:
+        raise WeightsError(
+            f"{path}: weights {broken} hold NaN or infinity: train it again (or copy an intact file there)"
+        )
     return Network(
         str(document.get("name")), description, module, variables, document.get("info") or {}, document["sha256"]
     )
@@ -717,14 +803,20 @@ def load_model(directory: str) -> Model:
     for arch, name in zip(ENCODERS, ENCODER_NAMES, strict=True):
         path = weights_path(directory, name)
         if os.path.exists(path):
-            encoders[arch] = load(path, resolution=decoder.resolution, name=name)
+            encoders[arch] = load(path, resolution=decoder.resolution, name=name, check_finite=False)
     if not encoders:
         raise WeightsError(
             f"{directory} has a decoder but no encoders: train them with `matfit train --arch 1..9 --out {directory}`"
         )
     # The encoders' weights (float16 as stored, 90% of the model's) become float32 on the device, all in one compiled
-    # program, faster than NumPy's conversion; left float16, every fit's best-of-n would convert them again.
-    converted = encoders_float32(tuple(network.variables for network in encoders.values()))
+    # program: 0.16 s in NumPy on loading; left float16, every fit's best-of-n converted them again (+40 ms a fit).
+    converted, finite = encoders_float32(tuple(network.variables for network in encoders.values()))
+    for network, intact in zip(encoders.values(), np.asarray(finite), strict=True):
+        if not intact:
+            raise WeightsError(
+                f"{weights_path(directory, network.name)}: weights {non_finite_leaf(network.variables)} hold NaN or "
+                "infinity: train it again (or copy an intact file there)"
+            )
     encoders = {
         arch: dataclasses.replace(network, variables=variables)
         for (arch, network), variables in zip(encoders.items(), converted, strict=True)
@@ -734,8 +826,13 @@ def load_model(directory: str) -> Model:
 
 @programs.jit
 def encoders_float32(variables: tuple) -> tuple:
-    """Returns every encoder's weights as float32 (a tuple of variable trees), converted in one compiled program."""
-    return as_float32(variables)
+    """Returns (every encoder's weights as float32, a tuple of variable trees; for each encoder whether all its weights
+    are finite), converted and checked in one compiled program."""
+    finite = [
+        jnp.all(jnp.stack([jnp.all(jnp.isfinite(leaf)) for leaf in jax.tree_util.tree_leaves(tree)]))
+        for tree in variables
+    ]
+    return as_float32(variables), jnp.stack(finite)
 
 
 # The most the program store may hold: the shipped model's default fit stores ~2.4 MB of executables (its four compiled

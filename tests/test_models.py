@@ -462,12 +462,79 @@ def test_the_program_store_is_pruned_to_its_cap_and_the_old_jax_cache_removed_wh
     assert not programs.jax_cache_enabled()  # JAX's persistent cache stays off
 
 
-def test_a_weights_file_holding_nan_is_refused(tmp_path):
+@pytest.fixture(scope="module")
+def tiny_networks():
+    """A small decoder and encoder 8, initialised once: (decoder module, its variables, encoder, its variables)."""
     decoder = models.Decoder(resolution=32, hidden=64, base_channels=32, stage_channels=(32,))
-    variables = models.initialise(decoder, jax.random.key(0), (19,))
-    variables = jax.tree_util.tree_map(lambda leaf: np.asarray(leaf).copy(), variables)
-    jax.tree_util.tree_leaves(variables)[0].flat[0] = np.nan
-    network = models.Network("decoder", models.architecture("decoder", 32, decoder), decoder, variables, {})
-    models.save(str(tmp_path / "decoder.msgpack"), network)
-    with pytest.raises(models.WeightsError, match=r"decoder\.msgpack holds NaN or infinite weights.*train again"):
-        models.load(str(tmp_path / "decoder.msgpack"))
+    encoder = models.encoder(8)
+    return (
+        decoder,
+        models.initialise(decoder, jax.random.key(0), (19,)),
+        encoder,
+        models.initialise(encoder, jax.random.key(1), (32, 32, 3)),
+    )
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"resolution": "abc"}, "field 'resolution' is \"abc\", not one of 8, 16, 32, 64, 128, 256, 512, 1024"),
+        ({"resolution": 10**6}, "field 'resolution' is 1000000, not one of 8"),
+        ({"resolution": 2**20}, "field 'resolution' is 1048576, not one of 8"),  # a power of two: it allocated
+        ({"resolution": 32.0}, "field 'resolution' is 32.0, not one of 8"),
+        ({"hidden": -1}, "field 'hidden' is -1, not a whole number from 1 to 8192"),
+        ({"stage_channels": [32, "x"]}, "field 'stage_channels' is [32, \"x\"], not 1 to 8 whole numbers"),
+        ({"stage_channels": []}, "field 'stage_channels' is [], not 1 to 8 whole numbers"),
+        ({"glass_grid": [17]}, "field 'glass_grid' is [17], not [] or two whole numbers from 2 to 64"),
+        ({"coordinates": "yes"}, "field 'coordinates' is \"yes\", not true or false"),
+        ({"path_start": float("nan")}, "field 'path_start' is NaN, not a number from -100 to 100"),
+        ({"kind": "vae"}, "field 'kind' is \"vae\", not decoder or encoder"),
+        ({"depth": 3}, "field 'depth' is not part of a decoder"),
+    ],
+)
+def test_a_damaged_architecture_record_is_refused_in_one_line(tmp_path, change, message):
+    path = tmp_path / "decoder.msgpack"
+    description = {**models.architecture("decoder", 32), **change}
+    # The record is refused before any weight is looked at: any will do.
+    models.save(str(path), models.Network("decoder", description, None, {"params": {"x": np.zeros(1)}}, {}))
+    with pytest.raises(models.WeightsError) as caught:
+        models.load(str(path))
+    assert str(caught.value).startswith(f"{path}: architecture {message}")
+    assert str(caught.value).endswith(": train it again (or copy an intact file there)")
+
+
+def test_an_encoder_architecture_record_is_checked_too(tmp_path):
+    description = {**models.architecture("encoder-8", 32), "arch": "8"}
+    models.save(
+        str(tmp_path / "encoder-8.msgpack"),
+        models.Network("encoder-8", description, None, {"params": {"x": np.zeros(1)}}, {}),
+    )
+    with pytest.raises(models.WeightsError, match="field 'arch' is \"8\", not a whole number from 1 to 9"):
+        models.load(str(tmp_path / "encoder-8.msgpack"))
+
+
+@pytest.mark.parametrize(("network", "value"), [("decoder", np.nan), ("encoder-8", np.inf)])
+def test_weights_with_nan_or_infinity_are_refused_when_a_model_loads(tmp_path, tiny_networks, network, value):
+    """A broken network is refused at load, so that no fit can write NaN into params.json."""
+    decoder, decoder_variables, encoder, encoder_variables = tiny_networks
+    variables = {"decoder": decoder_variables, "encoder-8": encoder_variables}
+    variables[network] = jax.tree_util.tree_map(lambda leaf: np.array(leaf), variables[network])
+    variables[network]["params"]["Dense_1"]["kernel"][3, 2] = value
+    models.save(
+        str(tmp_path / "decoder.msgpack"),
+        models.Network("decoder", models.architecture("decoder", 32, decoder), decoder, variables["decoder"], {}),
+    )
+    models.save(
+        str(tmp_path / "encoder-8.msgpack"),
+        models.Network("encoder-8", models.architecture("encoder-8", 32), encoder, variables["encoder-8"], {}),
+    )
+    expected = (
+        f"{tmp_path / (network + '.msgpack')}: weights params/Dense_1/kernel hold NaN or infinity: "
+        "train it again (or copy an intact file there)"
+    )
+    with pytest.raises(models.WeightsError) as caught:
+        models.load_model(str(tmp_path))
+    assert str(caught.value) == expected
+    with pytest.raises(models.WeightsError) as caught:
+        models.load(str(tmp_path / f"{network}.msgpack"))
+    assert str(caught.value) == expected
