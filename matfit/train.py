@@ -408,18 +408,12 @@ def create_run(
 
     A refracting decoder's bases are rendered into the first dataset if they are not there.
     """
-    if name not in NETWORKS:
-        raise TrainingError(f"unknown network {name!r}: use decoder or 1 to 9", field="arch")
     datasets = as_datasets(data)
-    for each in datasets:
-        pipeline.check_finished(each)
-    config.check(sum(each.count for each in datasets))
-    description = models.architecture(name, datasets[0].resolution, decoder)
+    description, start = check_run(name, datasets, out, config, decoder)
     weights_file = models.weights_path(out, name)
     checkpoint_file = checkpoint_path(out, name)
     os.makedirs(os.path.dirname(checkpoint_file), exist_ok=True)
     files.check_writable(weights_file)
-    start = starting_network(name, config, out, description)
     linear = linear_targets(name, config)
     inputs, targets, training_samples = split(name, datasets, config.validation_fraction, linear)
     steps = training_samples // config.batch_size
@@ -448,6 +442,26 @@ def create_run(
         constants,
         start,
     )
+
+
+def check_run(
+    name: str, datasets: list[Dataset], out: str, config: Config, decoder: models.Decoder | None = None
+) -> tuple[dict, models.Network | None]:
+    """Returns (the architecture record, the starting network or None) of a run, having checked everything that
+    can refuse it (datasets, settings, the start's weights) without writing anything."""
+    if name not in NETWORKS:
+        raise TrainingError(f"unknown network {name!r}: use decoder or 1 to 9", field="arch")
+    for each in datasets:
+        pipeline.check_finished(each)
+    config.check(sum(each.count for each in datasets))
+    description = models.architecture(name, datasets[0].resolution, decoder)
+    if models.architecture_problem(description) is not None:
+        raise TrainingError(
+            f"{datasets[0].path} holds {datasets[0].resolution} px images; networks are trained on "
+            f"{', '.join(map(str, models.RESOLUTIONS))} px: render a dataset of one of these resolutions",
+            field="dataset",
+        )
+    return description, starting_network(name, config, out, description)
 
 
 def linear_targets(name: str, config: Config) -> bool:
@@ -628,11 +642,11 @@ def train_networks(
     """
     if os.path.exists(out) and not os.path.isdir(out):
         raise files.OutputError(f"model directory {out} is a file: give a directory for the model", field="out")
-    for name in names:  # every setting checked before the model directory is made
-        config.for_network(name).check(sum(each.count for each in as_datasets(data)))
-        start_path(name, config, out)
+    datasets = as_datasets(data)
+    decoder = models.trained_decoder(datasets[0].resolution, coarse_absorption)
+    for name in names:  # everything checked before the model directory is made: a refusal leaves no folder
+        check_run(name, datasets, out, config.for_network(name), decoder)
     os.makedirs(out, exist_ok=True)
-    decoder = models.trained_decoder(as_datasets(data)[0].resolution, coarse_absorption)
     for name in names:
         yield name, train_network(name, data, out, config.for_network(name), reporter, decoder)
 
@@ -656,8 +670,12 @@ def parse_arch(text: str) -> list[str]:
         elif part == "all":
             names.extend(NETWORKS)
         elif ".." in part:
-            low, _, high = part.partition("..")
-            names.extend(f"encoder-{arch}" for arch in range(_arch_number(low), _arch_number(high) + 1))
+            low, high = (_arch_number(end) for end in part.split("..", 1))
+            if low > high:
+                raise TrainingError(
+                    f"arch {part} is an empty range: give it from low to high ({high}..{low})", field="arch"
+                )
+            names.extend(f"encoder-{arch}" for arch in range(low, high + 1))
         else:
             names.append(f"encoder-{_arch_number(part)}")
     return list(dict.fromkeys(names))

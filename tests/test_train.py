@@ -471,3 +471,31 @@ def test_make_model_trains_what_ships():
     architecture = models.load(str(shipped / "decoder.msgpack")).description
     assert architecture == models.architecture("decoder", 64, models.trained_decoder(64, "--coarse-absorption" in last))
     assert ("--coarse-absorption" in trains[0]) == ("--coarse-absorption" in last)
+
+
+def test_a_refused_train_leaves_no_folder(tmp_path, data, renderer):
+    """Backward ranges, an unfinished dataset, a start of another architecture: one error line, exit 2, no out/."""
+    from typer.testing import CliRunner
+
+    from matfit.cli import app
+
+    partial = str(tmp_path / "partial")
+    dataset.prepare(partial, dataset.Settings(32, 1, 0, renderer.variant), 4, {})
+    base = tmp_path / "base"  # an encoder 8 trained on 64 px images: it cannot start a run on 32 px ones
+    base.mkdir()
+    encoder = models.encoder(8)
+    variables = models.initialise(encoder, jax.random.key(1), (32, 32, 3))
+    network = models.Network("encoder-8", models.architecture("encoder-8", 64), encoder, variables, {})
+    models.save(models.weights_path(str(base), "encoder-8"), network)
+    cases = [
+        (["--arch", "9..1", "--dataset", data.path], "error: --arch 9..1 is an empty range: give it from low to high"),
+        (["--arch", "3..2,8", "--dataset", data.path], "error: --arch 3..2 is an empty range"),
+        (["--arch", "8", "--dataset", partial, "--batch-size", "1"], "0/4 samples rendered"),
+        (["--arch", "8", "--dataset", data.path, "--batch-size", "8", "--start-from", base], "of another architecture"),
+    ]
+    for arguments, message in cases:
+        out = tmp_path / "out"
+        result = CliRunner().invoke(app, ["train", *map(str, arguments), "--epochs", "1", "--out", str(out)])
+        assert result.exit_code == 2, result.output
+        assert len(result.output.splitlines()) == 1 and message in result.output, result.output
+        assert not out.exists(), f"{arguments}: the refused run left {sorted(os.listdir(out))} in out/"
