@@ -23,10 +23,13 @@ from __future__ import annotations
 import contextlib
 import functools
 import json
-import multiprocessing
 import os
+import queue
 import shutil
 import signal
+import subprocess
+import sys
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
@@ -34,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from matfit import documents, files, interrupt, params, render, scene
-from matfit.errors import DatasetError
+from matfit.errors import DatasetError, RenderError
 
 FORMAT = "matfit-dataset"
 FORMAT_VERSION = 1
@@ -467,19 +470,143 @@ def _in_this_process(settings: Settings, tasks: list[Task], workers: int) -> Ite
     yield map(render_chunk, tasks)
 
 
+class _Worker:
+    """One rendering child process of `render_missing`: `serve_chunks` in a new interpreter, spoken to over two pipes.
+
+    The child holds only its own ends of the pipes, so it sees its requests end as soon as this process ends, however
+    it ends (`kill -9` included): it then finishes the render in hand and leaves without a word (`serve_chunks`).
+    Nothing of multiprocessing is used, so no semaphore or resource tracker outlives a killed parent either.
+    """
+
+    def __init__(self, settings: Settings):
+        requests_read, requests_write = os.pipe()
+        replies_read, replies_write = os.pipe()
+        package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # this very matfit, wherever it lies
+        code = (
+            f"import sys; sys.path.insert(0, {package!r}); from matfit import dataset; dataset.serve_chunks("
+            f"{requests_read}, {replies_write}, {settings.resolution}, {settings.spp}, {settings.variant!r})"
+        )
+        try:
+            # A session of its own: the terminal's Ctrl-C reaches only the parent, which stops the workers, so no
+            # render cancelled by Mitsuba's own SIGINT handler is ever stored.
+            self.process = subprocess.Popen(
+                [sys.executable, "-c", code], pass_fds=(requests_read, replies_write), start_new_session=True
+            )
+        except BaseException:
+            for descriptor in (requests_write, replies_read):
+                os.close(descriptor)
+            raise
+        finally:
+            os.close(requests_read)
+            os.close(replies_write)
+        self.requests = os.fdopen(requests_write, "wb")
+        self.replies = os.fdopen(replies_read, "rb")
+
+    def render(self, task: Task) -> tuple[np.ndarray, np.ndarray]:
+        """Returns (indices, float16 images) of one task, rendered by the child."""
+        indices, values, seeds = task
+        try:
+            header = {"indices": [int(i) for i in indices], "seeds": [int(s) for s in seeds]}
+            render.write_message(self.requests, header, np.asarray(values, np.float64))
+            reply, images = render.read_message(self.replies)
+        except (OSError, EOFError, ValueError):
+            raise DatasetError(
+                f"a rendering process ended unexpectedly (exit code {self.process.poll()}): "
+                "run the same command to resume"
+            ) from None
+        if "error" in reply:
+            raise RenderError(reply["error"])
+        return indices, images
+
+    def stop(self) -> None:
+        """Ends the child at once (its finished images are stored already) and waits for it."""
+        self.process.kill()
+        self.process.wait()
+
+    def close(self) -> None:
+        """Closes this side's pipes (after `stop`, once nothing reads or writes them)."""
+        for file in (self.requests, self.replies):
+            with contextlib.suppress(OSError):
+                file.close()
+
+
+def _render_tasks(worker: _Worker, tasks: queue.SimpleQueue, results: queue.SimpleQueue) -> None:
+    """A thread's work: has `worker` render tasks until none is left, putting each result (or failure) in `results`."""
+    while True:
+        try:
+            task = tasks.get_nowait()
+        except queue.Empty:
+            return
+        try:
+            results.put(worker.render(task))
+        except BaseException as error:  # handed to the main thread, which raises it
+            results.put(error)
+            return
+
+
 @contextlib.contextmanager
-def _in_a_process_pool(settings: Settings, tasks: list[Task], workers: int) -> Iterator[Results]:
-    context = multiprocessing.get_context("spawn")  # Dr.Jit's threads do not survive fork
-    pool = context.Pool(workers, init_worker, (settings.resolution, settings.spp, settings.variant))
+def _in_worker_processes(settings: Settings, tasks: list[Task], workers: int) -> Iterator[Results]:
+    """Yields the results of `tasks` rendered by `workers` child processes, each fed by a thread of this process."""
+    pending: queue.SimpleQueue = queue.SimpleQueue()
+    for task in tasks:
+        pending.put(task)
+    results: queue.SimpleQueue = queue.SimpleQueue()
+    children: list[_Worker] = []
+    threads: list[threading.Thread] = []
+
+    def collected() -> Results:
+        for _ in tasks:
+            result = results.get()
+            if isinstance(result, BaseException):
+                raise result
+            yield result
+
     try:
-        yield pool.imap_unordered(render_chunk, tasks)
-    except BaseException:
-        pool.terminate()
-        raise
-    else:
-        pool.close()
+        for _ in range(min(workers, len(tasks))):
+            children.append(_Worker(settings))
+            threads.append(threading.Thread(target=_render_tasks, args=(children[-1], pending, results), daemon=True))
+            threads[-1].start()
+        yield collected()
     finally:
-        pool.join()
+        for child in children:
+            child.stop()
+        for thread in threads:
+            thread.join()
+        for child in children:
+            child.close()
+
+
+def serve_chunks(requests: int, replies: int, resolution: int, spp: int, variant: str) -> None:
+    """A rendering worker of `render_missing` (`_Worker`'s child): renders each chunk read from the file descriptor
+    `requests` and writes its images to `replies` until the requests end, then exits.
+
+    Its parent gone (the requests end, or a reply meets a closed pipe), it ends without a word: no traceback, and no
+    teardown of Mitsuba (`os._exit`) that could print anything.
+    """
+    with contextlib.suppress(BrokenPipeError):
+        _answer_chunks(requests, replies, resolution, spp, variant)
+    os._exit(0)
+
+
+def _answer_chunks(requests: int, replies: int, resolution: int, spp: int, variant: str) -> None:
+    with os.fdopen(requests, "rb") as incoming, os.fdopen(replies, "wb") as outgoing:
+        try:
+            init_worker(resolution, spp, variant, new_session=False)
+        except Exception as error:  # RenderError, or Mitsuba failing to start: the parent reports it in one line
+            render.write_message(outgoing, {"error": f"a rendering process could not start: {error}"})
+            return
+        while True:
+            try:
+                header, values = render.read_message(incoming)
+            except (EOFError, OSError, ValueError):  # the parent closed its end, or ended
+                return
+            task = (np.array(header["indices"], np.int64), values, np.array(header["seeds"], np.int64))
+            try:
+                _, images = render_chunk(task)
+            except Exception as error:
+                render.write_message(outgoing, {"error": f"Mitsuba failed: {type(error).__name__}: {error}"})
+                continue
+            render.write_message(outgoing, {"done": True}, images)
 
 
 def render_scene_image(dataset: Dataset, settings: Settings) -> None:
@@ -537,9 +664,9 @@ def render_missing(
 
         executor = functools.partial(cluster.ray_results, address=ray_address)
     else:
-        executor = _in_a_process_pool if workers > 0 else _in_this_process
+        executor = _in_worker_processes if workers > 0 else _in_this_process
     if executor is not _in_this_process:
-        interrupt.raise_on_signal()  # the pool or Ray is stopped by this process's KeyboardInterrupt
+        interrupt.raise_on_signal()  # the workers or Ray are stopped by this process's KeyboardInterrupt
     with executor(settings, tasks, workers) as results:
         for indices, images in results:
             # The image rows reach the disk before their done flags: a flag never claims an

@@ -129,8 +129,8 @@ def install() -> None:
 def raise_on_signal() -> None:
     """Makes Ctrl-C and `kill` raise KeyboardInterrupt in the main thread again: for work that stops its children.
 
-    A dataset's rendering processes are stopped by the parent's KeyboardInterrupt (`pool.terminate`);
-    ended abruptly instead, they print tracebacks from their broken pipes.
+    A dataset's rendering processes are stopped by the parent's KeyboardInterrupt (`dataset._in_worker_processes`
+    kills them once the results that are in are stored).
     """
     if threading.current_thread() is threading.main_thread():
         for number in STOPPING:
