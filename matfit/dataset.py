@@ -21,6 +21,7 @@ Asking for a larger count grows the arrays; asking for different settings is ref
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import json
 import os
@@ -199,10 +200,6 @@ def _meta(settings: Settings, count: int, versions: dict) -> dict:
     }
 
 
-def _write_json(path: str, data: dict) -> None:
-    files.write_text(path, documents.dumps(data))
-
-
 def read_meta(path: str) -> dict:
     """Returns a dataset's metadata, checking that it is a matfit dataset of a known format."""
     meta_path = os.path.join(path, "meta.json")
@@ -352,25 +349,49 @@ def _sampled_params(settings: Settings, start: int, stop: int) -> np.ndarray:
     return np.stack([params.from_unit(unit) for unit in samples]).astype(np.float32)
 
 
-def _write_arrays(directory: str, settings: Settings, count: int, old: Dataset | None) -> None:
-    """Creates the three arrays for `count` samples, copying over what `old` already holds."""
+def _write_arrays(directory: str, settings: Settings, count: int, old: Dataset | None, meta: dict) -> None:
+    """Creates the three arrays for `count` samples, copying over what `old` already holds, and their meta.json.
+
+    Every byte of the arrays is allocated on the disk before anything is written through their memory maps: a disk
+    that fills up then fails here with a DatasetError, not later with a SIGBUS in the middle of a render. All four
+    files are written under temporary names and renamed into place only once all of them are complete.
+    """
     start = old.count if old is not None else 0
     shapes = {
         "params.npy": ((count, params.COUNT), np.float32),
         "images.npy": ((count, settings.resolution, settings.resolution, 3), IMAGE_DTYPE),
         "done.npy": ((count,), np.uint8),
     }
-    for name, (shape, dtype) in shapes.items():
-        temporary = os.path.join(directory, f".{name}.partial")
-        array = np.lib.format.open_memmap(temporary, mode="w+", dtype=dtype, shape=shape)
-        if old is not None:
-            array[:start] = getattr(old, name.removesuffix(".npy"))
-        if name == "params.npy":
-            array[start:] = _sampled_params(settings, start, count)
-        array.flush()
-        del array
-    for name in shapes:
-        os.replace(os.path.join(directory, f".{name}.partial"), os.path.join(directory, name))
+    meta_path = os.path.join(directory, "meta.json")
+    try:
+        with files.together() as batch:
+            for name, (shape, dtype) in shapes.items():
+                temporary = batch.path(os.path.join(directory, name))
+                array = np.lib.format.open_memmap(temporary, mode="w+", dtype=dtype, shape=shape)
+                _reserve(temporary)
+                if old is not None:
+                    array[:start] = getattr(old, name.removesuffix(".npy"))
+                if name == "params.npy":
+                    array[start:] = _sampled_params(settings, start, count)
+                array.flush()
+                del array
+            files.fill(batch.path(meta_path), documents.dumps(meta).encode(), meta_path)
+    except (OSError, files.OutputError) as error:
+        reason = error.strerror if isinstance(error, OSError) and error.strerror else str(error).rpartition(": ")[2]
+        raise DatasetError(
+            f"cannot make the files of {count} samples in {directory}: {reason}: "
+            "free some space on the disk, or lower --count or --resolution"
+        ) from None
+
+
+def _reserve(path: str) -> None:
+    """Allocates every byte of a file on the disk now (raises OSError if the disk has no room for them)."""
+    with open(path, "r+b") as file:
+        try:
+            os.posix_fallocate(file.fileno(), 0, os.fstat(file.fileno()).st_size)
+        except OSError as error:
+            if error.errno not in (errno.EINVAL, errno.EOPNOTSUPP, errno.ENOSYS):  # else: no fallocate here
+                raise
 
 
 def prepare(path: str, settings: Settings, count: int, versions: dict) -> Dataset:
@@ -413,9 +434,14 @@ def prepare(path: str, settings: Settings, count: int, versions: dict) -> Datase
     _check_disk(
         path, settings, count - (old.count if old else 0)
     )  # before the folder is made: a refusal leaves nothing
+    created = not os.path.isdir(path)
     os.makedirs(path, exist_ok=True)
-    _write_arrays(path, settings, count, old)
-    _write_json(os.path.join(path, "meta.json"), _meta(settings, count, versions))
+    try:
+        _write_arrays(path, settings, count, old, _meta(settings, count, versions))
+    except BaseException:
+        if created:  # nothing of a refused new dataset is left
+            shutil.rmtree(path, ignore_errors=True)
+        raise
     return open_dataset(path, writable=True)
 
 

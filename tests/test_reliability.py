@@ -235,3 +235,19 @@ interrupt.exit_now()
     result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
     assert result.returncode == 130 and result.stderr.startswith("interrupted:")
     assert not folder.exists() and kept.read_bytes() == b"done"
+
+
+def test_a_dataset_that_passes_the_size_check_but_not_the_disk_is_refused_in_one_line(tmp_path):
+    """10 images of 16 px pass the size check (16130 bytes, 24 KiB free), but their files take whole pages, and
+    meta.json one more. Written through memory maps, the images died of SIGBUS (exit -7) in the middle of the
+    render; their space is now reserved before anything is written, and the refusal leaves nothing."""
+    dataset = tmp_path / "full" / "data"
+    command = [sys.executable, "-m", "matfit", "render-dataset", str(dataset), "--count", "10"]
+    command += ["--resolution", "16", "--spp", "1", "--workers", "1"]
+    result, left = run_on_full_disk(tmp_path, command, size="24k")
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.splitlines() == [
+        f"error: cannot make the files of 10 samples in {dataset}: No space left on device: "
+        "free some space on the disk, or lower --count or --resolution"
+    ]
+    assert left == []
