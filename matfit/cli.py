@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
+from importlib import metadata
 from pathlib import Path
 from typing import Annotated
 
@@ -30,6 +31,27 @@ app = typer.Typer(
 command = functools.partial(console.command, app)
 echo_lines = console.echo_lines
 log = functools.partial(typer.echo, err=True)  # progress, notices and what was written go to standard error
+
+
+def print_version(asked: bool) -> None:
+    """Prints the installed matfit's version (pyproject.toml's, as pip recorded it) and ends the process."""
+    if not asked:
+        return
+    try:
+        typer.echo(metadata.version("matfit"))
+    except metadata.PackageNotFoundError:
+        message = "matfit is not installed, so it has no version: run `make install` or `pip install .`"
+        raise typer.BadParameter(message) from None
+    raise typer.Exit()
+
+
+@app.callback()
+def root(
+    version: Annotated[
+        bool, typer.Option("--version", callback=print_version, is_eager=True, help="Print the version and exit.")
+    ] = False,
+) -> None:
+    """Turn an edited picture of a material into photorealistic principled-BSDF parameters."""
 
 
 @command

@@ -1,3 +1,4 @@
+import importlib.metadata
 import importlib.util
 import json
 import shutil
@@ -56,6 +57,12 @@ def test_render_dataset_through_the_cli(tmp_path):
     assert result.exit_code == 0, result.output
     assert "6/6" in result.output
     assert np.load(tmp_path / "d" / "done.npy").sum() == 6
+
+
+def test_version_is_the_installed_distributions():
+    result = run("--version")
+    assert result.exit_code == 0, result.output
+    assert result.stdout.strip() == importlib.metadata.version("matfit")
 
 
 def test_params_lists_nineteen_parameters():
