@@ -14,11 +14,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from matfit import documents, files, fit, images, models, params, refine, render, verify
+from matfit import documents, files, fit, images, models, params, refine, render, shipped, verify
 from matfit.errors import FitError, ImageError, OutputError
 from matfit.methods import CORRECTIONS
 
-PROJECT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+# The folder holding the package: the clone, or site-packages when installed (the shipped model reads
+# matfit/data/model either way; a user's own paths lie outside it and stay as given).
+PROJECT = str(shipped.PACKAGE.parent)
 MAX_RENDER_SIZE = 4096
 
 

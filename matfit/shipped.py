@@ -16,6 +16,7 @@ def _inside(*parts: str) -> Path:
     return Path(str(resources.files("matfit").joinpath(*parts)))
 
 
+PACKAGE = _inside()  # the matfit package's folder: in the clone, or in site-packages when installed
 MODEL = _inside("data", "model")  # the networks `fit`, `serve` and `sequence` use unless given --model
 EXAMPLES = _inside("data", "examples")  # edited pictures of presets (`make examples` makes them again)
 STATIC = _inside("static")  # the page `matfit serve` serves
