@@ -32,7 +32,7 @@ from matfit.errors import OutputError, RenderError
 from matfit.render import Renderer
 
 ENVIRONMENT_VARIABLE = "MATFIT_BLENDER_PYTHON"
-DEFAULT_PYTHON = os.path.join(
+DEFAULT_PYTHON = os.path.join(  # `make blender` makes it beside the package in a clone; an installed matfit has none
     os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".venv-blender", "bin", "python"
 )
 TABLE_FILE, PICTURE_FILE = "blender-check.md", "blender-check.png"
@@ -50,8 +50,9 @@ def find_blender(explicit: str | None = None) -> str:
     candidate = explicit or os.environ.get(ENVIRONMENT_VARIABLE) or DEFAULT_PYTHON
     if not (os.path.isfile(candidate) and os.access(candidate, os.X_OK)):
         raise BlenderError(
-            f"no Blender at {candidate}: run `make blender` (bpy 4.5 in .venv-blender), "
-            f"or point --blender or ${ENVIRONMENT_VARIABLE} at a Python with bpy 4.5 or a Blender 4.5 executable",
+            f"no Blender at {candidate}: point --blender or ${ENVIRONMENT_VARIABLE} at a Python with bpy 4.5 "
+            "(`pip install bpy==4.5.15` in a Python 3.11 venv) or a Blender 4.5 executable; "
+            "in a clone, `make blender` makes .venv-blender",
             field="blender",
         )
     return candidate

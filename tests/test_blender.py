@@ -108,8 +108,9 @@ def test_picture_has_one_labelled_row_per_material():
 
 def test_missing_blender_names_the_fix(tmp_path, monkeypatch):
     monkeypatch.setenv(blender.ENVIRONMENT_VARIABLE, str(tmp_path / "nowhere" / "python"))
-    with pytest.raises(blender.BlenderError, match="make blender"):
+    with pytest.raises(blender.BlenderError, match="make blender") as raised:
         blender.find_blender()
+    assert "pip install bpy==4.5.15" in str(raised.value) and "\n" not in str(raised.value)
 
 
 def test_cli_bad_inputs_are_one_line_and_write_nothing(tmp_path):
