@@ -27,14 +27,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import export, files, images, presets, scene
+from matfit import export, files, images, presets, scene, shipped
 from matfit.errors import OutputError, RenderError
 from matfit.render import Renderer
 
 ENVIRONMENT_VARIABLE = "MATFIT_BLENDER_PYTHON"
-DEFAULT_PYTHON = os.path.join(  # `make blender` makes it beside the package in a clone; an installed matfit has none
-    os.path.dirname(os.path.dirname(os.path.abspath(__file__))), ".venv-blender", "bin", "python"
-)
+# `make blender` makes it beside the package in a clone; an installed matfit has none.
+DEFAULT_PYTHON = str(shipped.PACKAGE.parent / ".venv-blender" / "bin" / "python")
 TABLE_FILE, PICTURE_FILE = "blender-check.md", "blender-check.png"
 OPAQUE_PRESETS = ("gold", "silver", "copper", "red-plastic", "blue-rubber", "velvet")
 OPAQUE_TARGET = 8.0  # RMSE the opaque presets must stay under (issue 15)
@@ -59,7 +58,7 @@ def find_blender(explicit: str | None = None) -> str:
 
 
 def _command(blender: str, job: str) -> list[str]:
-    worker = os.path.join(os.path.dirname(os.path.abspath(__file__)), "blender_scene.py")
+    worker = str(shipped.PACKAGE / "blender_scene.py")
     if "python" in os.path.basename(blender):
         return [blender, worker, job]
     return [blender, "--background", "--factory-startup", "--python", worker, "--", job]

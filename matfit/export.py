@@ -48,12 +48,11 @@ and the tangent that anisotropy follows.
 
 from __future__ import annotations
 
-import os
 import xml.etree.ElementTree as ElementTree
 
 import numpy as np
 
-from matfit import params, scene
+from matfit import params, scene, shipped
 
 MATERIAL_ID = "matfit-material"
 MEDIUM_ID = "matfit-interior"
@@ -158,7 +157,7 @@ def blender_inputs(values: np.ndarray) -> tuple[dict, dict]:
     return principled, volume
 
 
-SCRIPT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "blender_material.py")  # filled in per material
+SCRIPT = shipped.PACKAGE / "blender_material.py"  # filled in per material
 
 
 def blender_script(values: np.ndarray, name: str = "matfit") -> str:

@@ -51,7 +51,7 @@ from typing import Any
 
 import jax
 
-from matfit import files
+from matfit import files, shipped
 from matfit.errors import OutputError
 
 SUFFIX = ".jaxexecutable"
@@ -146,7 +146,7 @@ def disable() -> None:
 @functools.cache
 def source_digest() -> str:
     """Returns the SHA-256 of matfit's Python source: every .py file of the package and its subpackages."""
-    return tree_digest(os.path.dirname(os.path.abspath(__file__)))
+    return tree_digest(str(shipped.PACKAGE))
 
 
 def tree_digest(folder: str) -> str:

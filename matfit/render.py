@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import params, scene
+from matfit import params, scene, shipped
 from matfit.errors import RenderError
 
 LLVM_VARIANT = "llvm_ad_rgb"
@@ -283,10 +283,10 @@ class Process:
             import fcntl
 
             fcntl.fcntl(replies_write, fcntl.F_SETPIPE_SZ, self.PIPE_BYTES)
-        # The child imports this very matfit, wherever it lies, whatever the working directory holds.
-        package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        # The child imports this very matfit, wherever it lies (clone or site-packages), whatever the working
+        # directory holds.
         code = (
-            f"import sys; sys.path.insert(0, {package!r}); from matfit import render; "
+            f"import sys; sys.path.insert(0, {str(shipped.PACKAGE.parent)!r}); from matfit import render; "
             f"render.serve_requests({requests_read}, {replies_write}, {variant!r})"
         )
         try:
