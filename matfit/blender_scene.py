@@ -34,8 +34,17 @@ import sys
 import numpy as np
 
 if __package__ in (None, ""):  # run as a file (`blender -P`, `python blender_scene.py`): import matfit from its folder
+    # The folder alone, never its parent: for an installed matfit that is matfit's site-packages, whose packages
+    # (NumPy 2, compiled for another Python) would shadow those of bpy's environment.
+    import importlib.util
+
     _here = os.path.dirname(os.path.abspath(__file__))
-    sys.path[:] = [os.path.dirname(_here), *(path for path in sys.path if os.path.abspath(path or ".") != _here)]
+    sys.path[:] = [path for path in sys.path if os.path.abspath(path or ".") != _here]
+    _spec = importlib.util.spec_from_file_location(
+        "matfit", os.path.join(_here, "__init__.py"), submodule_search_locations=[_here]
+    )
+    sys.modules["matfit"] = importlib.util.module_from_spec(_spec)
+    _spec.loader.exec_module(sys.modules["matfit"])
 
 import bpy
 
