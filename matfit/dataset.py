@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import documents, files, interrupt, params, render, scene
+from matfit import documents, files, interrupt, params, render, scene, shipped
 from matfit.errors import DatasetError, RenderError
 
 FORMAT = "matfit-dataset"
@@ -507,7 +507,7 @@ class _Worker:
     def __init__(self, settings: Settings):
         requests_read, requests_write = os.pipe()
         replies_read, replies_write = os.pipe()
-        package = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # this very matfit, wherever it lies
+        package = str(shipped.PACKAGE.parent)  # this very matfit, wherever it lies
         code = (
             f"import sys; sys.path.insert(0, {package!r}); from matfit import dataset; dataset.serve_chunks("
             f"{requests_read}, {replies_write}, {settings.resolution}, {settings.spp}, {settings.variant!r})"
