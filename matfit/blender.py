@@ -29,7 +29,7 @@ import numpy as np
 
 from matfit import export, files, images, presets, scene, shipped
 from matfit.errors import OutputError, RenderError
-from matfit.render import Renderer
+from matfit.render import Renderer, check_request
 
 ENVIRONMENT_VARIABLE = "MATFIT_BLENDER_PYTHON"
 # `make blender` makes it beside the package in a clone; an installed matfit has none.
@@ -238,6 +238,7 @@ def check(
         raise OutputError(f"out {out} is a file: give a folder for the table and the picture", field="out")
     existing = out if os.path.isdir(out) else os.path.dirname(os.path.abspath(out))
     files.check_writable(os.path.join(existing, TABLE_FILE))
+    check_request(setup.variant)
     find_blender(setup.blender)
     comparison = compare(names, materials, setup, progress)
     os.makedirs(out, exist_ok=True)

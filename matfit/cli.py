@@ -127,11 +127,19 @@ def serve(
     host: options.Host = "127.0.0.1",
     port: options.Port = 8765,
     watch: options.Watch = None,
+    variant: options.Variant = None,
 ) -> None:
     """Serve a local page that fits edited pictures as you save them (--watch), with sliders and a Mitsuba render."""
     from matfit import serve as studio
 
-    studio.serve(str(model), host, port, options.text(watch), ready=lambda url: log(f"open {url} (Ctrl-C stops)"))
+    studio.serve(
+        str(model),
+        host,
+        port,
+        options.text(watch),
+        ready=lambda url: log(f"open {url} (Ctrl-C stops)"),
+        variant=variant,
+    )
 
 
 @command(interrupted="finished samples are saved; run the same command to resume")
@@ -142,8 +150,12 @@ def render_dataset(
     spp: Annotated[int, typer.Option(help="Samples per pixel.")] = 16,
     seed: Annotated[int, options.seed("Seed of the parameter sampling and of the renders' noise.")] = 0,
     workers: Annotated[
-        int, typer.Option(help="Rendering processes, one thread each (default: one per core).")
-    ] = os.cpu_count() or 1,
+        int | None,
+        typer.Option(
+            help=f"Rendering processes, one thread each (default: one per core; {dataset.GPU_WORKERS} on a GPU).",
+            show_default=False,
+        ),
+    ] = None,
     variant: options.Variant = None,
     ray: Annotated[
         str | None,
@@ -199,12 +211,14 @@ def fit_command(
     verify: Annotated[bool, typer.Option(help="Let Mitsuba choose among the final candidates.")] = True,
     refine: options.Refine = 0,
     corrections: options.Corrections = None,
+    variant: options.Variant = None,
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
     from matfit import render as render_module
 
+    render_module.check_request(variant)
     # Verification's Mitsuba starts in a child process now, on the other core, while this one imports JAX.
-    with render_module.Process() if verify and not refine else contextlib.nullcontext() as renderer:
+    with render_module.Process(variant) if verify and not refine else contextlib.nullcontext() as renderer:
         from matfit import fitfile
 
         text = options.text
@@ -230,6 +244,7 @@ def fit_command(
             refine,
             corrections,
             renderer,
+            variant,
         )
     echo_lines(outcome.notices)
     log(outcome.summary(str(output)))

@@ -47,6 +47,9 @@ MIN_RESOLUTION, MAX_RESOLUTION = 8, 1024
 MAX_SPP = 65536
 MAX_COUNT = 10_000_000
 MAX_WORKERS = 64
+# Render processes sharing one GPU (cuda_ad_rgb): one process leaves the GPU idle between its small launches, several
+# fill it; the count is the measured best (docs/training.md#gpu).
+GPU_WORKERS = 8
 CHUNK = 16
 ARRAYS = ("params.npy", "images.npy", "done.npy")
 # The scene without its sphere: rendered once, clean.
@@ -85,6 +88,13 @@ class Settings:
             raise DatasetError(
                 f"sampler {self.sampler!r} is unknown: use {' or '.join(params.SAMPLERS)}", field="sampler"
             )
+
+
+def default_workers(variant: str) -> int:
+    """Returns how many render processes a dataset renders with unless told: GPU_WORKERS on a GPU, else one per core."""
+    from matfit.render import CUDA_VARIANT
+
+    return GPU_WORKERS if variant == CUDA_VARIANT else min(os.cpu_count() or 1, MAX_WORKERS)
 
 
 def check_count(count: int) -> None:
@@ -714,7 +724,7 @@ def render_dataset(
     resolution: int = 64,
     spp: int = 16,
     seed: int = 0,
-    workers: int = 1,
+    workers: int | None = 1,
     variant: str | None = None,
     progress: Callable[[int, int, float], None] | None = None,
     ray_address: str | None = None,
@@ -724,15 +734,16 @@ def render_dataset(
 
     Returns (the dataset, how many were rendered in this call, notices such as the renderer's
     fallback). Every argument is checked before anything is written. With `ray_address` the
-    images are rendered as Ray tasks (`render_missing`).
+    images are rendered as Ray tasks (`render_missing`). `workers` None: `default_workers` of the variant.
     """
-    if not 1 <= workers <= MAX_WORKERS:
+    if workers is not None and not 1 <= workers <= MAX_WORKERS:
         raise DatasetError(f"workers {workers} is out of range: use 1 to {MAX_WORKERS}", field="workers")
     if ray_address is not None:
         from matfit import cluster
 
         cluster.check(ray_address)
     chosen, notice = render.choose_variant(variant)
+    workers = default_workers(chosen) if workers is None else workers
     settings = Settings(resolution, spp, seed, chosen, sampler)
     settings.check()
     check_count(count)

@@ -76,6 +76,7 @@ class Outcome:
     verified: verify.Verified | None = None
     refined: refine.Refined | None = None
     rendered: np.ndarray | None = None  # sRGB Mitsuba render of the answer at the model's resolution
+    variant: str | None = None  # the Mitsuba variant that verified, refined or rendered the answer; None: no Mitsuba
     document: dict = field(default_factory=dict)
     notices: list[str] = field(default_factory=list)
 
@@ -133,11 +134,13 @@ def run(
     refine_steps: int = 0,
     corrections: int | None = None,
     renderer: render.Process | None = None,
+    variant: str | None = None,
 ) -> Outcome:
     """Fits the image file `target` with a model (or a model directory) and writes `outputs`; returns what was found.
 
     `init`: a params.json of the source material, whose parameters join best-of-n's candidates;
-    `renderer`: a `render.Process` to verify with (`fit_file`), or None.
+    `renderer`: a `render.Process` to verify with (`fit_file`), or None; `variant`: the Mitsuba variant of the
+    renderer made when none is given (None: `render.choose_variant`'s).
     `verified`: let Mitsuba choose among the fit's final candidates (`verify.verify`), after
     `corrections` rounds of correction (`correct.py`; None: `methods.CORRECTIONS` when verified,
     else none) from the best of them; `refine_steps`:
@@ -161,6 +164,7 @@ def run(
         renderer,
         source=init,
         corrections=corrections,
+        variant=variant,
     )
     with files.together() as batch:
         write_outputs(outcome, outputs, batch, renderer)
@@ -182,6 +186,7 @@ def fit_file(
     renderer=None,
     source: str | None = None,
     corrections: int | None = None,
+    variant: str | None = None,
 ) -> tuple[Outcome, object]:
     """Returns (what a fit of the image file `target` found, with its params.json document; the renderer used).
 
@@ -189,12 +194,18 @@ def fit_file(
     `init_values`: the source material's physical parameters (joining best-of-n's candidates), read
     from the file `source` (recorded in the document); `renderer`: a loaded `render.Renderer` at the
     model's resolution to reuse, a `render.Process` (started early by the caller; it loads the scene
-    here, and cannot refine), or None (a `render.Background` is made when verification, refinement or
-    a render output needs one).
+    here, and cannot refine), or None (a `render.Background` with `variant` is made when verification,
+    refinement or a render output needs one). Refinement differentiates with the renderer's variant.
     """
     settings.check()
     if refine_steps < 0:
         raise FitError(f"refine steps {refine_steps} must be >= 0: use 0 to skip refinement", field="refine")
+    if refine_steps and variant == render.SCALAR_VARIANT:
+        raise FitError(
+            f"refinement differentiates with {render.CUDA_VARIANT} or {render.LLVM_VARIANT}, not "
+            f"{render.SCALAR_VARIANT}: leave --variant out or leave refinement off",
+            field="variant",
+        )
     corrections = (CORRECTIONS if verified else 0) if corrections is None else corrections
     verify.check_corrections(corrections)  # before the fit: no work for a bad count
     if corrections and not verified:
@@ -216,7 +227,7 @@ def fit_file(
         background, renderer = renderer, None
         background.load(model.resolution, verify.SPP)
     elif renderer is None and (verified or refine_steps or needs_render):
-        background = render.Background(model.resolution, verify.SPP)  # loads while the fit runs
+        background = render.Background(model.resolution, verify.SPP, variant)  # loads while the fit runs
     if background is not None and verified:
 
         def on_start(start: np.ndarray) -> None:
@@ -232,6 +243,8 @@ def fit_file(
     if background is not None:
         renderer = background.renderer()
         notices.extend([renderer.notice] if renderer.notice else [])
+    if renderer is not None:
+        outcome.variant = renderer.variant
     if verified:
         outcome.verified = verify.verify(
             background or renderer, result, target_srgb, weights, corrections=corrections, model=model
@@ -302,6 +315,7 @@ def document(
         target_sha256=files.sha256(target),
         mask=mask,
         init=init,
+        mitsuba_variant=outcome.variant,
         fit_seconds=round(result.seconds, 3),
         wall_time_s=0.0,
     )

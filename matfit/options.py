@@ -41,7 +41,13 @@ def text(path: Path | None) -> str | None:
 Model = Annotated[
     Path, typer.Option("--model", help="Model directory (default: the shipped model).", show_default=False)
 ]
-Variant = Annotated[Literal[VARIANTS] | None, typer.Option(help="Force a Mitsuba variant.")]
+Variant = Annotated[
+    Literal[VARIANTS] | None,
+    typer.Option(
+        help="Mitsuba variant (default: cuda_ad_rgb with an NVIDIA GPU, else llvm_ad_rgb with libLLVM >= 19, "
+        "else scalar_rgb)."
+    ),
+]
 Sampler = Annotated[
     Literal[tuple(params.SAMPLERS)],
     typer.Option(

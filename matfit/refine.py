@@ -143,10 +143,14 @@ def normalised_weights(weights: np.ndarray) -> np.ndarray:
 
 
 @lru_cache(maxsize=2)
-def _differentiable_scene(resolution: int):
-    """Returns (mi, scene, traversed parameters) of the test scene under `prbvolpath`, loaded once per resolution."""
-    variant, _ = render.choose_variant(None)
-    if variant != render.LLVM_VARIANT:
+def _differentiable_scene(resolution: int, requested: str | None = None):
+    """Returns (mi, scene, traversed parameters) of the test scene under `prbvolpath`, loaded once per resolution.
+
+    `requested`: the variant of the renderer that the fit verifies with (None: `render.choose_variant`'s); a
+    differentiable one, cuda_ad_rgb or llvm_ad_rgb.
+    """
+    variant, _ = render.choose_variant(requested)
+    if variant == render.SCALAR_VARIANT:
         raise RenderError(
             f"refinement differentiates with {render.LLVM_VARIANT}, which needs libLLVM >= {render.MINIMUM_LLVM}: "
             "install Debian's libllvm19 or set DRJIT_LIBLLVM_PATH, or leave refinement off"
@@ -192,16 +196,18 @@ def refine(
 
     `unit`: the start (19 unit-cube values); `target`: the sRGB image (R, R, 3) to match; `weights`:
     per-pixel weights (R, R), as the fit's mask; `renderer`: a `render.Renderer` at R px for the two
-    acceptance renders (one is made if None). Step k renders with seed `seed + k` and `spp` samples.
+    acceptance renders (one is made if None), whose variant the steps differentiate with (cuda_ad_rgb or
+    llvm_ad_rgb). Step k renders with seed `seed + k` and `spp` samples.
     """
     check(unit, target, steps, weights, spp, renderer)
     started = time.perf_counter()
     start = np.asarray(unit, np.float64)
     resolution = int(np.asarray(target).shape[0])
     weights = np.ones((resolution, resolution), np.float32) if weights is None else np.asarray(weights, np.float32)
-    refined, losses = _descend(start, np.asarray(target, np.float32), weights, steps, spp, seed, rate)
+    variant = renderer.variant if renderer is not None else None  # the steps render with the renderer's variant
+    refined, losses = _descend(start, np.asarray(target, np.float32), weights, steps, spp, seed, rate, variant)
     descended = time.perf_counter() - started
-    renderer = renderer or render.Renderer(resolution, ACCEPT_SPP)
+    renderer = renderer or render.Renderer(resolution, ACCEPT_SPP, variant)
     renders = {"before": images.srgb_encode(renderer.render(params.from_unit(start), seed=ACCEPT_SEED, spp=ACCEPT_SPP))}
     # Where the steps found nothing better than the start, its render is reused: two renders of one material differ
     # in the last bits (the threads' order of summation), and that must not count as an improvement.
@@ -226,14 +232,14 @@ def refine(
     )
 
 
-def _descend(start, target, weights, steps, spp, seed, rate) -> tuple[np.ndarray, list[float]]:
+def _descend(start, target, weights, steps, spp, seed, rate, variant=None) -> tuple[np.ndarray, list[float]]:
     """Returns the point of lowest loss among those that `steps` projected Adam steps from `start` visited, and the
     losses (step k's loss is that of the point before its update, so the start is a candidate too)."""
     if steps == 0:
         return start, []
     import drjit as dr
 
-    mi, loaded, scene_parameters = _differentiable_scene(target.shape[0])
+    mi, loaded, scene_parameters = _differentiable_scene(target.shape[0], variant)
     target_tensor = mi.TensorXf(target)
     weight_tensor = mi.TensorXf(normalised_weights(weights))
     x, moment, second = start.copy(), np.zeros(params.COUNT), np.zeros(params.COUNT)

@@ -7,12 +7,16 @@ same whatever was rendered before it. Images come back as linear (HDR) float32 (
 Variant choice: Mitsuba's fast CPU variant `llvm_ad_rgb` needs libLLVM. With an LLVM older than
 19 (Debian 12 ships 15) the first render aborts the whole process (`LLVM ERROR: Cannot select
 ... fminimum`), which no Python code can catch, so the library is looked for on disk *before*
-Mitsuba is asked for the variant, and `DRJIT_LIBLLVM_PATH` is pointed at it.
+Mitsuba is asked for the variant, and `DRJIT_LIBLLVM_PATH` is pointed at it. Where an NVIDIA GPU
+answers the CUDA driver (`cuda_devices`, through ctypes: no JAX) and Mitsuba starts its CUDA backend,
+`cuda_ad_rgb` comes first. What was found decides alone (`decide_variant`), so every combination is
+testable on any machine.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import glob
 import json
 import os
@@ -31,9 +35,11 @@ import numpy as np
 from matfit import params, scene, shipped
 from matfit.errors import RenderError
 
+CUDA_VARIANT = "cuda_ad_rgb"
 LLVM_VARIANT = "llvm_ad_rgb"
 SCALAR_VARIANT = "scalar_rgb"
-VARIANTS = (LLVM_VARIANT, SCALAR_VARIANT)
+VARIANTS = (CUDA_VARIANT, LLVM_VARIANT, SCALAR_VARIANT)  # in the order of preference
+CUDA_DRIVER = "libcuda.so.1"
 MINIMUM_LLVM = 19
 LLVM_SEARCH = (
     "/usr/lib/llvm-*/lib/libLLVM*.so*",
@@ -61,26 +67,84 @@ def find_libllvm() -> str | None:
     return max(candidates)[2] if candidates else None
 
 
-def choose_variant(requested: str | None = None) -> tuple[str, str | None]:
-    """Returns (variant, notice): the Mitsuba variant to use and a one-line notice, if any.
+def cuda_devices() -> int:
+    """Returns how many GPUs the NVIDIA CUDA driver reports: 0 without the driver, a GPU, or a driver that starts."""
+    try:
+        driver = ctypes.CDLL(CUDA_DRIVER)
+    except OSError:
+        return 0
+    count = ctypes.c_int(0)
+    if driver.cuInit(0) != 0 or driver.cuDeviceGetCount(ctypes.byref(count)) != 0:
+        return 0
+    return count.value
 
-    `requested` forces a variant; None picks llvm_ad_rgb when a usable libLLVM is found (or
-    `DRJIT_LIBLLVM_PATH` names one), else scalar_rgb.
+
+def cuda_problem() -> str | None:
+    """Returns why Mitsuba cannot render with cuda_ad_rgb in this process, or None when it can.
+
+    On success this process's Mitsuba variant is cuda_ad_rgb (the one use of what was just checked).
     """
-    if requested is not None and requested not in VARIANTS:
-        raise RenderError(f"unknown variant {requested!r}: use one of {', '.join(VARIANTS)}")
-    if requested == SCALAR_VARIANT:
-        return SCALAR_VARIANT, None
+    if cuda_devices() == 0:
+        return f"no NVIDIA GPU answers {CUDA_DRIVER}"
+    try:
+        import drjit
+        import mitsuba as mi
+    except ImportError as error:
+        return f"Mitsuba cannot be imported: {error}"
+    current = mi.variant()
+    if current is not None:
+        return None if current == CUDA_VARIANT else f"this process already renders with {current}"
+    try:
+        if not drjit.has_backend(drjit.JitBackend.CUDA):
+            return "Dr.Jit cannot start its CUDA backend"
+        mi.set_variant(CUDA_VARIANT)
+    except Exception as error:  # an ImportError of a variant left out of the wheel, a RuntimeError of the driver
+        return f"Mitsuba cannot set {CUDA_VARIANT}: {error}"
+    return None
+
+
+def libllvm_usable() -> bool:
+    """Returns whether llvm_ad_rgb can run: `DRJIT_LIBLLVM_PATH` names a file, or a libLLVM >= 19 is found on disk
+    (then `DRJIT_LIBLLVM_PATH` is pointed at it). Raises RenderError for a `DRJIT_LIBLLVM_PATH` that does not exist."""
     configured = os.environ.get("DRJIT_LIBLLVM_PATH")
     if configured:
         if not os.path.isfile(configured):
             raise RenderError(
                 f"DRJIT_LIBLLVM_PATH={configured} does not exist: point it at libLLVM >= {MINIMUM_LLVM} or unset it"
             )
-        return LLVM_VARIANT, None
+        return True
     found = find_libllvm()
     if found is not None:
         os.environ["DRJIT_LIBLLVM_PATH"] = found
+        return True
+    return False
+
+
+NO_CUDA = "no NVIDIA GPU with its CUDA driver and Mitsuba's CUDA backend"
+
+
+def decide_variant(
+    requested: str | None, cuda: bool, llvm: bool, why_not_cuda: str = NO_CUDA
+) -> tuple[str, str | None]:
+    """Returns (variant, notice) for what was found: `cuda` (cuda_ad_rgb runs), `llvm` (a usable libLLVM).
+
+    `requested` None picks the first usable of VARIANTS; a requested variant that is unusable raises
+    RenderError naming the fix and the variants usable here (`why_not_cuda`: what the CUDA check found).
+    """
+    if requested is not None and requested not in VARIANTS:
+        raise RenderError(f"unknown variant {requested!r}: use one of {', '.join(VARIANTS)}")
+    if requested == SCALAR_VARIANT:
+        return SCALAR_VARIANT, None
+    if cuda and requested in (None, CUDA_VARIANT):
+        return CUDA_VARIANT, None
+    if requested == CUDA_VARIANT:
+        usable = " or ".join(
+            f"--variant {name}" for name in (LLVM_VARIANT, SCALAR_VARIANT) if llvm or name != LLVM_VARIANT
+        )
+        raise RenderError(
+            f"variant {CUDA_VARIANT} is not usable here ({why_not_cuda}): use {usable}, or leave --variant out"
+        )
+    if llvm:
         return LLVM_VARIANT, None
     if requested == LLVM_VARIANT:
         raise RenderError(
@@ -92,6 +156,35 @@ def choose_variant(requested: str | None = None) -> tuple[str, str | None]:
         "(install Debian's libllvm19 or set DRJIT_LIBLLVM_PATH for llvm_ad_rgb)"
     )
     return SCALAR_VARIANT, notice
+
+
+def choose_variant(requested: str | None = None, *, start_mitsuba: bool = True) -> tuple[str, str | None]:
+    """Returns (variant, notice): the Mitsuba variant to use and a one-line notice, if any.
+
+    `requested` forces a variant; None picks cuda_ad_rgb where an NVIDIA GPU and Mitsuba's CUDA
+    backend are usable, else llvm_ad_rgb when a usable libLLVM is found (or `DRJIT_LIBLLVM_PATH`
+    names one), else scalar_rgb (`decide_variant`). Only what the choice needs is looked for: the GPU
+    unless llvm_ad_rgb or scalar_rgb is requested, libLLVM unless cuda_ad_rgb is usable.
+    `start_mitsuba` False checks the GPU through its driver alone (no Mitsuba import: a quick check of
+    a request before other work; the variant may still fail to start later).
+    """
+    if requested not in (None, CUDA_VARIANT, LLVM_VARIANT):  # scalar_rgb, or a name to refuse: nothing to look for
+        return decide_variant(requested, cuda=False, llvm=False)
+    problem = None
+    if requested in (None, CUDA_VARIANT):
+        problem = (
+            cuda_problem() if start_mitsuba else None if cuda_devices() else f"no NVIDIA GPU answers {CUDA_DRIVER}"
+        )
+    cuda = requested != LLVM_VARIANT and problem is None
+    llvm = not cuda and libllvm_usable()
+    return decide_variant(requested, cuda, llvm, problem or NO_CUDA)
+
+
+def check_request(requested: str | None) -> None:
+    """Raises RenderError for a requested variant that this machine cannot use, without importing Mitsuba: a command
+    that works before it renders refuses the request first."""
+    if requested is not None:
+        choose_variant(requested, start_mitsuba=False)
 
 
 def mitsuba(variant: str):

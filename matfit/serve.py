@@ -152,8 +152,11 @@ def check_values(values: object) -> np.ndarray:
 class Studio:
     """The loaded model, its renderer, the one worker that runs fits and renders, and every job."""
 
-    def __init__(self, model: models.Model, model_label: str, settings: fit.Settings | None = None):
+    def __init__(
+        self, model: models.Model, model_label: str, settings: fit.Settings | None = None, variant: str | None = None
+    ):
         self.model = model
+        self.variant = variant  # the Mitsuba variant (None: render.choose_variant's)
         self.model_label = model_label
         self.settings = settings or fit.Settings()
         self.folder = tempfile.mkdtemp(prefix="matfit-serve-")
@@ -181,7 +184,7 @@ class Studio:
         if size not in self.renderers:
             from matfit.render import Renderer
 
-            self.renderers[size] = Renderer(size, verify.SPP)
+            self.renderers[size] = Renderer(size, verify.SPP, self.variant)
         return self.renderers[size]
 
     def new_job(self, kind: str) -> Job:
@@ -687,14 +690,26 @@ def running(studio: Studio, watch: str | None = None, host: str = "127.0.0.1", p
         thread.join(10)
 
 
-def serve(model_path: str, host: str = "127.0.0.1", port: int = 8765, watch: str | None = None, ready=None) -> None:
-    """Loads the model, compiles the fit, and serves the page until Ctrl-C; `ready(url)` is called once it listens."""
+def serve(
+    model_path: str,
+    host: str = "127.0.0.1",
+    port: int = 8765,
+    watch: str | None = None,
+    ready=None,
+    variant: str | None = None,
+) -> None:
+    """Loads the model, compiles the fit, and serves the page until Ctrl-C; `ready(url)` is called once it listens.
+
+    `variant`: the Mitsuba variant of its renders (None: `render.choose_variant`'s)."""
     import uvicorn
+
+    from matfit.render import check_request
 
     check_watch(watch)
     check_listen(host, port)
+    check_request(variant)
     model = fitfile.load_model(model_path)
-    studio = Studio(model, fitfile.display_path(model_path))
+    studio = Studio(model, fitfile.display_path(model_path), variant=variant)
     studio.worker.submit(studio.warm_up).result()
     app = create_app(studio, watch)
     config = uvicorn.Config(app, host=host, port=port, log_level="warning", timeout_graceful_shutdown=1)

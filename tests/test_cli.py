@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from matfit import fit, images, models, params, presets
+from matfit import fit, images, models, params, presets, render, shipped
 from matfit.cli import app
 
 runner = CliRunner()
@@ -117,6 +117,28 @@ def test_bad_arguments_give_one_line_errors(tmp_path, arguments, fragments):
     result = run(*(a.replace("{tmp}", str(tmp_path)) for a in arguments))
     assert_one_line_error(result, *fragments)
     assert not (tmp_path / "x.png").exists() and not (tmp_path / "d").exists()
+
+
+@pytest.mark.parametrize(
+    "arguments",
+    [
+        ("render", "--preset", "gold", "-o", "{tmp}/x.png", "--size", "16", "--spp", "1"),
+        ("presets", "-o", "{tmp}/x.png", "--size", "32", "--spp", "1"),
+        ("bench-render", "--count", "5"),
+        ("render-dataset", "{tmp}/d", "--count", "4", "--resolution", "16", "--spp", "1"),
+        ("blender-check", "--out", "{tmp}/b", "--preset", "gold", "--size", "16", "--spp", "1"),
+        ("fit", str(shipped.EXAMPLES / "recoloured.png"), "-o", "{tmp}/p.json"),
+        ("serve", "--port", "8791"),
+    ],
+    ids=lambda arguments: arguments[0],
+)
+def test_cuda_asked_for_without_a_gpu_is_refused_in_one_line_before_any_work(tmp_path, monkeypatch, arguments):
+    monkeypatch.setattr(render, "cuda_devices", lambda: 0)  # as on a machine without an NVIDIA GPU
+    result = run(*(a.replace("{tmp}", str(tmp_path)) for a in arguments), "--variant", "cuda_ad_rgb")
+    assert_one_line_error(
+        result, "variant cuda_ad_rgb is not usable here (no NVIDIA GPU answers libcuda.so.1)", "--variant scalar_rgb"
+    )
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_dataset_with_other_settings_is_refused(tmp_path):
@@ -325,6 +347,7 @@ def test_fit_writes_params_and_report(trained, target, tmp_path):
     assert 0 < document["evaluations"] <= 10 * 4 * fit.GRADIENT_COST  # at most 10 steps of 4 starts
     assert document["neural_rmse"] <= document["start_rmse"] and document["mitsuba_rmse"] > 0
     assert len(document["target_sha256"]) == 64
+    assert document["mitsuba_variant"] == render.choose_variant(None)[0]  # the variant that verified it
     values = params.parse_params_json(out.read_text())
     assert values.shape == (19,)
     assert images.read(str(report)).shape[1] == 5 * 192
@@ -489,6 +512,18 @@ def test_fit_with_the_gradient_method_an_init_and_verification(trained, target, 
     )
 
 
+def test_fit_records_the_variant_it_was_asked_for(trained, target, tmp_path):
+    out = tmp_path / "params.json"
+    arguments = ("fit", target, "-o", out, "--model", trained, "--iterations", 5, "--corrections", 0)
+    result = run(*arguments, "--variant", "scalar_rgb")
+    assert result.exit_code == 0, result.output
+    document = json.loads(out.read_text())
+    assert document["mitsuba_variant"] == "scalar_rgb" and document["mitsuba_rmse"] > 0
+    result = run(*arguments, "--no-verify")
+    assert result.exit_code == 0, result.output
+    assert json.loads(out.read_text())["mitsuba_variant"] is None  # no Mitsuba render was made
+
+
 def test_fit_with_physical_refinement(trained, target, tmp_path):
     out = tmp_path / "params.json"
     result = run("fit", target, "-o", out, "--model", trained, "--iterations", 5, "--refine", 2)
@@ -506,6 +541,12 @@ def test_fit_with_physical_refinement(trained, target, tmp_path):
     figures = verification["confirmation_rmse"] if kept == "corrected-2" else verification["mitsuba_rmse"]
     assert figures[kept] > 0
     assert "refined 2 steps" in result.output
+    assert document["mitsuba_variant"] == "llvm_ad_rgb"  # the variant of the fit's renderer, which differentiates
+    assert_one_line_error(
+        run("fit", target, "-o", tmp_path / "p3.json", "--model", trained, "--refine", 1, "--variant", "scalar_rgb"),
+        "refinement differentiates with cuda_ad_rgb or llvm_ad_rgb, not scalar_rgb",
+    )
+    assert not (tmp_path / "p3.json").exists()
     (tmp_path / "bad.json").write_text('{"roughness": 3}')
     assert_one_line_error(
         run("fit", target, "-o", tmp_path / "p2.json", "--model", trained, "--init", tmp_path / "bad.json"),

@@ -33,6 +33,17 @@ def make(path, settings, count, workers=0, progress=None, ray_address=None):
     return dataset.open_dataset(str(path))
 
 
+def test_default_workers_are_one_per_core_on_the_cpu_and_a_constant_on_a_gpu(monkeypatch):
+    monkeypatch.setattr(os, "cpu_count", lambda: 6)
+    assert dataset.default_workers("llvm_ad_rgb") == dataset.default_workers("scalar_rgb") == 6
+    assert dataset.default_workers("cuda_ad_rgb") == dataset.GPU_WORKERS
+    monkeypatch.setattr(os, "cpu_count", lambda: 200)
+    assert dataset.default_workers("llvm_ad_rgb") == dataset.MAX_WORKERS
+    assert dataset.default_workers("cuda_ad_rgb") == dataset.GPU_WORKERS
+    monkeypatch.setattr(os, "cpu_count", lambda: None)
+    assert dataset.default_workers("scalar_rgb") == 1
+
+
 def array_bytes(path):
     return {name: (path / name).read_bytes() for name in dataset.ARRAYS}
 

@@ -127,19 +127,87 @@ def test_llvm_version_is_read_from_the_file_name(name, major):
     assert render.llvm_major(f"/usr/lib/x86_64-linux-gnu/{name}") == major
 
 
-def test_variant_choice(monkeypatch):
+# What `decide_variant` gives for every request and every finding (GPU usable by Mitsuba, libLLVM >= 19):
+# a variant, or the start of the one-line refusal.
+CHOICES = {
+    (None, True, True): "cuda_ad_rgb",
+    (None, True, False): "cuda_ad_rgb",
+    (None, False, True): "llvm_ad_rgb",
+    (None, False, False): "scalar_rgb",
+    ("cuda_ad_rgb", True, True): "cuda_ad_rgb",
+    ("cuda_ad_rgb", True, False): "cuda_ad_rgb",
+    ("cuda_ad_rgb", False, True): "variant cuda_ad_rgb is not usable here (no GPU): use --variant llvm_ad_rgb or "
+    "--variant scalar_rgb, or leave --variant out",
+    ("cuda_ad_rgb", False, False): "variant cuda_ad_rgb is not usable here (no GPU): use --variant scalar_rgb, or "
+    "leave --variant out",
+    ("llvm_ad_rgb", True, True): "llvm_ad_rgb",
+    ("llvm_ad_rgb", True, False): "variant llvm_ad_rgb needs libLLVM >= 19",
+    ("llvm_ad_rgb", False, True): "llvm_ad_rgb",
+    ("llvm_ad_rgb", False, False): "variant llvm_ad_rgb needs libLLVM >= 19",
+    ("scalar_rgb", True, True): "scalar_rgb",
+    ("scalar_rgb", True, False): "scalar_rgb",
+    ("scalar_rgb", False, True): "scalar_rgb",
+    ("scalar_rgb", False, False): "scalar_rgb",
+    ("cuda_rgb", True, True): "unknown variant 'cuda_rgb': use one of cuda_ad_rgb, llvm_ad_rgb, scalar_rgb",
+    ("cuda_rgb", True, False): "unknown variant 'cuda_rgb': use one of cuda_ad_rgb, llvm_ad_rgb, scalar_rgb",
+    ("cuda_rgb", False, True): "unknown variant 'cuda_rgb': use one of cuda_ad_rgb, llvm_ad_rgb, scalar_rgb",
+    ("cuda_rgb", False, False): "unknown variant 'cuda_rgb': use one of cuda_ad_rgb, llvm_ad_rgb, scalar_rgb",
+}
+
+
+@pytest.mark.parametrize(("requested", "cuda", "llvm"), list(CHOICES))
+def test_the_variant_is_decided_by_what_was_found(requested, cuda, llvm):
+    expected = CHOICES[requested, cuda, llvm]
+    if expected not in render.VARIANTS:
+        with pytest.raises(RenderError) as refused:
+            render.decide_variant(requested, cuda, llvm, why_not_cuda="no GPU")
+        assert str(refused.value).startswith(expected)
+        return
+    variant, notice = render.decide_variant(requested, cuda, llvm)
+    assert variant == expected
+    # only the fallback nobody asked for says why
+    assert (notice is not None) == (requested is None and variant == "scalar_rgb")
+
+
+def test_variant_choice_on_a_machine_without_a_gpu(monkeypatch, tmp_path):
+    library = tmp_path / "libLLVM-19.so"
+    library.write_bytes(b"")
+    monkeypatch.setattr(render, "cuda_devices", lambda: 0)
     assert render.choose_variant("scalar_rgb") == ("scalar_rgb", None)
-    with pytest.raises(RenderError, match="use one of llvm_ad_rgb, scalar_rgb"):
+    with pytest.raises(RenderError, match="use one of cuda_ad_rgb, llvm_ad_rgb, scalar_rgb"):
         render.choose_variant("cuda_rgb")
-    monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "")  # unset, as far as Dr.Jit is concerned; restored afterwards
+    monkeypatch.setattr(render, "find_libllvm", lambda: str(library))
+    assert render.choose_variant(None) == ("llvm_ad_rgb", None)
+    assert os.environ["DRJIT_LIBLLVM_PATH"] == str(library)
+    with pytest.raises(RenderError, match=r"no NVIDIA GPU answers libcuda.so.1\): use --variant llvm_ad_rgb or"):
+        render.check_request("cuda_ad_rgb")
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "")
     monkeypatch.setattr(render, "find_libllvm", lambda: None)
     variant, notice = render.choose_variant(None)
     assert variant == "scalar_rgb" and "scalar_rgb" in notice
     with pytest.raises(RenderError, match="--variant scalar_rgb"):
         render.choose_variant("llvm_ad_rgb")
+    with pytest.raises(RenderError, match=r"use --variant scalar_rgb, or leave --variant out"):
+        render.choose_variant("cuda_ad_rgb")
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "/nonexistent/libLLVM.so")
     with pytest.raises(RenderError, match="does not exist"):
         render.choose_variant(None)
+
+
+def test_a_gpu_is_looked_for_only_when_the_choice_needs_it(monkeypatch, renderer):
+    def no_look(*_):
+        raise AssertionError("looked for a GPU")
+
+    monkeypatch.setattr(render, "cuda_devices", no_look)
+    assert render.choose_variant("scalar_rgb")[0] == "scalar_rgb"
+    if renderer.variant == "llvm_ad_rgb":
+        assert render.choose_variant("llvm_ad_rgb")[0] == "llvm_ad_rgb"
+    render.check_request(None)
+    # a GPU the driver reports, in a process whose Mitsuba already renders with another variant, is not taken
+    monkeypatch.setattr(render, "cuda_devices", lambda: 1)
+    assert render.cuda_problem() == f"this process already renders with {renderer.variant}"
+    assert render.choose_variant(None)[0] == renderer.variant
 
 
 def test_a_background_renderer_renders_what_one_loaded_in_front_does_and_answers_prefetches(renderer):
