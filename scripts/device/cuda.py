@@ -38,9 +38,11 @@ PASSES = ((16, 0), (16, 1), (256, 0), (256, 1))  # (spp, seed) of each render of
 SAMPLES = 9  # training-distribution materials beside the presets
 MAX_PREPARED_BYTES = 10 * 2**20
 BUDGET_S = 230  # the whole measurement, installation excluded
-# (resolution, workers, images) of each render-dataset timing, most wanted first; one dataset per resolution grows.
+# (resolution, workers, images) of each render-dataset timing, most wanted first; one dataset per resolution grows
+# run after run, so only its first run renders the scene without its sphere (4096 spp): a warm-up of one chunk.
 DATASET_RUNS = ((128, 1, 192), (128, 8, 768), (128, 4, 384), (128, 12, 768), (64, 1, 192), (64, 8, 768))
-REHEARSAL_RUNS = ((128, 1, 16), (128, 2, 32), (64, 2, 32))
+REHEARSAL_RUNS = ((16, 1, 32), (16, 2, 64), (8, 2, 32))
+WARM_UP = 16
 SPP = 16
 
 
@@ -303,7 +305,15 @@ class Steps:
         grown: dict[int, int] = {}  # resolution -> images its dataset holds so far
         timings = []
         self.results["dataset"] = timings
-        for resolution, workers, images in REHEARSAL_RUNS if self.rehearse else DATASET_RUNS:
+        runs = REHEARSAL_RUNS if self.rehearse else DATASET_RUNS
+        plan = []  # every timing, after a warm-up per resolution
+        for resolution, workers, images in runs:
+            if resolution not in grown:  # the warm-up: the scene without its sphere, and one chunk
+                plan.append((resolution, 1, WARM_UP))
+                grown[resolution] = 0
+            plan.append((resolution, workers, images))
+        grown.clear()
+        for resolution, workers, images in plan:
             if self.left() < 30:
                 self.results["skipped"].append(f"dataset {resolution} px, {workers} workers")
                 continue
@@ -324,6 +334,8 @@ class Steps:
             command = [self.python, "-m", "matfit", "render-dataset", path, "--count", str(total)]
             command += ["--resolution", str(resolution), "--spp", str(SPP), "--workers", str(workers), *self.variant]
             timing = {"resolution": resolution, "spp": SPP, "workers": workers, "images": images}
+            if before == 0:
+                timing["warm_up"] = "the scene without its sphere (4096 spp), then the images"
             try:
                 status, seconds, tail = self.run(f"dataset-{resolution}-{workers}", command, 90, poll)
             except TimeoutError as error:
@@ -344,25 +356,26 @@ class Steps:
                     timing["images_per_second_steady"] = round((last_done - first_done) / (last_t - first_t), 1)
             timings.append(timing)
             self.save()
-        steady = [t for t in timings if t["resolution"] == 128 and "images_per_second_steady" in t]
+        resolution = runs[0][0]
+        steady = [t for t in timings if t["resolution"] == resolution and "warm_up" not in t]
+        steady = [t for t in steady if "images_per_second_steady" in t]
         if steady:
             best = max(steady, key=lambda t: t["images_per_second_steady"])
-            self.results["best_workers_128"] = best["workers"]
+            self.results["best_workers"] = {"resolution": resolution, "workers": best["workers"]}
 
 
-def measure(out: str, rehearse: bool, budget: float) -> None:
+STEPS = ("device", "choice", "compare", "fit", "dataset")
+
+
+def measure(out: str, rehearse: bool, budget: float, only: list[str]) -> None:
     os.makedirs(out, exist_ok=True)
     work = tempfile.mkdtemp(prefix="matfit-cuda-")
     steps = Steps(out, work, budget, rehearse)
     started = time.perf_counter()
-    for name, function in (
-        ("device", steps.device),
-        ("choice", steps.choice),
-        ("compare", steps.compare),
-        ("fit", steps.fit),
-        ("dataset", steps.datasets),
-    ):
-        steps.step(name, function)
+    functions = (steps.device, steps.choice, steps.compare, steps.fit, steps.datasets)
+    for name, function in zip(STEPS, functions, strict=True):
+        if name in only:
+            steps.step(name, function)
     steps.results["elapsed_s"] = round(time.perf_counter() - started, 1)
     steps.save()
     log(summary(steps.results))
@@ -392,11 +405,12 @@ def summary(results: dict) -> str:
             )
     for timing in results.get("dataset") or []:
         lines.append(
-            f"render-dataset {timing['resolution']} px {timing['spp']} spp, {timing['workers']} processes: "
+            f"render-dataset {timing['resolution']} px {timing['spp']} spp, {timing['workers']} processes"
+            f"{' (warm-up)' if 'warm_up' in timing else ''}: "
             f"{timing.get('images_per_second_steady')} img/s steady, {timing.get('images_per_second_command')} img/s "
             f"whole command ({timing.get('command_seconds')} s for {timing['images']}) {timing.get('error') or ''}"
         )
-    lines.append(f"best workers at 128 px: {results.get('best_workers_128')}")
+    lines.append(f"best workers: {results.get('best_workers')}")
     lines.append(f"errors: {results['errors']}; skipped: {results['skipped']}; {results.get('elapsed_s')} s")
     return "\n".join(lines)
 
@@ -409,6 +423,7 @@ def main() -> None:
     measuring.add_argument("out")
     measuring.add_argument("--rehearse", action="store_true")
     measuring.add_argument("--budget", type=float, default=BUDGET_S)
+    measuring.add_argument("--only", default=",".join(STEPS), help="steps to run, comma-separated")
     comparing = commands.add_parser("compare")
     comparing.add_argument("result")
     comparing.add_argument("--variant")
@@ -417,7 +432,7 @@ def main() -> None:
     if arguments.command == "prepare":
         prepare()
     elif arguments.command == "measure":
-        measure(arguments.out, arguments.rehearse, arguments.budget)
+        measure(arguments.out, arguments.rehearse, arguments.budget, arguments.only.split(","))
     else:
         compare(arguments.result, arguments.variant, arguments.count)
 
