@@ -25,10 +25,13 @@ case "${1:-}" in
     extra=$(du -cb .whl .device | tail -1 | cut -f1)
     echo "travels: $(( (travelling + extra) >> 20 )) MiB of 64 (tracked files less matfit/data/model, .whl, .device)"
     echo "the device run: mv matfit/data/model /tmp/matfit-model-aside, then run with carry [\".whl\", \".device\"]"
-    echo "  and command 'bash scripts/device/cuda.sh device' (timeout_s 420), then mv /tmp/matfit-model-aside matfit/data/model"
+    echo "  and command 'bash scripts/device/cuda.sh device' (timeout_s 300), then mv /tmp/matfit-model-aside matfit/data/model"
     ;;
   device)
     : "${OUT:?OUT must name the folder that comes back}"
+    for needed in .whl/mitsuba-*.whl .device/compare.npz; do
+      [ -f "$needed" ] || { echo "error: $needed is missing: run 'bash scripts/device/cuda.sh prepare' here and carry .whl and .device" | tee "$OUT/cuda.log"; exit 2; }
+    done
     {
       echo "installing $(ls .whl | tr '\n' ' ')"
       python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl 2>&1 | tail -3
