@@ -48,8 +48,8 @@ MAX_SPP = 65536
 MAX_COUNT = 10_000_000
 MAX_WORKERS = 64
 # Render processes sharing one GPU (cuda_ad_rgb): one process leaves the GPU idle between its small launches, several
-# fill it; the count is the measured best (docs/training.md#gpu).
-GPU_WORKERS = 8
+# fill it; the count with the highest steady rate at 128 px, 16 spp (docs/training.md#gpu).
+GPU_WORKERS = 12
 CHUNK = 16
 ARRAYS = ("params.npy", "images.npy", "done.npy")
 # The scene without its sphere: rendered once, clean.
