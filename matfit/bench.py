@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from matfit import documents, edits, files, fit, images, models, params, presets, verify
-from matfit.errors import OutputError
 from matfit.methods import CORRECTIONS
 
 TARGET_SEED = 1
@@ -723,23 +722,12 @@ def fit_comparison(model: models.Model, count: int, evaluations: int, log=print)
     )
 
 
-def check_output_folder(path: str, field: str) -> None:
-    """Raises OutputError unless `path` is a folder or can become one."""
-    name = field.replace("_", " ")
-    if os.path.exists(path) and not os.path.isdir(path):
-        raise OutputError(f"{name} {path} is a file: give a folder", field=field)
-    parent = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(parent):
-        reason = "is a file" if os.path.exists(parent) else "does not exist (create it first)"
-        raise OutputError(f"{name} {path} cannot be created: {parent} {reason}", field=field)
-
-
 def sequence_benchmark(model: models.Model, frames: int, frames_out: str | None = None) -> str:
     """Returns the reinitialisation table on the built-in black-level sequence; writes the frames to `frames_out`."""
     from matfit.render import Renderer
 
     if frames_out is not None:
-        check_output_folder(frames_out, "frames_out")
+        files.check_folder(frames_out, field="frames_out")
     renderer = Renderer(model.resolution, 256)
     _, sequence_frames = black_level_sequence(renderer, frames)
     if frames_out is not None:
@@ -757,10 +745,9 @@ def run_suite(model: models.Model, model_label: str, out: str, full: bool = Fals
     """
     from matfit.render import Renderer
 
-    check_output_folder(out, "out")
+    files.check_folder(out, [(name, os.path.join(out, name)) for name in ("report.md", "report.json")])
     seeds, basin_seconds, frames = (10, 60.0, 120) if full else (5, 5.0, 40)
     os.makedirs(os.path.join(out, "cases"), exist_ok=True)
-    files.check_writable(os.path.join(out, "report.md"))
     renderer = Renderer(model.resolution, 256)
     started = time.perf_counter()
     cases = suite_targets(renderer)

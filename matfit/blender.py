@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from matfit import export, files, images, presets, scene, shipped
-from matfit.errors import OutputError, RenderError
+from matfit.errors import RenderError
 from matfit.render import Renderer, check_request
 
 ENVIRONMENT_VARIABLE = "MATFIT_BLENDER_PYTHON"
@@ -234,10 +234,8 @@ def check(
         names.append(os.path.splitext(os.path.basename(path))[0])
     if not materials:
         raise BlenderError("nothing to compare: give a preset or a params.json file", field="preset")
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise OutputError(f"out {out} is a file: give a folder for the table and the picture", field="out")
-    existing = out if os.path.isdir(out) else os.path.dirname(os.path.abspath(out))
-    files.check_writable(os.path.join(existing, TABLE_FILE))
+    outputs = {"table": os.path.join(out, TABLE_FILE), "picture": os.path.join(out, PICTURE_FILE)}
+    files.check_folder(out, outputs, [("params_file", path) for path in params_files])
     check_request(setup.variant)
     find_blender(setup.blender)
     comparison = compare(names, materials, setup, progress)

@@ -75,7 +75,8 @@ def render(
     values = presets.material(options.text(params_file), preset, seed if random else None)
     if random:
         typer.echo(documents.dumps(params.params_document(values, source=f"--random --seed {seed}")), nl=False)
-    done = render_module.render_file(values, str(output), size, spp, seed, variant)
+    inputs = {"params_file": options.text(params_file)}
+    done = render_module.render_file(values, str(output), size, spp, seed, variant, inputs)
     echo_lines(done.notices)
     log(f"wrote {output} ({size}x{size}, {spp} spp, {done.variant}, {done.seconds:.1f} s)")
 

@@ -3,7 +3,13 @@
 A write either completes or fails with an OutputError (a full disk, a quota, a size limit): the
 bytes are written, flushed to the disk (`fsync`, where a delayed allocation failure would show) and
 their size checked before the rename, and no temporary file survives a failure. Temporary files
-are registered with `interrupt`, which removes them when an interruption ends the process at once.
+are registered with `interrupt`, which removes them when an interruption ends the process at once;
+one left by a process killed outright (`kill -9`) is named after its owner
+(`.matfit-<pid>@<host>-...`) and removed by the next write beside it once that process is gone.
+
+Before any work, a command checks all its outputs together (`check_outputs`): each can be written,
+its name (and its temporary's) fits the folder, no two are the same file and none is one of the
+command's inputs, compared as files on the disk (symbolic and hard links included), not as text.
 """
 
 from __future__ import annotations
@@ -11,14 +17,20 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import os
+import re
+import socket
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator, Mapping
 
 from matfit import interrupt
 from matfit.errors import OutputError
 
 PREFIX = ".matfit-"
+RANDOM_LETTERS = 8  # what `tempfile.mkstemp` adds between the prefix and the suffix
+DEFAULT_NAME_MAX = 255  # where the folder's file system does not say (the limit of ext4, XFS, APFS, NTFS)
+_OWNED = re.compile(re.escape(PREFIX) + r"(\d+)@")
 _finals: dict[str, str] = {}  # a Batch's temporary path -> the output it stands for, for messages
+_swept: set[str] = set()  # folders whose stale temporaries this process removed already
 
 
 def final_name(path: str) -> str:
@@ -36,19 +48,156 @@ def sha256(path: str) -> str:
 
 
 def check_writable(path: str) -> None:
-    """Raises OutputError unless a file can be created at `path`."""
+    """Raises OutputError unless a file can be created at `path` (its folder exists and is writable, its name fits)."""
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
         raise OutputError(f"cannot write {path}: directory {directory} does not exist (create it first)")
     if os.path.isdir(path):
         raise OutputError(f"cannot write {path}: it is a directory (give a file name)")
-    try:  # a real probe: os.access says yes to root even on read-only directories
+    check_name_length(path)
+    if not takes_files(directory):
+        raise OutputError(f"cannot write {path}: directory {directory} is read-only (choose another output path)")
+
+
+def takes_files(directory: str) -> bool:
+    """Returns whether a file can be created in `directory` (a real probe: os.access says yes to root on read-only)."""
+    try:
         with tempfile.TemporaryFile(dir=directory):
-            pass
+            return True
     except OSError:
+        return False
+
+
+def check_folder(folder: str, outputs: Named | None = None, inputs: Named | None = None, field: str = "out") -> None:
+    """Raises OutputError, before any work, unless output folder `folder` takes new files or can be created.
+
+    The folders missing on the way are created by the command; the nearest one that exists must be
+    writable. `outputs` (files the command writes inside `folder`) and `inputs` are then checked as
+    `check_outputs` does, once the folder exists (a folder still to be made holds no input).
+    """
+    name = words(field)
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise OutputError(f"{name} {folder} is a file: give a folder", field=field)
+    existing = os.path.abspath(folder)
+    while not os.path.exists(existing):
+        check_name_length(existing)
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing):
         raise OutputError(
-            f"cannot write {path}: directory {directory} is read-only (choose another output path)"
-        ) from None
+            f"{name} {folder} cannot be created: {existing} is a file (choose another folder)", field=field
+        )
+    if not takes_files(existing):
+        raise OutputError(
+            f"{name} {folder} cannot be written: {existing} is read-only (choose another folder)", field=field
+        )
+    if os.path.isdir(folder):
+        check_outputs(outputs, inputs)
+    else:
+        for _, path in named_paths(outputs):
+            check_name_length(path)
+
+
+def name_max(directory: str) -> int:
+    """Returns the longest file name, in bytes, that the file system of `directory` takes."""
+    try:
+        return os.pathconf(directory, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        return DEFAULT_NAME_MAX
+
+
+def owner() -> str:
+    """Returns `<pid>@<host>`: who writes a temporary file, as its name records it."""
+    host = re.sub(r"[^A-Za-z0-9.-]", "_", socket.gethostname())[:64] or "host"
+    return f"{os.getpid()}@{host}"
+
+
+def temporary_prefix() -> str:
+    """Returns the start of this process's temporary file names: `.matfit-<pid>@<host>-`."""
+    return f"{PREFIX}{owner()}-"
+
+
+def check_name_length(path: str) -> None:
+    """Raises OutputError when the name of `path`, or of the temporary file written beside it, is too long.
+
+    Checked before any work: the rename at the end of a fit was where a 300-character name failed.
+    """
+    directory = os.path.dirname(os.path.abspath(path))
+    limit = name_max(directory)
+    name = os.path.basename(path)
+    length = len(os.fsencode(name))
+    if length > limit:
+        raise OutputError(
+            f"cannot write {path}: its name is {length} bytes, longer than the {limit} its folder takes "
+            "(choose a shorter name)"
+        )
+    temporary = len(os.fsencode(temporary_prefix() + "x" * RANDOM_LETTERS + os.path.splitext(name)[1]))
+    if temporary > limit:
+        raise OutputError(
+            f"cannot write {path}: the temporary file written beside it would have a name of {temporary} bytes, "
+            f"longer than the {limit} its folder takes (choose a shorter extension)"
+        )
+
+
+def same_file(first: str, second: str) -> bool:
+    """Returns whether two paths name the same file: the same file on the disk, or the same place for a new one."""
+    return _identity(first) == _identity(second)
+
+
+def _identity(path: str) -> tuple:
+    try:
+        status = os.stat(path)  # follows symbolic links; hard links share the inode
+        return ("file", status.st_dev, status.st_ino)
+    except OSError:
+        pass
+    real = os.path.realpath(path)  # not there yet: the place it would be created at
+    try:
+        folder = os.stat(os.path.dirname(real))
+        return ("new", folder.st_dev, folder.st_ino, os.path.basename(real))
+    except OSError:
+        return ("new", real)
+
+
+Named = Mapping[str, str | None] | Iterable[tuple[str, str | None]]
+
+
+def named_paths(paths: Named | None) -> list[tuple[str, str]]:
+    """Returns (what the file is, its path) pairs of a mapping or of pairs, leaving out paths not given (None)."""
+    pairs = (paths or {}).items() if isinstance(paths, Mapping | None) else paths
+    return [(label, path) for label, path in pairs if path is not None]
+
+
+def check_outputs(outputs: Named, inputs: Named | None = None) -> None:
+    """Raises OutputError, before any work, unless every output can be written without losing a file.
+
+    `outputs` and `inputs` map what each file is (the option's name: "report", "mask"; a name may
+    repeat in pairs) to its path (None: not given). Each output must be writable with a name its
+    folder takes (`check_writable`); no two outputs may be the same file (one would silently
+    replace the other), and no output may be one of the inputs (the user's picture would be
+    overwritten). Files are compared on the disk: a symbolic or hard link to an input is that input.
+    """
+    named, sources = named_paths(outputs), named_paths(inputs)
+    for _, path in named:
+        check_writable(path)
+    for index, (label, path) in enumerate(named):
+        for other_label, other in named[:index]:
+            if same_file(path, other):
+                raise OutputError(
+                    f"{words(other_label)} {other} and {words(label)} {path} are the same file: one would replace "
+                    "the other; give each output its own path",
+                    field=other_label,
+                )
+        for source_label, source in sources:
+            if same_file(path, source):
+                raise OutputError(
+                    f"{words(label)} {path} is the {words(source_label)} {source}: writing it would overwrite the "
+                    f"{words(source_label)}; choose another path for the {words(label)}",
+                    field=label,
+                )
+
+
+def words(label: str) -> str:
+    """Returns a field name as the words of a message ("mitsuba_xml" -> "mitsuba xml")."""
+    return label.replace("_", " ")
 
 
 @contextlib.contextmanager
@@ -71,13 +220,59 @@ def atomic_path(path: str) -> Iterator[str]:
 def temporary_beside(path: str) -> str:
     """Returns a new empty temporary file in the directory of `path`, registered for removal on interruption."""
     directory = os.path.dirname(os.path.abspath(path))
+    remove_stale(directory)
     try:
-        handle, temporary = tempfile.mkstemp(prefix=PREFIX, suffix=os.path.splitext(path)[1], dir=directory)
+        handle, temporary = tempfile.mkstemp(prefix=temporary_prefix(), suffix=os.path.splitext(path)[1], dir=directory)
     except OSError as error:
         raise OutputError(f"cannot write {final_name(path)}: {error.strerror}") from None
     interrupt.register(temporary)
     os.close(handle)
     return temporary
+
+
+def remove_stale(directory: str) -> list[str]:
+    """Removes the temporary files in `directory` whose owner, a process of this host, is gone; returns them.
+
+    A process killed outright (`kill -9`, a power cut on a shared disk's other host aside) cannot
+    remove its temporary file; the next write beside it does, once per folder and process. Files
+    of another host, of a process still running, or not named by matfit are left alone.
+    """
+    folder = os.path.abspath(directory)
+    if folder in _swept:
+        return []
+    _swept.add(folder)
+    host = owner().partition("@")[2]
+    removed = []
+    try:
+        names = os.listdir(folder)
+    except OSError:
+        return []
+    for name in names:
+        match = _OWNED.match(name)
+        if match is None or not name[match.end() :].startswith(host + "-"):
+            continue
+        if not running(int(match.group(1))):
+            path = os.path.join(folder, name)
+            with contextlib.suppress(OSError):
+                if not os.path.isdir(path):
+                    os.unlink(path)
+                    removed.append(path)
+    return removed
+
+
+def running(pid: int) -> bool:
+    """Returns whether process `pid` of this host exists (another user's counts; an impossible pid does not)."""
+    if pid == os.getpid():
+        return True
+    if not 0 < pid < 1 << 22:  # Linux's largest pid_max; 0 and -1 would signal groups
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 def remove(temporary: str) -> None:

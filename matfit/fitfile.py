@@ -44,8 +44,9 @@ class Outputs:
     mitsuba_xml: str | None = None
     blender: str | None = None
 
-    def check(self) -> None:
-        """Raises OutputError for a path of the wrong kind or one that cannot be written, before any work is done."""
+    def check(self, inputs: dict[str, str | None] | None = None) -> None:
+        """Raises OutputError, before any work is done, for a path of the wrong kind, one that cannot be written,
+        one named twice, or one that is an input (`inputs`: {"target": path, ...}) that writing would overwrite."""
         if not self.params.lower().endswith(".json"):
             raise OutputError(f"output {self.params} must end in .json", field="output")
         for path in (self.report, self.render):
@@ -54,9 +55,14 @@ class Outputs:
         for path, suffix, name in ((self.mitsuba_xml, ".xml", "mitsuba_xml"), (self.blender, ".py", "blender")):
             if path is not None and not path.lower().endswith(suffix):
                 raise OutputError(f"{name.replace('_', ' ')} {path} must end in {suffix}", field=name)
-        for path in (self.params, self.report, self.render, self.mitsuba_xml, self.blender):
-            if path is not None:
-                files.check_writable(path)
+        named = {
+            "output": self.params,
+            "report": self.report,
+            "render": self.render,
+            "mitsuba_xml": self.mitsuba_xml,
+            "blender": self.blender,
+        }
+        files.check_outputs(named, inputs)
 
     @property
     def needs_render(self) -> bool:
@@ -149,7 +155,7 @@ def run(
     end (`files.together`), so a failure leaves none of them.
     """
     started = time.perf_counter()
-    outputs.check()
+    outputs.check({"target": target, "mask": mask, "init": init})
     init_values = params.read_file(init) if init is not None else None
     outcome, renderer = fit_file(
         target,

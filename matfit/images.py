@@ -17,7 +17,7 @@ import numpy as np
 import OpenImageIO as oiio
 
 from matfit.errors import ImageError, printable
-from matfit.files import check_writable, final_name, write_bytes
+from matfit.files import Named, check_outputs, check_writable, final_name, write_bytes
 
 LINEAR_EXTENSIONS = (".exr", ".hdr")
 DISPLAY_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
@@ -84,10 +84,13 @@ def check_extension(path: str) -> str:
     return extension
 
 
-def check_output(path: str) -> None:
-    """Raises ImageError or OutputError unless an image can be written at `path` (known type, writable place)."""
+def check_output(path: str, inputs: Named | None = None) -> None:
+    """Raises ImageError or OutputError unless an image can be written at `path` (known type, writable place).
+
+    `inputs` ({"params_file": path}, ...): the command's inputs, which the image must not overwrite.
+    """
     check_extension(path)
-    check_writable(path)
+    check_outputs({"output": path}, inputs)
 
 
 def write(path: str, linear: np.ndarray) -> None:

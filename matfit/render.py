@@ -586,12 +586,21 @@ class Rendered:
 
 
 def render_file(
-    values: np.ndarray, path: str, size: int, spp: int, seed: int = 0, variant: str | None = None
+    values: np.ndarray,
+    path: str,
+    size: int,
+    spp: int,
+    seed: int = 0,
+    variant: str | None = None,
+    inputs: dict[str, str | None] | None = None,
 ) -> Rendered:
-    """Renders a material (19 physical values) at size x size and writes it to an image file; checks the path first."""
+    """Renders a material (19 physical values) at size x size and writes it to an image file; checks the path first.
+
+    `inputs` ({"params_file": path}): files the material was read from, which the image must not overwrite.
+    """
     from matfit import images
 
-    images.check_output(path)
+    images.check_output(path, inputs)
     started = time.perf_counter()
     renderer = Renderer(size, spp, variant)
     images.write(path, renderer.render(values, seed=seed))

@@ -3,7 +3,6 @@ import pytest
 from helpers import decode, random_model, true_point
 
 from matfit import bench, fit, images
-from matfit.errors import OutputError
 
 
 @pytest.fixture(scope="module")
@@ -69,14 +68,6 @@ def test_budget_plot_is_a_readable_picture(tmp_path):
     for colour in (red, blue):
         assert np.sum(np.all(np.abs(encoded - colour) < 0.02, axis=-1)) > 100  # each line is drawn
     assert [p.name for p in tmp_path.iterdir()] == ["plot.png"]  # no temporary file left behind
-
-
-def test_output_folders_that_are_files_are_refused(tmp_path):
-    (tmp_path / "file").write_text("x")
-    with pytest.raises(OutputError, match=r"frames out .*file is a file: give a folder"):
-        bench.check_output_folder(str(tmp_path / "file"), "frames_out")
-    with pytest.raises(OutputError, match=r"cannot be created: .*file is a file"):
-        bench.check_output_folder(str(tmp_path / "file" / "sub"), "out")
 
 
 def test_an_answer_judged_again_counts_as_no_worse_than_itself_despite_render_jitter():
