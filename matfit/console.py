@@ -4,13 +4,18 @@ A command's fixable error (`errors.MatfitError`) and Typer's own usage errors be
 line and exit code 2; Ctrl-C or `kill` one `interrupted:` line and exit code 130 (`interrupt`
 enforces it when the work is stuck in compiled code); an operating-system failure such as a full
 disk one `error:` line and exit code 1. An error about one value (`MatfitError.field`, in the
-library's words) is reworded with the option the user typed.
+library's words) is reworded with the option the user typed. A reader of standard output that has
+gone (`matfit params | head -1`) ends the command quietly with exit code 141, as a Unix tool killed
+by SIGPIPE does.
 """
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
+import os
+import select
 import sys
 import typing
 
@@ -20,6 +25,7 @@ from typer.core import TyperGroup
 from matfit import errors, interrupt
 
 FULL = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)  # the disk is full, or a quota or a size limit is reached
+CLOSED_PIPE_EXIT_CODE = 141  # 128 + SIGPIPE: what the shell reports for a tool whose reader went away
 
 
 class OneLineErrors(TyperGroup):
@@ -38,6 +44,10 @@ class OneLineErrors(TyperGroup):
         except typer.Abort:  # a Ctrl-C outside a command's own work (while parsing, say)
             interrupt.announce()
             code = interrupt.EXIT_CODE
+        except SystemExit as exit:  # Click's own answer to a closed pipe while it prints help: exit 1
+            if exit.code != 1 or not stdout_closed():
+                raise
+            code = quiet_exit()
         if not standalone_mode:
             return code
         sys.exit(code if isinstance(code, int) else 0)
@@ -96,6 +106,11 @@ def command(app: typer.Typer, function=None, *, name: str | None = None, interru
         except errors.MatfitError as error:
             typer.echo(f"error: {with_flag(str(error), error.field, options)}", err=True)
             raise typer.Exit(2) from None
+        except BrokenPipeError as error:
+            if not stdout_closed():  # another pipe (a child process's) is a failure to report
+                typer.echo(f"error: {system_message(error)}", err=True)
+                raise typer.Exit(1) from None
+            raise typer.Exit(quiet_exit()) from None
         except OSError as error:
             typer.echo(f"error: {system_message(error)}", err=True)
             raise typer.Exit(1) from None
@@ -105,6 +120,26 @@ def command(app: typer.Typer, function=None, *, name: str | None = None, interru
             raise typer.Exit(interrupt.EXIT_CODE) from None
 
     return app.command(name=name)(wrapper)
+
+
+def stdout_closed() -> bool:
+    """Returns whether standard output is a pipe whose reader has gone (poll reports an error on its end)."""
+    try:
+        descriptor = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # not a file (a test's captured output)
+        return False
+    poller = select.poll()
+    poller.register(descriptor, select.POLLOUT)
+    return any(events & select.POLLERR for _, events in poller.poll(0))
+
+
+def quiet_exit() -> int:
+    """Points standard output at /dev/null (so that no later flush fails again) and returns the exit code 141."""
+    with contextlib.suppress(OSError, ValueError):
+        null = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(null, sys.stdout.fileno())
+        os.close(null)
+    return CLOSED_PIPE_EXIT_CODE
 
 
 def system_message(error: OSError) -> str:

@@ -1,7 +1,9 @@
 import importlib.metadata
 import importlib.util
 import json
+import os
 import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -586,3 +588,58 @@ def test_train_starts_from_a_model_directory(trained, tiny_dataset, tmp_path):
         run(*common, "--loss", "l1", "--out", tmp_path / "m"), "loss 'l1' is unknown: use srgb or linear"
     )
     assert not (tmp_path / "m").exists()
+
+
+def test_outputs_that_would_lose_a_file_are_refused_before_any_work(tmp_path):
+    picture = tmp_path / "edited.png"
+    images.write(str(picture), np.full((16, 16, 3), 0.5, np.float32))
+    original = picture.read_bytes()
+    (tmp_path / "link.png").symlink_to(picture)
+    out = tmp_path / "p.json"
+
+    def fit(*arguments):
+        return run("fit", picture, "-o", out, *arguments)
+
+    assert_one_line_error(
+        fit("--report", tmp_path / "r.png", "--render", tmp_path / "r.png"),
+        "--report",
+        "r.png and render",
+        "are the same file",
+        "give each output its own path",
+    )
+    assert_one_line_error(fit("--report", picture), "--report", "is the target", "choose another path for the report")
+    assert_one_line_error(fit("--render", tmp_path / "link.png"), "--render", "link.png is the target")
+    assert_one_line_error(fit("--mask", picture, "--render", picture), "--render", "is the target")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["edited.png", "link.png"]
+    out.write_text('{"metallic": 1.0}')  # a previous answer, given as the start of the next fit
+    assert_one_line_error(fit("--init", out), "--output", "p.json is the init", "choose another path for the output")
+    assert out.read_text() == '{"metallic": 1.0}'
+    assert picture.read_bytes() == original
+    (tmp_path / "material.png").write_text('{"metallic": 1.0}')  # a params file with a picture's name
+    assert_one_line_error(
+        run("render", tmp_path / "material.png", "-o", tmp_path / "material.png", "--size", 16, "--spp", 1),
+        "--output",
+        "is the params file",
+    )
+    assert (tmp_path / "material.png").read_text() == '{"metallic": 1.0}'
+
+
+def test_an_output_name_too_long_is_refused_before_any_work(tmp_path):
+    picture = tmp_path / "edited.png"
+    images.write(str(picture), np.full((16, 16, 3), 0.5, np.float32))
+    result = run("fit", picture, "-o", tmp_path / ("p" * 300 + ".json"), "--model", tmp_path / "no-model")
+    assert_one_line_error(result, "its name is 305 bytes", "choose a shorter name")
+
+
+@pytest.mark.parametrize("arguments", [["params"], ["--help"], ["render", "--help"]])
+def test_a_reader_that_went_away_ends_the_command_quietly(arguments):
+    """`matfit params | head -1`: the reader has gone before the first line; exit 141 as SIGPIPE, nothing on stderr."""
+    read, write = os.pipe()
+    os.close(read)
+    try:
+        result = subprocess.run(
+            [sys.executable, "-m", "matfit", *arguments], stdout=write, stderr=subprocess.PIPE, text=True, timeout=120
+        )
+    finally:
+        os.close(write)
+    assert (result.returncode, result.stderr) == (141, "")
