@@ -270,17 +270,15 @@ def sequence(
     init: options.Init = None,
 ) -> None:
     """Fit every frame of an edited sequence, reusing each optimum for the next frame; resumable."""
-    from matfit import fitfile
     from matfit import sequence as sequence_module
     from matfit.progress import Progress
 
-    model = fitfile.load_model(str(model_path))
     settings = Settings(method=method, evaluations=evaluations)
     rendered = (size, spp) if render else None
     with Progress("fitting frames") as progress:
         counter = progress.counter("frames/s")
         results = sequence_module.run(
-            model, str(frames), str(out), settings, reinit, rendered, counter, options.text(init)
+            str(model_path), str(frames), str(out), settings, reinit, rendered, counter, options.text(init)
         )
     echo_lines(f"{os.path.basename(frame.path)}: {frame.note}" for frame in results if frame.note)
     typer.echo(sequence_module.summary_table(results))

@@ -91,7 +91,7 @@ def check_folder(folder: str, outputs: Named | None = None, inputs: Named | None
             f"{name} {folder} cannot be written: {existing} is read-only (choose another folder)", field=field
         )
     if os.path.isdir(folder):
-        check_outputs(outputs, inputs)
+        check_outputs(outputs, inputs, folder_field=field)
     else:
         for _, path in named_paths(outputs):
             check_name_length(path)
@@ -138,12 +138,8 @@ def check_name_length(path: str) -> None:
         )
 
 
-def same_file(first: str, second: str) -> bool:
-    """Returns whether two paths name the same file: the same file on the disk, or the same place for a new one."""
-    return _identity(first) == _identity(second)
-
-
 def _identity(path: str) -> tuple:
+    """Returns what names one file: the file on the disk, or for a new one the folder and name it would have."""
     try:
         status = os.stat(path)  # follows symbolic links; hard links share the inode
         return ("file", status.st_dev, status.st_ino)
@@ -166,7 +162,7 @@ def named_paths(paths: Named | None) -> list[tuple[str, str]]:
     return [(label, path) for label, path in pairs if path is not None]
 
 
-def check_outputs(outputs: Named, inputs: Named | None = None) -> None:
+def check_outputs(outputs: Named, inputs: Named | None = None, *, folder_field: str | None = None) -> None:
     """Raises OutputError, before any work, unless every output can be written without losing a file.
 
     `outputs` and `inputs` map what each file is (the option's name: "report", "mask"; a name may
@@ -174,25 +170,33 @@ def check_outputs(outputs: Named, inputs: Named | None = None) -> None:
     folder takes (`check_writable`); no two outputs may be the same file (one would silently
     replace the other), and no output may be one of the inputs (the user's picture would be
     overwritten). Files are compared on the disk: a symbolic or hard link to an input is that input.
+    `folder_field`: the outputs are files the command names inside that output folder, which is
+    the thing to change.
     """
     named, sources = named_paths(outputs), named_paths(inputs)
+    folder = f"another {words(folder_field)} folder" if folder_field else None
     for _, path in named:
         check_writable(path)
-    for index, (label, path) in enumerate(named):
-        for other_label, other in named[:index]:
-            if same_file(path, other):
-                raise OutputError(
-                    f"{words(other_label)} {other} and {words(label)} {path} are the same file: one would replace "
-                    "the other; give each output its own path",
-                    field=other_label,
-                )
-        for source_label, source in sources:
-            if same_file(path, source):
-                raise OutputError(
-                    f"{words(label)} {path} is the {words(source_label)} {source}: writing it would overwrite the "
-                    f"{words(source_label)}; choose another path for the {words(label)}",
-                    field=label,
-                )
+    read = {_identity(source): (source_label, source) for source_label, source in reversed(sources)}
+    written: dict[tuple, tuple[str, str]] = {}
+    for label, path in named:
+        identity = _identity(path)
+        if identity in written:
+            other_label, other = written[identity]
+            fix = f"choose {folder}" if folder else "give each output its own path"
+            raise OutputError(
+                f"{words(other_label)} {other} and {words(label)} {path} are the same file: one would replace "
+                f"the other; {fix}",
+                field=folder_field or other_label,
+            )
+        written[identity] = (label, path)
+        if identity in read:
+            source_label, source = read[identity]
+            raise OutputError(
+                f"{words(label)} {path} is the {words(source_label)} {source}: writing it would overwrite the "
+                f"{words(source_label)}; choose {folder or f'another path for the {words(label)}'}",
+                field=folder_field or label,
+            )
 
 
 def words(label: str) -> str:

@@ -11,7 +11,14 @@ Each result records what it was computed from: the settings, the model's identit
 its weights, wherever the model lies), the frame's SHA-256 and, with reinitialisation, the
 previous frame's optimum. A result whose frame changed since (an edit made again, another folder
 with the same names) is fitted again, and so is every frame after it whose previous optimum thereby
-changed; each such frame says why (`Frame.note`).
+changed; each such frame says why (`Frame.note`). With `--render`, each frame's result records the
+render made from it (`sequence.render`: the image's SHA-256, size and samples): a render that is
+not the one recorded in its frame's current result (the frame was fitted again since, the render
+settings changed, the image was replaced) is made again.
+
+Every file a run writes is checked before the first fit (`check_outputs`): two frames whose
+results would share a name (`a.png` and `a.jpg`, both `a.json`) are refused, and so is an output
+folder that is read-only or where a result would overwrite a frame.
 """
 
 from __future__ import annotations
@@ -30,6 +37,9 @@ from matfit.errors import SequenceError
 FRAME_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr")
 PREVIOUS = "previous frame"
 INIT = "--init"
+RENDER_SUFFIX = "-render.png"
+SUMMARY_FILE = "summary.md"
+PREVIEW_FILE = "preview.png"
 
 
 def natural_key(name: str) -> list:
@@ -72,6 +82,37 @@ class Frame:
 def frame_json_path(out: str, frame: str) -> str:
     """Returns where a frame's result is written."""
     return os.path.join(out, os.path.splitext(os.path.basename(frame))[0] + ".json")
+
+
+def render_path(out: str, frame: str) -> str:
+    """Returns where a frame's Mitsuba render is written (`--render`)."""
+    return os.path.join(out, os.path.splitext(os.path.basename(frame))[0] + RENDER_SUFFIX)
+
+
+def check_frame_names(frames: list[str]) -> None:
+    """Raises SequenceError when two frames would write the same result file (`a.png` and `a.jpg`: `a.json`)."""
+    seen: dict[str, str] = {}
+    for path in frames:
+        name = os.path.basename(frame_json_path("", path))
+        if name in seen:
+            raise SequenceError(
+                f"frames {seen[name]} and {path} would both write their result to {name}: "
+                "rename one of them (a frame's result is named after the frame without its extension)"
+            )
+        seen[name] = path
+
+
+def check_outputs(frames: list[str], out: str, rendered: bool, init: str | None = None) -> None:
+    """Raises SequenceError or OutputError, before any fit, unless every file of a run into `out` can be written.
+
+    No two frames may share a result name, the folder must take files, and no output (a result, a
+    render, summary.md, preview.png) may be a frame or the `init` file.
+    """
+    check_frame_names(frames)
+    outputs = [("result", frame_json_path(out, frame)) for frame in frames]
+    outputs += [("render", render_path(out, frame)) for frame in frames] if rendered else []
+    outputs += [("summary", os.path.join(out, SUMMARY_FILE)), ("preview", os.path.join(out, PREVIEW_FILE))]
+    files.check_folder(out, outputs, [("frame", frame) for frame in frames] + [("init", init)])
 
 
 def run_settings(settings: fit.Settings, reinit: bool, model: models.Model) -> dict:
@@ -167,6 +208,7 @@ def fit_sequence(
     `init` (unit cube, (19,)): the source material's parameters, a candidate of the first frame.
     """
     settings.check()
+    check_frame_names(frames)
     check_sizes(frames)
     created = not os.path.isdir(out)
     os.makedirs(out, exist_ok=True)
@@ -265,7 +307,7 @@ def preview(model: models.Model, results: list[Frame], columns: int = 12, tile: 
 
 
 def run(
-    model: models.Model,
+    model: models.Model | str,
     frames_path: str,
     out: str,
     settings: fit.Settings,
@@ -276,6 +318,8 @@ def run(
 ) -> list[Frame]:
     """Fits a folder of frames into `out`: a JSON per frame, summary.md and preview.png; returns the frames' results.
 
+    `model`: a model, or a model directory (loaded once every input and output was checked).
+
     `render` = (size, spp) also renders every fitted frame with Mitsuba (`<frame>-render.png`).
     `progress(done, total, frames per second)` follows the fits; `init` is a params.json of the
     source material, a candidate of the first frame. Finished frames are read back, so running it
@@ -283,13 +327,16 @@ def run(
     """
     frames = list_frames(frames_path)
     start = params.to_unit(params.read_file(init)) if init is not None else None
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise SequenceError(f"output folder {out} is a file: give a folder for the results", field="out")
     parent = os.path.dirname(os.path.abspath(out))
-    if not os.path.isdir(parent):
+    if not os.path.isdir(parent) and not os.path.exists(parent):
         raise SequenceError(
             f"output folder {out} cannot be created: {parent} does not exist (create it first)", field="out"
         )
+    check_outputs(frames, out, render is not None, init)
+    if isinstance(model, str):
+        from matfit import fitfile
+
+        model = fitfile.load_model(model)
     started = time.perf_counter()
 
     def report(done: int, total: int, frame: Frame) -> None:
@@ -298,13 +345,31 @@ def run(
 
     results = fit_sequence(model, frames, out, settings, reinit, report, start)
     if render is not None:
-        from matfit.render import Renderer
-
-        renderer = Renderer(*render)
-        for frame in results:
-            path = os.path.join(out, os.path.splitext(os.path.basename(frame.path))[0] + "-render.png")
-            if frame.image is not None or not os.path.exists(path):  # fitted in this run, or not rendered yet
-                images.write(path, renderer.render(params.from_unit(frame.unit)))
-    files.write_text(os.path.join(out, "summary.md"), summary_table(results))
-    images.write(os.path.join(out, "preview.png"), images.srgb_decode(preview(model, results)))
+        render_frames(results, out, *render)
+    files.write_text(os.path.join(out, SUMMARY_FILE), summary_table(results))
+    images.write(os.path.join(out, PREVIEW_FILE), images.srgb_decode(preview(model, results)))
     return results
+
+
+def render_frames(results: list[Frame], out: str, size: int, spp: int) -> None:
+    """Renders each frame's result with Mitsuba to `<frame>-render.png`, unless its result records that very render.
+
+    After writing a render, the frame's result records it (the image's SHA-256, size, samples), so
+    a result fitted again since (whose new file has no record), other render settings, or a
+    replaced image all make it again, whether or not this run fitted the frame.
+    """
+    renderer = None
+    for frame in results:
+        path, json_path = render_path(out, frame.path), frame_json_path(out, frame.path)
+        document = documents.read(json_path, "delete it to fit that frame again", SequenceError)
+        settings = {"size": size, "spp": spp}
+        recorded = document["sequence"].get("render")
+        if os.path.exists(path) and recorded == {**settings, "sha256": files.sha256(path)}:
+            continue
+        if renderer is None:
+            from matfit.render import Renderer
+
+            renderer = Renderer(size, spp)
+        images.write(path, renderer.render(params.from_unit(frame.unit)))
+        document["sequence"]["render"] = {**settings, "sha256": files.sha256(path)}
+        files.write_text(json_path, documents.dumps(document))

@@ -642,6 +642,7 @@ def train_networks(
     """
     if os.path.exists(out) and not os.path.isdir(out):
         raise files.OutputError(f"model directory {out} is a file: give a directory for the model", field="out")
+    files.check_folder(out)  # read-only, or under a file: refused with the fix, as `fit` does
     datasets = as_datasets(data)
     decoder = models.trained_decoder(datasets[0].resolution, coarse_absorption)
     for name in names:  # everything checked before the model directory is made: a refusal leaves no folder

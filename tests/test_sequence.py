@@ -5,6 +5,7 @@ import pytest
 from helpers import decode, random_model, true_point
 
 from matfit import files, fit, images, sequence
+from matfit.errors import OutputError
 from matfit.sequence import SequenceError
 
 
@@ -147,3 +148,48 @@ def test_a_finished_frame_nested_too_deeply_is_one_line_naming_it(tmp_path):
     (tmp_path / "f1.json").write_text("[" * 100000)
     with pytest.raises(SequenceError, match=r"f1\.json is not valid JSON \(nested too deeply.*delete it to fit that"):
         sequence.read_finished(str(tmp_path / "f1.json"), {})
+
+
+def test_two_frames_with_one_result_name_are_refused_before_any_fit(tmp_path, model, frames, monkeypatch):
+    folder = tmp_path / "frames"
+    images.write(str(folder / "f1.jpg"), images.srgb_decode(np.clip(decode(model, true_point(5)), 0, 1)))
+    monkeypatch.setattr(fit, "fit", None)  # a fit would fail: the refusal comes first
+    settings = fit.Settings(method="hybrid", evaluations=30)
+    with pytest.raises(SequenceError, match=r"frames .*f1\.(jpg|png) and .*f1\.(png|jpg) would both write .* f1\.json"):
+        sequence.run(model, str(folder), str(tmp_path / "out"), settings)
+    with pytest.raises(SequenceError, match="would both write"):
+        sequence.fit_sequence(model, sequence.list_frames(str(folder)), str(tmp_path / "out"), settings)
+    assert not (tmp_path / "out").exists()
+
+
+def test_outputs_that_are_frames_or_a_read_only_folder_are_refused(tmp_path, model, frames, monkeypatch):
+    folder = tmp_path / "frames"
+    monkeypatch.setattr(fit, "fit", None)
+    settings = fit.Settings(method="hybrid", evaluations=30)
+    images.write(str(folder / "preview.png"), images.srgb_decode(np.clip(decode(model, true_point(5)), 0, 1)))
+    with pytest.raises(OutputError, match=r"preview .*preview\.png is the frame .*choose another out folder"):
+        sequence.run(model, str(folder), str(folder), settings)  # the results beside the frames
+    with pytest.raises(OutputError, match=r"out /proc/seq cannot be written: /proc is read-only"):
+        sequence.run(model, str(folder), "/proc/seq", settings)
+
+
+def test_a_render_is_made_again_whenever_its_frame_was_fitted_again(tmp_path, model, frames):
+    """Frame 2 edited, the run interrupted once its result and frame 3's were rewritten: a resumed run renders both."""
+    settings, out = fit.Settings(method="hybrid", evaluations=40), tmp_path / "out"
+    sequence.run(model, str(tmp_path / "frames"), str(out), settings, render=(16, 2))
+    renders = [out / f"f{k}-render.png" for k in range(4)]
+    before = [(path.stat().st_ino, path.read_bytes()) for path in renders]
+    document = json.loads((out / "f2.json").read_text())
+    assert document["sequence"]["render"] == {"size": 16, "spp": 2, "sha256": files.sha256(str(renders[2]))}
+    images.write(frames[2], images.srgb_decode(np.clip(decode(model, true_point(12)), 0, 1)))
+    sequence.fit_sequence(model, frames, str(out), settings)  # what a run stopped before its renders leaves
+    resumed = sequence.run(model, str(tmp_path / "frames"), str(out), settings, render=(16, 2))
+    assert all(frame.image is None for frame in resumed)  # every result read back: nothing fitted in this run
+    after = [(path.stat().st_ino, path.read_bytes()) for path in renders]
+    assert after[:2] == before[:2]  # frames 0 and 1 kept their results, and their renders
+    assert after[2][1] != before[2][1] and after[3][1] != before[3][1]  # renders of the new results
+    for k in (2, 3):
+        recorded = json.loads((out / f"f{k}.json").read_text())["sequence"]["render"]["sha256"]
+        assert recorded == files.sha256(str(renders[k]))
+    sequence.run(model, str(tmp_path / "frames"), str(out), settings, render=(20, 2))  # other render settings
+    assert all(images.read(str(path)).shape == (20, 20, 3) for path in renders)
