@@ -643,3 +643,13 @@ def test_a_reader_that_went_away_ends_the_command_quietly(arguments):
     finally:
         os.close(write)
     assert (result.returncode, result.stderr) == (141, "")
+
+
+def test_train_and_sequence_refuse_a_read_only_output_as_fit_does(tiny_dataset, tmp_path):
+    result = run("train", "--arch", "8", "--dataset", tiny_dataset, "--epochs", 1, "--out", "/proc/model")
+    assert_one_line_error(result, "--out /proc/model cannot be written: /proc is read-only", "choose another folder")
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    images.write(str(frames / "f.png"), np.full((16, 16, 3), 0.5, np.float32))
+    result = run("sequence", frames, "-o", "/proc/sequence", "--model", tmp_path / "no-model")  # checked first
+    assert_one_line_error(result, "--out /proc/sequence cannot be written: /proc is read-only")
