@@ -329,7 +329,7 @@ def test_killed_ray_worker_loses_nothing(tmp_path, long_reference, settings, loc
         pytest.param({"resolution": 16.5}, "'resolution' is 16.5, not a whole number from 8 to 1024", id="resolution"),
         pytest.param({"spp": True}, "'spp' is true, not a whole number", id="spp-bool"),
         pytest.param({"seed": -1}, "'seed' is -1, not a whole number from 0 to", id="seed"),
-        pytest.param({"variant": 5}, "'variant' is 5, not one of llvm_ad_rgb, scalar_rgb", id="variant"),
+        pytest.param({"variant": 5}, "'variant' is 5, not one of cuda_ad_rgb, llvm_ad_rgb, scalar_rgb", id="variant"),
         pytest.param({"sampler": "milk"}, "'sampler' is \"milk\", not one of uniform", id="sampler"),
         pytest.param({"parameter_table": []}, "'parameter_table' is [], not a parameter table", id="table"),
     ],
