@@ -288,7 +288,10 @@ def document(
             "verification": {
                 "kept": checked.chosen,
                 "mitsuba_rmse": {name: round(value, 3) for name, value in checked.figures.items()},
-                "confirmation_rmse": {name: round(value, 3) for name, value in checked.confirmation.items()},
+                "margins": {  # standard errors behind the kept one; null: renders alike in every batch
+                    name: round(value, 2) if np.isfinite(value) else None for name, value in checked.margins.items()
+                },
+                "batches": checked.batches,
                 "corrections": checked.corrections,
                 "spp": verify.SPP,
                 "seconds": round(checked.seconds, 3),

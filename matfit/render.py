@@ -264,15 +264,24 @@ SCALAR_BSDF_PARAMETERS = (
 
 
 class Renderer:
-    """The test scene loaded once, rendering any material at a fixed resolution."""
+    """The test scene loaded once, rendering any material at a fixed resolution.
 
-    def __init__(self, resolution: int = 64, spp: int = 16, variant: str | None = None):
+    `threads`: Dr.Jit's thread count, which is the whole process's (every renderer in it then uses
+    it). Several threads add their samples into the film in no fixed order, so two renders of one
+    material and seed differ in the last bits; one thread makes them bit-identical from run to run,
+    which the renders that decide (verification, a dataset's scene image) need. Set it where no
+    other thread renders at the time (a render process, `Background`'s one thread).
+    """
+
+    def __init__(self, resolution: int = 64, spp: int = 16, variant: str | None = None, threads: int | None = None):
         self.variant, self.notice = choose_variant(variant)
         self.resolution = resolution
         self.spp = spp
         self.mi = mitsuba(self.variant)
         import drjit
 
+        if threads is not None:
+            drjit.set_thread_count(threads)
         self.drjit = drjit
         self.scene = self.mi.load_dict(to_mitsuba(self.mi, scene.scene(resolution, spp)))
         self.parameters = self.mi.traverse(self.scene)
@@ -294,6 +303,9 @@ class Renderer:
         # would compile a new kernel.
         p[keys.phase_g] = self.drjit.opaque(mi.Float, float(v[index["phase_g"]]))
         p.update()
+
+    def prefetch(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> None:
+        """Renders nothing ahead: `Background` and `Process` do (every renderer answers `prefetch`)."""
 
     def render(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> np.ndarray:
         """Returns the linear float32 (H, W, 3) image of a material rendered with `seed`."""
@@ -326,7 +338,7 @@ class Background:
 
     @staticmethod
     def _load(resolution: int, spp: int, variant: str | None) -> Renderer:
-        renderer = Renderer(resolution, spp, variant)
+        renderer = Renderer(resolution, spp, variant, threads=1)  # its renders decide: bit-identical run to run
         renderer.render(params.DEFAULTS, spp=1)  # warms the kernels; changes no later (seeded) render
         return renderer
 
@@ -526,7 +538,7 @@ def answer_requests(requests: int, replies: int, variant: str | None) -> None:
                 return
             try:
                 if "load" in request:
-                    renderer = Renderer(*request["load"], chosen)
+                    renderer = Renderer(*request["load"], chosen, threads=1)  # its renders decide: bit-identical
                     renderer.render(params.DEFAULTS, spp=1)  # warms the kernels, as Background does
                     write_message(outgoing, {"done": True})
                 else:
@@ -608,11 +620,18 @@ def render_file(
 
 
 def render_without_sphere(resolution: int, spp: int, variant: str | None = None, seed: int = 0) -> np.ndarray:
-    """Returns the linear float32 (H, W, 3) image of the test scene without its sphere.
+    """Returns the linear float32 (H, W, 3) image of the test scene without its sphere, rendered on one thread.
 
-    Datasets keep it (clean) as the picture of what lies behind the sphere.
+    Datasets keep it (clean) as the picture of what lies behind the sphere. Call it where no other thread renders.
     """
     chosen, _ = choose_variant(variant)
     mi = mitsuba(chosen)
+    import drjit
+
     empty = mi.load_dict(to_mitsuba(mi, scene.scene(resolution, spp, sphere=False)))
-    return np.array(mi.render(empty, seed=int(seed), spp=int(spp)), dtype=np.float32)
+    threads = drjit.thread_count()
+    drjit.set_thread_count(1)  # bit-identical from run to run, as a dataset's files are (see `Renderer`)
+    try:
+        return np.array(mi.render(empty, seed=int(seed), spp=int(spp)), dtype=np.float32)
+    finally:
+        drjit.set_thread_count(threads)

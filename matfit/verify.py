@@ -3,25 +3,32 @@
 The optimiser minimises the decoder's error, and where the decoder is wrong (refraction, media)
 it can walk to parameters whose physical render is worse than where it started. Verification
 renders a few candidates at the model's resolution: the best-of-n start, and the fit's end points
-best neural RMSE first. Every candidate is rendered with the same seed (common random numbers),
-so their difference is mostly the material's, and the start is always among them. An end point
-that beats the start must beat it again in a second render of both with another seed
-(`CONFIRM_SEED`): with one render, a lead within the render's noise keeps answers that an
-independent judge finds worse than the start (docs/fitting.md#verification).
+best neural RMSE first (with `corrections`: the start, the best end and the last round of
+correction, `correct.py`). The start is always among them.
 
-With `corrections`, the candidates are the start and the best end (CORRECTED_CANDIDATES), and the
-better of their renders starts rounds of correction (`correct.py`: the fit run again on the target
-less the decoder's error at the point, as its render shows it), each from the last round's point. A
-round's residual comes from a render with its own seed (`SEED` + round), so that it does not carry
-the last one's noise. The last round's point is the answer if it beats the start in renders of both
-with CONFIRM_SEED (which no round used); otherwise the best end, if its lead over the start holds in
-a render of it with CONFIRM_SEED too, or else the start. The start is rendered with CONFIRM_SEED
-only, unless the rounds start from it (they need its residual): its guard render also decides where
-the rounds start, against the ends' renders with SEED: one render fewer. That choice is made
-across two seeds, and judges as the start's SEED render would. The rounds' points do not join the
-candidates: a candidate's render noise is part of its RMSE, and the 64-spp renders would prefer
-worse points. The rules and their measurements: docs/fitting.md#verification and
-docs/fitting.md#correction.
+The rule. Each candidate is rendered in batches of SPP samples; batch j of every candidate uses
+the seed BATCH_SEED + j (common random numbers: the candidates' noise is alike, so their
+difference is mostly the material's). From m batches R_1..R_m of a candidate, the mean over pairs
+i != j of the weighted mean of (R_i - t)(R_j - t) estimates, without bias, the squared error of
+its noise-free render against the target t: a render's own noise, which a single render's RMSE
+counts and which favours the less noisy material, cancels between independent batches. The
+candidate with the lowest estimate leads (the start first, so a tie keeps the start). For every
+other candidate, the paired difference of its estimate and the leader's, over their common
+batches, has a standard error from the jackknife over batches. While a candidate is within LEAD
+standard errors of the leader, that candidate and the leader get one more batch each, up to
+MAX_BATCHES; then the leader is kept. So an answer other than the start is kept only when its
+estimate beats the start's, and a lead within the noise is measured again before it decides;
+at the cap, a lead too small to resolve is a difference too small to matter at that precision.
+
+Its noise: the standard error of each decision is recorded (`margins`: each other candidate's
+deficit behind the kept one, in standard errors). Its cost: BATCHES renders per candidate at
+least (the start's are asked for while the fit runs, `prefetch_start`), more only for undecided
+pairs.
+
+With `corrections`, the rounds start from the better (by the estimate) of the start and the best
+end; round k takes its residual from a render of its starting point with the seed SEED + k - 1,
+a seed no batch uses, so that no round carries another's noise and no batch judges the noise a
+round was corrected on.
 """
 
 from __future__ import annotations
@@ -36,28 +43,29 @@ from matfit import correct, fit, images, models, params
 from matfit.errors import FitError
 
 CANDIDATES = 5  # without correction: the start and up to four end points, every end of the default 4-start fit
-# With correction the ends' renders only choose where the rounds start, and the start with the best end alone judges as
-# well as all five for three renders fewer (docs/fitting.md#verification).
+# With correction the start and the best end choose where the rounds start, and the last round joins them.
 CORRECTED_CANDIDATES = 2
-# 64 spp: the cheapest count whose choices match 128 spp within the judge's noise (`bench.verification_table`; see
-# docs/fitting.md#verification).
-SPP = 64
-SEED = 1_000_003  # not a seed of the training set's images
-CONFIRM_SEED = 1_000_033  # the second opinion on an end point's lead; neither SEED nor a training image's seed
+SPP = 64  # samples of one batch, and of a round's residual render
+SEED = 1_000_003  # round k's residual render: SEED + k - 1; not a seed of the training set's images
+BATCH_SEED = 1_000_033  # batch j of every candidate: BATCH_SEED + j; neither a residual's nor a training image's seed
+BATCHES = 3  # batches of every candidate: the fewest with which the jackknife says how far to trust a difference
+MAX_BATCHES = 8  # the most batches of a candidate whose difference from the leader stays within LEAD standard errors
+LEAD = 2.0  # standard errors by which a difference is decided without more batches
 
 
 @dataclass
 class Verified:
-    """Which candidate Mitsuba preferred, and the renders' figures."""
+    """Which candidate Mitsuba preferred, and the figures of the decision."""
 
     unit: np.ndarray  # the chosen candidate (unit cube)
-    rendered: np.ndarray  # its Mitsuba render, sRGB (R, R, 3)
-    rmse: float  # its Mitsuba RMSE against the target
+    rendered: np.ndarray  # its Mitsuba render, sRGB (R, R, 3): the mean of its batches
+    rmse: float  # its estimated noise-free Mitsuba RMSE against the target
     chosen: str  # "start", "end-1", "end-2", ... (end-1: the best neural RMSE), or "corrected-1", ...
-    figures: dict[str, float]  # Mitsuba RMSE of the fit's candidates (seed SEED) and of the rounds but the last
+    figures: dict[str, float]  # every candidate's estimated noise-free Mitsuba RMSE
     seconds: float
-    start_rmse: float  # the start's Mitsuba RMSE in the same render as `rmse` (seed SEED, or CONFIRM_SEED)
-    confirmation: dict[str, float] = dataclasses.field(default_factory=dict)  # renders with CONFIRM_SEED
+    start_rmse: float  # the start's estimated noise-free Mitsuba RMSE
+    batches: dict[str, int] = dataclasses.field(default_factory=dict)  # batches rendered of each candidate
+    margins: dict[str, float] = dataclasses.field(default_factory=dict)  # each other's deficit, in standard errors
     decoded: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # phi of each correction round's point
     points: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # every candidate rendered (unit cube)
     corrections: int = 0  # rounds of correction run
@@ -85,16 +93,14 @@ def verify(
     corrections: int = 0,
     model: models.Model | None = None,
 ) -> Verified:
-    """Returns the candidate whose Mitsuba render is closest to the sRGB `target` (weighted like the fit, if a mask is
-    given).
+    """Returns the candidate whose noise-free Mitsuba render is estimated closest to the sRGB `target` (weighted like
+    the fit, if a mask is given), by the rule of the module docstring.
 
-    `renderer` renders at the target's resolution; every candidate uses the same seed and `spp` samples.
-    `count`: how many candidates (`candidates`) to render; by default CANDIDATES, or CORRECTED_CANDIDATES with
-    `corrections`.
-    `corrections`: rounds of `correct.step` from the best of the fit's candidates ("corrected-1",
-    ...; they need the fit's `model`); the last one's point is kept if it beats the start in renders
-    with CONFIRM_SEED (`confirmation`), else the rule of the module docstring chooses. `figures` then
-    holds the start only if the rounds started from it.
+    `renderer` renders at the target's resolution; every batch has `spp` samples.
+    `count`: how many of the fit's candidates (`candidates`) to render; by default CANDIDATES, or
+    CORRECTED_CANDIDATES with `corrections`.
+    `corrections`: rounds of `correct.step` from the better of the fit's candidates ("corrected-1",
+    ...; they need the fit's `model`); the last one's point joins the candidates.
     """
     check_corrections(corrections)
     if corrections and model is None:
@@ -107,81 +113,111 @@ def verify(
     def rendered(name: str, seed: int) -> np.ndarray:
         return images.srgb_encode(renderer.render(params.from_unit(pool[name]), seed=seed, spp=spp))
 
-    confirmation, corrected = {}, {}
+    batches: dict[str, list[np.ndarray]] = {}
 
-    def figure(image: np.ndarray) -> float:
-        return float(images.rmse(image, target, weights))
+    def render_more(names, count: int) -> None:
+        for name in names:  # every request first, so that a render process works through them while this one waits
+            for j in range(len(batches.get(name, ())), count):
+                renderer.prefetch(params.from_unit(pool[name]), BATCH_SEED + j, spp)
+        for name in names:
+            done = batches.setdefault(name, [])
+            done.extend(rendered(name, BATCH_SEED + j) for j in range(len(done), count))
 
-    def confirm(names) -> dict[str, np.ndarray]:
-        second = {name: rendered(name, CONFIRM_SEED) for name in names if name not in confirmation}
-        confirmation.update({name: figure(image) for name, image in second.items()})
-        return second
+    corrected = {}
+    contenders = list(pool)
+    if corrections:
+        render_more(contenders, BATCHES)
+        name = decide(batches, target, weights)[0]  # where the rounds start: by their first batches alone
+        unit, image = pool[name], rendered(name, SEED)
+        decoded = result.decoded(unit)
+        decoded = model.decode(unit)[0] if decoded is None else decoded
+        for k in range(corrections):  # each round from the last one's point: `correct.py`
+            unit, decoded = correct.step(model, target, weights, unit, image, decoded)
+            name = f"corrected-{k + 1}"
+            pool[name], corrected[name] = unit, decoded
+            if k + 1 < corrections:  # the next round's residual, from a render with this round's own seed
+                image = rendered(name, SEED + k + 1)
+        contenders.append(name)
+    render_more(contenders, BATCHES)
+    while True:
+        chosen, estimates, margins = decide({name: batches[name] for name in contenders}, target, weights)
+        undecided = [name for name, margin in margins.items() if margin < LEAD]
+        if not undecided or len(batches[chosen]) >= MAX_BATCHES:
+            break
+        render_more([chosen, *undecided], len(batches[chosen]) + 1)
+    figures = {name: 255.0 * float(np.sqrt(max(value, 0.0))) for name, value in estimates.items()}
+    return Verified(
+        pool[chosen],
+        np.mean(batches[chosen], axis=0, dtype=np.float32),
+        figures[chosen],
+        chosen,
+        figures,
+        time.perf_counter() - started,
+        figures["start"],
+        {name: len(batches[name]) for name in contenders},
+        margins,
+        corrected,
+        pool,
+        corrections,
+    )
 
-    def answer(name: str, image: np.ndarray, rmse: float, start_rmse: float) -> Verified:
-        seconds = time.perf_counter() - started
-        return Verified(
-            pool[name], image, rmse, name, figures, seconds, start_rmse, confirmation, corrected, pool, corrections
-        )
 
-    if not corrections:
-        renders = {name: rendered(name, SEED) for name in pool}
-        figures = {name: figure(image) for name, image in renders.items()}
-        best = min(figures, key=figures.get)  # the start comes first, so a tie keeps the start
-        if best != "start":
-            confirm(("start", best))
-        chosen = keep(figures, confirmation)
-        return answer(chosen, renders[chosen], figures[chosen], figures["start"])
-    # The start is rendered with CONFIRM_SEED only: that render guards the rounds' answer, and it also tells whether
-    # they start from the best end (its render with SEED is better) or from the start (then rendered with SEED too,
-    # for its residual).
-    renders = {name: rendered(name, SEED) for name in pool if name != "start"}
-    figures = {name: figure(image) for name, image in renders.items()}
-    start_image = confirm(("start",))["start"]
-    name = min(figures, key=figures.get, default="start")
-    if name == "start" or figures[name] >= confirmation["start"]:
-        name = "start"
-        renders[name] = rendered(name, SEED)
-        figures[name] = figure(renders[name])
-    # The fit's candidates as verification's rule compares them: the start by its SEED render if the rounds needed one.
-    fits = {"start": figures.get("start", confirmation["start"]), **{n: f for n, f in figures.items() if n != "start"}}
-    unit, image = pool[name], renders[name]
-    decoded = result.decoded(unit)
-    decoded = model.decode(unit)[0] if decoded is None else decoded
-    for k in range(corrections):  # each round from the last one's point: `correct.py`
-        unit, decoded = correct.step(model, target, weights, unit, image, decoded)
-        name = f"corrected-{k + 1}"
-        pool[name], corrected[name] = unit, decoded
-        if k + 1 < corrections:  # the next round's residual, from a render with this round's own seed
-            image = renders[name] = rendered(name, SEED + k + 1)
-            figures[name] = figure(image)
-    second = confirm((name,))
-    if confirmation[name] < confirmation["start"]:
-        return answer(name, second[name], confirmation[name], confirmation["start"])
-    # The rounds lost: verification's rule, every figure of `answer` from CONFIRM_SEED's renders.
-    best = min(fits, key=fits.get)  # the start comes first, so a tie keeps the start
-    second = confirm((best,)) if best != "start" else {}
-    chosen = keep(fits, confirmation)
-    image = start_image if chosen == "start" else second[chosen]
-    return answer(chosen, image, confirmation[chosen], confirmation["start"])
+def squared_error(renders: list[np.ndarray], target: np.ndarray, weights: np.ndarray) -> tuple[float, np.ndarray]:
+    """Returns (the unbiased estimate of the weighted mean squared error of the noise-free render, its jackknife
+    leave-one-out estimates (m,)) from m >= 3 independent sRGB renders (m, R, R, 3) of one material.
+
+    The estimate is the mean over pairs i != j of sum_p w_p (R_i - t)_p . (R_j - t)_p / (3 sum_p w_p): the cross
+    terms of independent renders have the noise-free error's square as their expectation, the noise's variance none.
+    """
+    m = len(renders)
+    if m < 3:
+        raise ValueError(f"{m} renders: the estimate's jackknife needs at least 3")
+    residuals = (np.asarray(renders, np.float64) - np.asarray(target, np.float64)).reshape(m, -1, 3)
+    weighted = residuals * (np.asarray(weights, np.float64).reshape(1, -1, 1) / (3.0 * float(np.sum(weights))))
+    gram = np.einsum("ipc,jpc->ij", weighted, residuals)
+    diagonal, rows = np.diag(gram), gram.sum(axis=1)
+    pairs = gram.sum() - diagonal.sum()  # every ordered pair i != j
+    estimate = pairs / (m * (m - 1))
+    leave_one_out = (pairs - 2.0 * (rows - diagonal)) / ((m - 1) * (m - 2))
+    return float(estimate), leave_one_out
+
+
+def decide(
+    batches: dict[str, list[np.ndarray]], target: np.ndarray, weights: np.ndarray, count: int | None = None
+) -> tuple[str, dict[str, float], dict[str, float]]:
+    """Returns (the leader: the lowest estimate of `squared_error`, the start first so that a tie keeps it; every
+    candidate's estimate; every other candidate's margin behind the leader in standard errors).
+
+    `batches`: each candidate's renders, batch j of every one with the same seed. A margin compares the two over
+    their common batches (the first `count` of each, if given): the paired difference of their estimates, with
+    the jackknife's standard error over those batches (no spread at all, as of identical renders: infinitely many).
+    """
+    used = {name: renders[:count] for name, renders in batches.items()}
+    estimates = {name: squared_error(renders, target, weights)[0] for name, renders in used.items()}
+    leader = min(estimates, key=estimates.get)
+    margins = {}
+    for name, renders in used.items():
+        if name == leader:
+            continue
+        common = min(len(renders), len(used[leader]))
+        mine, mine_out = squared_error(renders[:common], target, weights)
+        theirs, theirs_out = squared_error(used[leader][:common], target, weights)
+        out = mine_out - theirs_out
+        error = float(np.sqrt((common - 1) / common * np.sum((out - out.mean()) ** 2)))
+        difference = mine - theirs
+        margins[name] = difference / error if error > 0 else np.inf  # no spread: the same renders, decided
+    return leader, estimates, margins
 
 
 def prefetch_start(renderer, start: np.ndarray, corrections: int = 0, spp: int = SPP) -> None:
-    """Starts, on a `render.Background` or `render.Process`, the render `verify` will make of the fit's start (unit
-    cube): with SEED, or with CONFIRM_SEED when rounds of correction will be guarded against it."""
+    """Starts, on a `render.Background` or `render.Process`, the renders `verify` will make of the fit's start (unit
+    cube): its first BATCHES batches (`corrections` changes nothing: the start is judged by the same batches)."""
     values = params.from_unit(np.asarray(start, np.float64))  # as `candidates` and `rendered` make them
-    renderer.prefetch(values, CONFIRM_SEED if corrections else SEED, spp)
+    for j in range(BATCHES):
+        renderer.prefetch(values, BATCH_SEED + j, spp)
 
 
 def check_corrections(corrections: int) -> None:
     """Raises FitError unless `corrections` (rounds of correction) is a count."""
     if corrections < 0:
         raise FitError(f"corrections {corrections} must be >= 0: use 0 to skip correction", field="corrections")
-
-
-def keep(figures: dict[str, float], confirmation: dict[str, float]) -> str:
-    """Returns the candidate to keep: the best of `figures` if it is the start or its lead over the start holds in
-    `confirmation` (both renders again with another seed), else the start."""
-    best = min(figures, key=figures.get)
-    if best == "start" or confirmation.get(best, np.inf) < confirmation.get("start", -np.inf):
-        return best
-    return "start"

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from matfit import fit, images, models, params, presets, render, shipped
+from matfit import fit, images, models, params, presets, render, shipped, verify
 from matfit.cli import app
 
 runner = CliRunner()
@@ -357,6 +357,20 @@ def test_fit_writes_params_and_report(trained, target, tmp_path):
     assert run("render", out, "-o", tmp_path / "again.png", "--size", 16, "--spp", 4).exit_code == 0
 
 
+def test_two_fits_of_one_picture_write_the_same_params_json_but_for_the_timings(trained, target, tmp_path):
+    # the default fit: gradient stage, two rounds of correction, verification's renders in a render process
+    texts = []
+    for k in range(2):
+        out = tmp_path / f"params-{k}.json"
+        result = run("fit", target, "-o", out, "--model", trained, "--iterations", 10)
+        assert result.exit_code == 0, result.output
+        document = json.loads(out.read_text())
+        assert document["verification"]["corrections"] == 2 and document["verification"]["seconds"] > 0
+        timings = ('"fit_seconds": ', '"wall_time_s": ', '"seconds": ')
+        texts.append([line for line in out.read_text().splitlines() if not line.strip().startswith(timings)])
+    assert texts[0] == texts[1]
+
+
 def test_fit_bad_inputs(trained, target, tmp_path):
     out = tmp_path / "params.json"
 
@@ -487,18 +501,17 @@ def test_fit_with_the_gradient_method_an_init_and_verification(trained, target, 
     assert result.exit_code == 0, result.output
     document = json.loads(out.read_text())
     assert document["method"] == "lbfgsb" and document["init"] == str(source)
-    figures = document["verification"]["mitsuba_rmse"]
-    kept, confirmation = document["verification"]["kept"], document["verification"]["confirmation_rmse"]
-    # the default's two rounds of correction: the last round's point is rendered against the start with the
-    # confirmation's seed, and kept if it beats it there
-    assert document["verification"]["corrections"] == 2 and "corrected-1" in figures
-    assert confirmation["corrected-2"] > 0 and confirmation["start"] > 0
-    if kept == "corrected-2":
-        assert document["mitsuba_rmse"] == confirmation[kept] < confirmation["start"]
-    else:  # an end point is kept only if it led in the first render and again in the second
-        assert "start" in figures and document["mitsuba_rmse"] == figures[kept] <= figures["start"]
-        fits = {name: figure for name, figure in figures.items() if not name.startswith("corrected")}
-        assert kept == "start" or (figures[kept] == min(fits.values()) and confirmation[kept] < confirmation["start"])
+    verification = document["verification"]
+    figures, kept, margins = verification["mitsuba_rmse"], verification["kept"], verification["margins"]
+    # the default's two rounds of correction: the last round's point joins the start and the best end, and the
+    # lowest estimate is kept, every other decided or the kept one at the cap of batches
+    assert verification["corrections"] == 2 and {"start", "corrected-2"} <= set(figures) <= {
+        "start",
+        "end-1",
+        "corrected-2",
+    }
+    assert document["mitsuba_rmse"] == figures[kept] == min(figures.values()) and set(margins) == set(figures) - {kept}
+    assert verification["batches"][kept] == verify.MAX_BATCHES or min(margins.values()) >= verify.LEAD
     assert "Mitsuba RMSE" in result.output and f"kept {document['verification']['kept']}" in result.output
     assert_one_line_error(
         run("fit", target, "-o", out, "--model", trained, "--starts", 0), "--starts 0 is out of range"
@@ -539,9 +552,7 @@ def test_fit_with_physical_refinement(trained, target, tmp_path):
     # refinement starts from the point verification kept: its figure is that point's verification render (the last
     # round of correction's, if kept, is its render against the start with the confirmation's seed)
     verification = document["verification"]
-    kept = verification["kept"]
-    figures = verification["confirmation_rmse"] if kept == "corrected-2" else verification["mitsuba_rmse"]
-    assert figures[kept] > 0
+    assert verification["mitsuba_rmse"][verification["kept"]] > 0
     assert "refined 2 steps" in result.output
     assert document["mitsuba_variant"] == "llvm_ad_rgb"  # the variant of the fit's renderer, which differentiates
     assert_one_line_error(

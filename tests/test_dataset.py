@@ -100,6 +100,21 @@ def test_two_workers_give_the_same_bytes(tmp_path, reference, settings):
     assert array_bytes(tmp_path) == array_bytes(reference)
 
 
+def test_two_runs_of_one_command_give_byte_identical_folders(tmp_path):
+    """Every file, the scene without its sphere included: each run a process of its own, as a user's two runs are."""
+    folders = [tmp_path / "first", tmp_path / "second"]
+    for folder in folders:
+        command = ["render-dataset", str(folder), "--count", "4", "--resolution", "16", "--spp", "2", "--workers", "1"]
+        subprocess.run([sys.executable, "-m", "matfit", *command], check=True, capture_output=True)
+
+    def contents(folder):
+        return {path.relative_to(folder): path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
+
+    first, second = (contents(folder) for folder in folders)
+    assert dataset.SCENE_FILE in {str(path) for path in first} and first.keys() == second.keys()
+    assert [path for path in first if first[path] != second[path]] == []
+
+
 @pytest.fixture(scope="module")
 def long_reference(tmp_path_factory, settings):
     """A 300-sample dataset: long enough to be stopped part-way by a signal."""
