@@ -3,7 +3,7 @@
 import jax
 import numpy as np
 
-from matfit import models, params
+from matfit import images, models, params
 
 R = 32
 
@@ -35,3 +35,23 @@ def decode(model, unit):
 
 def true_point(seed):
     return np.random.default_rng(seed).uniform(0.15, 0.85, params.COUNT).astype(np.float32)
+
+
+class Noisy:
+    """A renderer whose picture of a material is the target, plus the material's offset, plus noise drawn from the
+    seed alone (common random numbers: every material's batch j has the same noise pattern, scaled by its own
+    spread). Any other material (a round of correction's point) is 0.3 off, without noise. Records every render as
+    (material's name or None, seed)."""
+
+    def __init__(self, target, materials):
+        self.target, self.materials, self.asked = target, materials, []
+
+    def prefetch(self, values, seed=0, spp=None):
+        pass
+
+    def render(self, values, seed=0, spp=None):
+        name = next((n for n, (v, _, _) in self.materials.items() if np.allclose(v, values)), None)
+        self.asked.append((name, seed))
+        _, offset, spread = self.materials[name] if name is not None else (None, 0.3, 0.0)
+        noise = np.random.default_rng(seed).normal(0, 1, self.target.shape)
+        return images.srgb_decode(np.clip(self.target + offset + spread * noise, 0, 1).astype(np.float32))

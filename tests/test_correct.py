@@ -1,6 +1,6 @@
 import numpy as np
 import pytest
-from helpers import R, random_model, true_point
+from helpers import Noisy, R, random_model, true_point
 
 from matfit import correct, fit, images, params, presets, verify
 from matfit.errors import FitError
@@ -49,37 +49,45 @@ def test_one_round_removes_an_error_the_decoder_makes_everywhere(model):
     np.testing.assert_allclose(drawn, decoded(model, point), atol=1e-5)  # the image returned is phi(point)
 
 
-def test_verification_with_corrections_keeps_only_what_mitsuba_prefers(model):
-    renderer = Renderer(R, 8)
+class Recording(Renderer):
+    """Mitsuba, and the list of its renders as (material, seed)."""
+
+    asked: list
+
+    def render(self, values, seed=0, spp=None):
+        self.asked.append((np.asarray(values), seed))
+        return super().render(values, seed, spp)
+
+
+def test_verification_with_corrections_keeps_the_lowest_estimate_of_the_start_the_best_end_and_the_last_round(model):
+    renderer = Recording(R, 8)
+    renderer.asked = []
     target = images.srgb_encode(renderer.render(presets.preset("red-plastic"), seed=5))
     result = fit.fit(model, target, fit.Settings(method="lbfgsb", starts=2, iterations=10))
+    renderer.asked = []
     checked = verify.verify(renderer, result, target, corrections=2, model=model)
     assert checked.corrections == 2 and set(checked.decoded) == {"corrected-1", "corrected-2"}
-    # the rounds start from the better of the start and the best end: the other end is not rendered; the start is
-    # rendered with SEED only when the rounds start from it (its CONFIRM_SEED render, the guard's, chose that)
-    assert len(verify.candidates(result)) == 3
-    assert set(checked.points) - set(checked.decoded) == {"start", "end-1"}
-    from_start = checked.figures["end-1"] >= checked.confirmation["start"]
-    assert set(checked.figures) == {"end-1", "corrected-1"} | ({"start"} if from_start else set())
+    assert len(verify.candidates(result)) == 3  # the other end is not among them
+    assert set(checked.figures) == set(checked.batches) == {"start", "end-1", "corrected-2"}
+    assert checked.chosen == min(checked.figures, key=checked.figures.get) and checked.rmse <= checked.start_rmse
     for name in checked.decoded:  # phi of each round's point, as the decoder draws it
         np.testing.assert_allclose(checked.decoded[name], decoded(model, checked.points[name]), atol=1e-5)
 
-    def figure(name, seed):
-        image = renderer.render(params.from_unit(checked.points[name]), seed=seed, spp=verify.SPP)
-        return float(images.rmse(images.srgb_encode(image), target))
+    def renders_of(name):
+        values = params.from_unit(checked.points[name])
+        return [seed for material, seed in renderer.asked if np.allclose(material, values)]
 
-    # the first round's residual came from a render with its own seed; the last round's point was rendered only
-    # against the start, both with CONFIRM_SEED
-    assert figure("corrected-1", verify.SEED + 1) == pytest.approx(checked.figures["corrected-1"], abs=1e-3)
-    assert "corrected-2" not in checked.figures
-    for name in ("start", "corrected-2"):
-        assert figure(name, verify.CONFIRM_SEED) == pytest.approx(checked.confirmation[name], abs=1e-3)
-    assert checked.start_rmse == checked.confirmation["start"]  # every answer is compared in CONFIRM_SEED's renders
-    if checked.chosen == "corrected-2":
-        assert checked.rmse == checked.confirmation["corrected-2"] < checked.start_rmse
-    else:  # the best end if its lead holds in a second render, else the start
-        assert checked.chosen in ("start", "end-1") and checked.rmse == checked.confirmation[checked.chosen]
-    assert checked.rmse <= checked.start_rmse
+    # every candidate's batches with the common seeds; the residuals with seeds no batch uses: the first round's of
+    # its starting point, the second round's of the first's point
+    batches = {name: [verify.BATCH_SEED + j for j in range(count)] for name, count in checked.batches.items()}
+    starts = [name for name in ("start", "end-1") if verify.SEED in renders_of(name)]
+    assert len(starts) == 1  # the first round's residual: a render of where the rounds start
+    origin = starts[0]
+    assert sorted(renders_of(origin)[: len(batches[origin]) + 1]) == sorted([*batches[origin], verify.SEED])
+    other = {"start": "end-1", "end-1": "start"}[origin]
+    assert renders_of(other)[: len(batches[other])] == batches[other]
+    assert renders_of("corrected-1") == [verify.SEED + 1]
+    assert renders_of("corrected-2")[: len(batches["corrected-2"])] == batches["corrected-2"]
     with pytest.raises(FitError, match="corrections -1 must be >= 0"):
         verify.verify(renderer, result, target, corrections=-1, model=model)
     with pytest.raises(ValueError, match="needs the fit's model"):
@@ -98,45 +106,18 @@ def test_a_round_reuses_the_fits_compiled_step(model):
     assert not np.allclose(point, 0.9 * x)  # it moved: the second round ran
 
 
-class Scripted:
-    """A renderer whose pictures are the target plus a grey offset chosen per material and seed: each branch of
-    verification's choice with corrections made to happen. Anything not scripted (a round's point) is far off."""
-
-    def __init__(self, target, offsets):
-        self.target, self.offsets, self.asked = target, offsets, []
-
-    def render(self, values, seed=0, spp=None):
-        name = next((n for n, (v, _) in self.offsets.items() if np.allclose(v, values)), None)
-        self.asked.append((name, seed))
-        offset = self.offsets[name][1][seed] if name is not None else 0.3
-        return images.srgb_decode(np.clip(self.target + offset, 0, 1))
-
-
-@pytest.mark.parametrize(
-    ("end_seed", "end_confirm", "start_confirm", "chosen", "start_with_seed"),
-    [
-        (0.05, 0.08, 0.10, "end-1", False),  # the rounds lose; the end's lead holds in a second render
-        (0.05, 0.12, 0.10, "start", False),  # the rounds lose; the end's lead was its render's noise
-        (0.15, 0.08, 0.10, "start", True),  # the start's guard render beats the end's: the rounds start from it
-    ],
-)
-def test_with_corrections_the_start_is_rendered_once_unless_the_rounds_start_there(
-    model, end_seed, end_confirm, start_confirm, chosen, start_with_seed
+@pytest.mark.parametrize(("start_offset", "end_offset", "origin"), [(0.10, 0.05, "end-1"), (0.05, 0.10, "start")])
+def test_the_rounds_start_from_the_better_estimate_and_a_worse_last_round_is_not_kept(
+    model, start_offset, end_offset, origin
 ):
     target = np.full((R, R, 3), 0.4, np.float32)
     result = fit.fit(model, target, fit.Settings(method="lbfgsb", starts=2, iterations=5))
     pool = verify.candidates(result, verify.CORRECTED_CANDIDATES)
-    offsets = {
-        "start": (params.from_unit(pool["start"]), {verify.SEED: 0.10, verify.CONFIRM_SEED: start_confirm}),
-        "end-1": (params.from_unit(pool["end-1"]), {verify.SEED: end_seed, verify.CONFIRM_SEED: end_confirm}),
-    }
-    scripted = Scripted(target, offsets)
+    offsets = {"start": start_offset, "end-1": end_offset}
+    scripted = Noisy(target, {name: (params.from_unit(pool[name]), offsets[name], 0.02) for name in pool})
     checked = verify.verify(scripted, result, target, corrections=2, model=model)
-    assert checked.chosen == chosen
-    assert checked.rmse == checked.confirmation[chosen] == pytest.approx(255 * offsets[chosen][1][verify.CONFIRM_SEED])
-    assert checked.start_rmse == checked.confirmation["start"] and checked.rmse <= checked.start_rmse
-    start_renders = [seed for name, seed in scripted.asked if name == "start"]
-    assert sorted(start_renders) == sorted([verify.CONFIRM_SEED] + ([verify.SEED] if start_with_seed else []))
-    assert ("start" in checked.figures) == start_with_seed
-    # a round's residual and the last round's guard: SEED + 1, then CONFIRM_SEED, of points nobody scripted
-    assert [seed for name, seed in scripted.asked if name is None] == [verify.SEED + 1, verify.CONFIRM_SEED]
+    # the rounds' points are 0.3 off: the better of the start and the best end is kept, as it was where they started
+    assert checked.chosen == origin and checked.figures["corrected-2"] == pytest.approx(255 * 0.3, rel=1e-3)
+    assert checked.figures[origin] == pytest.approx(255 * offsets[origin], rel=0.05)
+    assert (origin, verify.SEED) in scripted.asked and (None, verify.SEED + 1) in scripted.asked
+    assert [seed for name, seed in scripted.asked if name is None and seed < verify.BATCH_SEED] == [verify.SEED + 1]

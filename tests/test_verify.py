@@ -1,6 +1,6 @@
 import numpy as np
 import pytest
-from helpers import R, random_model
+from helpers import Noisy, R, random_model
 
 from matfit import fit, images, presets, verify
 from matfit.params import to_unit
@@ -127,25 +127,6 @@ def test_the_estimate_leaves_out_the_renders_noise_which_a_renders_rmse_counts()
     estimate, _ = verify.squared_error(renders, target, weights)
     assert estimate == pytest.approx(0.05**2, rel=0.1)  # within 3.5 of its standard errors
     assert np.mean((renders[0] - target) ** 2) == pytest.approx(0.05**2 + 0.2**2, rel=0.05)
-
-
-class Noisy:
-    """A renderer whose picture of a material is the target, plus the material's offset, plus noise drawn from the
-    seed alone (common random numbers: every material's batch j has the same noise pattern, scaled by its own
-    spread). Counts the renders of each material."""
-
-    def __init__(self, target, materials):
-        self.target, self.materials, self.asked = target, materials, []
-
-    def prefetch(self, values, seed=0, spp=None):
-        pass
-
-    def render(self, values, seed=0, spp=None):
-        name = next(n for n, (v, _, _) in self.materials.items() if np.allclose(v, values))
-        self.asked.append((name, seed))
-        _, offset, spread = self.materials[name]
-        noise = np.random.default_rng(seed).normal(0, 1, self.target.shape)
-        return images.srgb_decode(np.clip(self.target + offset + spread * noise, 0, 1).astype(np.float32))
 
 
 def scripted(model, materials_of):
