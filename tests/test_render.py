@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from matfit import images, params, render
+from matfit import images, params, presets, render
 from matfit.render import RenderError
 
 
@@ -258,6 +258,17 @@ def test_a_render_process_renders_what_one_in_this_process_does_and_answers_pref
             child.render(bad)
         assert child.render(material, seed=4).shape == (renderer.resolution,) * 2 + (3,)  # it goes on
     assert child._child.wait(timeout=10) == 0  # it ends by itself once its requests do
+
+
+def test_two_render_processes_render_a_material_to_the_same_bits():
+    # several Dr.Jit threads add their samples into the film in no fixed order: the renders that decide use one
+    material = presets.preset("jade")
+    pictures = []
+    for _ in range(2):
+        with render.Process() as child:
+            child.load(64, 16)
+            pictures.append(child.render(material, seed=7))
+    np.testing.assert_array_equal(pictures[0], pictures[1])
 
 
 def test_a_render_process_that_cannot_start_raises_its_reason():
