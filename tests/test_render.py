@@ -266,7 +266,7 @@ def test_two_render_processes_render_a_material_to_the_same_bits():
     pictures = []
     for _ in range(2):
         with render.Process() as child:
-            child.load(64, 16)
+            child.load(64, 64)  # verification's renders
             pictures.append(child.render(material, seed=7))
     np.testing.assert_array_equal(pictures[0], pictures[1])
 
