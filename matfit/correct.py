@@ -9,7 +9,7 @@ the decoder supplies the direction (its exact gradient), Mitsuba the residual. T
 correction, as in iterative refinement of a linear solve with an inexact factorisation: each
 round costs one render and a short gradient fit, and a fixed point x* has R(x*) as close to t as
 the decoder's derivatives can tell. Verification runs the rounds and keeps the last one's point
-only if Mitsuba prefers it to the start (`verify.py`).
+only if its estimated Mitsuba error is the lowest of the start's, the best end's and its own (`verify.py`).
 
 Each round takes the answer closer to the target than verification alone, judged by independent
 renders (`matfit bench-fit`); why two is the default: docs/fitting.md#correction.
