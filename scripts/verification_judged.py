@@ -118,6 +118,7 @@ def main() -> None:
     parser.add_argument("--results", default="verification_judged.json", help="checkpoint of finished cases (JSON)")
     parser.add_argument("--old", default=OLD, help="git revision of the rule compared against")
     parser.add_argument("--model", default=None, help="model directory (default: the shipped one)")
+    parser.add_argument("--first", default="", help="comma-separated case names to run before the others")
     arguments = parser.parse_args()
     model = fitfile.load_model(arguments.model or str(shipped.MODEL))
     renderer = Renderer(model.resolution, verify.SPP, threads=1)
@@ -126,7 +127,13 @@ def main() -> None:
     if os.path.isfile(arguments.results):
         with open(arguments.results) as file:
             results = json.load(file)
-    for k, (name, values, seed) in enumerate(cases()):
+    every = list(enumerate(cases()))
+    first = [name for name in arguments.first.split(",") if name]
+    unknown = set(first) - {name for _, (name, _, _) in every}
+    if unknown:
+        parser.error(f"no case named {', '.join(sorted(unknown))}: name cases as the table does (jade, reachable-3)")
+    every.sort(key=lambda case: first.index(case[1][0]) if case[1][0] in first else len(first))
+    for k, (name, values, seed) in every:
         if name in results:
             continue
         target = images.srgb_encode(renderer.render(values, seed=int(seed), spp=TARGET_SPP))

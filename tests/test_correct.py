@@ -78,16 +78,32 @@ def test_verification_with_corrections_keeps_the_lowest_estimate_of_the_start_th
         return [seed for material, seed in renderer.asked if np.allclose(material, values)]
 
     # every candidate's batches with the common seeds; the residuals with seeds no batch uses: the first round's of
-    # its starting point, the second round's of the first's point
+    # where the rounds start (the best end, if its render with SEED beats the start's first batch, else the start),
+    # the second round's of the first round's point
     batches = {name: [verify.BATCH_SEED + j for j in range(count)] for name, count in checked.batches.items()}
-    starts = [name for name in ("start", "end-1") if verify.SEED in renders_of(name)]
-    assert len(starts) == 1  # the first round's residual: a render of where the rounds start
-    origin = starts[0]
-    assert sorted(renders_of(origin)[: len(batches[origin]) + 1]) == sorted([*batches[origin], verify.SEED])
-    other = {"start": "end-1", "end-1": "start"}[origin]
-    assert renders_of(other)[: len(batches[other])] == batches[other]
+    end_first = images.rmse(
+        images.srgb_encode(renderer.render(params.from_unit(checked.points["end-1"]), verify.SEED, verify.SPP)), target
+    )
+    start_first = images.rmse(
+        images.srgb_encode(renderer.render(params.from_unit(checked.points["start"]), verify.BATCH_SEED, verify.SPP)),
+        target,
+    )
+    origin = "end-1" if end_first < start_first else "start"
+    assert sorted(renders_of("end-1")[: len(batches["end-1"]) + 1]) == sorted([*batches["end-1"], verify.SEED])
+    start_renders = sorted([*batches["start"], *([verify.SEED] if origin == "start" else [])])
+    assert sorted(renders_of("start")[: len(start_renders)]) == start_renders
     assert renders_of("corrected-1") == [verify.SEED + 1]
     assert renders_of("corrected-2")[: len(batches["corrected-2"])] == batches["corrected-2"]
+    rounds_from = checked.points["corrected-1"]  # one round of correction from the origin gives the first point
+    again, _ = correct.step(
+        model,
+        target,
+        np.ones((R, R), np.float32),
+        checked.points[origin],
+        images.srgb_encode(renderer.render(params.from_unit(checked.points[origin]), verify.SEED, verify.SPP)),
+        decoded(model, checked.points[origin]),
+    )
+    np.testing.assert_allclose(again, rounds_from, atol=1e-4)
     with pytest.raises(FitError, match="corrections -1 must be >= 0"):
         verify.verify(renderer, result, target, corrections=-1, model=model)
     with pytest.raises(ValueError, match="needs the fit's model"):
