@@ -167,9 +167,9 @@ def where_rounds_start(pool, batches, rendered, target, weights) -> tuple[str, n
 
     No answer is decided here (the start, the best end and the last round are all judged after the rounds), so one
     render of each does: the best end's with SEED (the residual's, if it starts there) against the start's first
-    batch. Choosing by the estimate instead picked the better point more often, yet its rounds ended worse in two of
-    `scripts/verification_judged.py`'s cases and better in none: how well the rounds go depends on more than where
-    they start.
+    batch. Choosing by the estimate instead started from the truly better point, yet the rounds from it ended worse
+    on some targets (jade among them, `scripts/verification_judged.py`): how well the rounds go depends on more than
+    where they start.
     """
     start = batches.setdefault("start", [])
     start[:1] = start[:1] or [rendered("start", BATCH_SEED)]
