@@ -269,8 +269,11 @@ class Renderer:
     `threads`: Dr.Jit's thread count, which is the whole process's (every renderer in it then uses
     it). Several threads add their samples into the film in no fixed order, so two renders of one
     material and seed differ in the last bits; one thread makes them bit-identical from run to run,
-    which the renders that decide (verification, a dataset's scene image) need. Set it where no
-    other thread renders at the time (a render process, `Background`'s one thread).
+    which the renders that decide (verification, a dataset's scene image) need. It is set when the
+    renderer is made, and again before each of its renders if another renderer changed it since
+    (the page's one worker thread renders large pictures on every core and verifies on one); a
+    renderer without `threads` renders on whatever count the process has. Use it where no other
+    thread renders at the time (a render process, `Background`'s one thread, the page's worker).
     """
 
     def __init__(self, resolution: int = 64, spp: int = 16, variant: str | None = None, threads: int | None = None):
@@ -280,6 +283,7 @@ class Renderer:
         self.mi = mitsuba(self.variant)
         import drjit
 
+        self.threads = threads
         if threads is not None:
             drjit.set_thread_count(threads)
         self.drjit = drjit
@@ -314,6 +318,8 @@ class Renderer:
 
     def render_current(self, seed: int = 0, spp: int | None = None) -> np.ndarray:
         """Returns the image of whatever material is loaded, without touching the scene."""
+        if self.threads is not None and self.drjit.thread_count() != self.threads:
+            self.drjit.set_thread_count(self.threads)  # another renderer of this process changed it since
         image = self.mi.render(self.scene, seed=int(seed) & 0xFFFFFFFF, spp=int(spp or self.spp))
         return np.array(image, dtype=np.float32)
 

@@ -184,7 +184,10 @@ class Studio:
         if size not in self.renderers:
             from matfit.render import Renderer
 
-            self.renderers[size] = Renderer(size, verify.SPP, self.variant)
+            # The model's resolution verifies fits: one thread, so the page's answer is the command line's, bit for bit;
+            # larger pictures render on every core.
+            threads = 1 if size == self.model.resolution else (os.cpu_count() or 1)
+            self.renderers[size] = Renderer(size, verify.SPP, self.variant, threads=threads)
         return self.renderers[size]
 
     def new_job(self, kind: str) -> Job:

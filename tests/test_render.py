@@ -351,3 +351,21 @@ def test_a_render_process_whose_caller_left_ends_without_a_word():
     finally:
         os.close(requests_write)
         child.stderr.close()
+
+
+def test_a_renderer_with_a_thread_count_renders_on_it_whatever_another_renderer_set():
+    import drjit
+
+    original = drjit.thread_count()
+    jade = presets.preset("jade")
+    try:
+        deciding = render.Renderer(16, 16, threads=1)  # the page verifies on one thread ...
+        large = render.Renderer(24, 4, threads=2)  # ... and renders large pictures on every core
+        assert drjit.thread_count() == 2
+        first = deciding.render(jade, seed=3)
+        assert drjit.thread_count() == 1
+        large.render(jade, seed=3)
+        assert drjit.thread_count() == 2
+        np.testing.assert_array_equal(deciding.render(jade, seed=3), first)
+    finally:
+        drjit.set_thread_count(original)
