@@ -132,8 +132,9 @@ DOCSTRINGS = {
 SPECIAL_EDITS = (
     (
         "blender_scene",
-        "sys.path[:] = [os.path.dirname(_here), ",
-        "sys.path[:] = [os.path.dirname(os.path.dirname(_here)), ",
+        '"matfit", os.path.join(_here, "__init__.py"), submodule_search_locations=[_here]',
+        '"matfit", os.path.join(os.path.dirname(_here), "__init__.py"), '
+        "submodule_search_locations=[os.path.dirname(_here)]",
     ),
 )
 TEXT_SUFFIXES = (".py", ".md", ".toml", ".js", ".html", ".css", ".cfg", ".ini", ".txt", ".sh", ".yml", ".yaml")
