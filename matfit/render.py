@@ -396,8 +396,9 @@ class Process:
             fcntl.fcntl(replies_write, fcntl.F_SETPIPE_SZ, self.PIPE_BYTES)
         # The child imports this very matfit, wherever it lies (clone or site-packages), whatever the working
         # directory holds.
+        package = str(shipped.PACKAGE.parent)
         code = (
-            f"import sys; sys.path.insert(0, {str(shipped.PACKAGE.parent)!r}); from matfit import render; "
+            f"import sys; sys.path.insert(0, {package!r}); from matfit import render; "
             f"render.serve_requests({requests_read}, {replies_write}, {variant!r})"
         )
         try:
