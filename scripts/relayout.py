@@ -136,6 +136,9 @@ SPECIAL_EDITS = (
         '"matfit", os.path.join(os.path.dirname(_here), "__init__.py"), '
         "submodule_search_locations=[os.path.dirname(_here)]",
     ),
+    # The package's own files named through shipped.PACKAGE (the matfit folder) move into render/ with their module.
+    ("blender", 'shipped.PACKAGE / "blender_scene.py"', 'shipped.PACKAGE / "render" / "blender_scene.py"'),
+    ("export", 'shipped.PACKAGE / "blender_material.py"', 'shipped.PACKAGE / "render" / "blender_material.py"'),
 )
 TEXT_SUFFIXES = (".py", ".md", ".toml", ".js", ".html", ".css", ".cfg", ".ini", ".txt", ".sh", ".yml", ".yaml")
 REWRITTEN = ("matfit", "tests", "scripts", ".ci", "docs", "Makefile", "pyproject.toml", "README.md")
