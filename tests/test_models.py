@@ -452,7 +452,8 @@ def test_the_program_store_is_pruned_to_its_cap_and_the_old_jax_cache_removed_wh
     pruned = []
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     monkeypatch.setattr(programs, "prune", lambda directory, cap: pruned.append((directory, cap)) or 0)
-    monkeypatch.setattr(programs, "_directory", programs._directory)  # restored after the test
+    monkeypatch.setattr(programs, "_directory", programs._directory)  # restored after the test, with its key
+    monkeypatch.setattr(programs, "_key", programs._key)
     models.enable_compilation_cache()
     assert pruned == [
         (str(tmp_path / "matfit" / "jax"), 0),  # what earlier versions kept in JAX's own cache

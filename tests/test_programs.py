@@ -91,7 +91,7 @@ def test_transformations_and_unkeyable_statics_trace_as_jax_jit_does(store):
 
 
 def test_without_a_store_it_is_jax_jit():
-    previous = programs._directory
+    previous = programs._directory, programs._key
     programs.disable()
     try:
         function = programs.jit(scaled, static_argnames=("factor",))
@@ -99,7 +99,7 @@ def test_without_a_store_it_is_jax_jit():
         assert function._cache_size() == 1 and programs.stored() == []
         assert programs.remembered("value", 1, lambda: [1, 2]) == [1, 2]
     finally:
-        programs._directory = previous
+        programs._directory, programs._key = previous  # the store's state is both: a directory without its key fails
 
 
 def test_remembered_values_are_computed_once_per_key(store):

@@ -4,6 +4,8 @@ The server runs in a thread (`serve.running`) with a tiny random model; the brow
 the reason where Debian's Chromium or Playwright is not installed (CI installs both).
 """
 
+import asyncio
+import concurrent.futures
 import json
 import os
 import shutil
@@ -24,6 +26,13 @@ from matfit import fit, images, params, presets, serve, shipped
 EXAMPLE = str(shipped.EXAMPLES / "recoloured.png")
 OTHER = str(shipped.EXAMPLES / "desaturated.png")
 CHROMIUM = "/usr/bin/chromium"
+
+
+def run_to_end(coroutine):
+    """Returns what a coroutine returns, run on a thread of its own: the browser tests' event loop may be running on
+    this one, and asyncio.run refuses to start inside a running loop."""
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        return pool.submit(asyncio.run, coroutine).result()
 
 
 def request(url: str, data: bytes | None = None, headers: dict | None = None) -> tuple[int, bytes]:
@@ -259,7 +268,7 @@ def test_a_half_written_watched_file_is_waited_for_not_reported(tmp_path):
             file.write(data)
 
     threading.Thread(target=finish).start()
-    assert serve.asyncio.run(serve.settled(path)) is None
+    assert run_to_end(serve.settled(path)) is None
 
 
 def test_a_port_in_use_is_refused_with_the_fix(url):
@@ -476,7 +485,7 @@ def call(app, path: str, chunks: list[bytes], headers: dict) -> tuple[int, dict,
         "client": ("127.0.0.1", 1),
         "root_path": "",
     }
-    serve.asyncio.run(app(scope, receive, send))
+    run_to_end(app(scope, receive, send))
     body = b"".join(message.get("body", b"") for message in sent if message["type"] == "http.response.body")
     return sent[0]["status"], json.loads(body), len(messages)
 
