@@ -1,5 +1,7 @@
 """Shared test helpers: a random model small enough to fit with in milliseconds."""
 
+import functools
+
 import jax
 import numpy as np
 
@@ -9,7 +11,16 @@ R = 32
 
 
 def random_model(seed: int = 0) -> models.Model:
-    """A random 32 px decoder and two random encoders: enough to test the machinery, not quality."""
+    """A random 32 px decoder and two random encoders: enough to test the machinery, not quality.
+
+    Built once per seed for the whole session (initialising the three networks compiles them: seconds each time)
+    and shared by every test file: a `Model` is frozen and its weights are immutable JAX arrays.
+    """
+    return _random_model(seed)
+
+
+@functools.cache
+def _random_model(seed: int) -> models.Model:
     decoder = models.Decoder(resolution=R, hidden=64, base_channels=32, stage_channels=(32,))
     variables = models.initialise(decoder, jax.random.key(seed), (19,))
     networks = {}

@@ -16,6 +16,7 @@ def test_black_level_maps_the_black_point_to_zero():
     np.testing.assert_array_equal(bench.black_level(values, 0.0), values)
 
 
+@pytest.mark.slow
 def test_compare_and_tables(model):
     targets = bench.Targets(
         np.stack([true_point(1), true_point(2)]), np.stack([decode(model, true_point(1)), decode(model, true_point(2))])
@@ -35,6 +36,7 @@ def test_compare_and_tables(model):
     assert sequence.count("\n") == 2 + 3 + 2 - 1 and "| sum |" in sequence and "/3 |" in sequence
 
 
+@pytest.mark.slow
 def test_optimiser_comparison_runs_every_optimiser_from_both_starts(model):
     target = decode(model, true_point(5))
     row = bench.compare_optimisers(model, target, evaluations=30, basin_seconds=0.2)

@@ -153,6 +153,7 @@ def test_dataset_with_other_settings_is_refused(tmp_path):
     assert_one_line_error(result, "drawn with sampler uniform, not dense-media: pass --sampler uniform")
 
 
+@pytest.mark.slow
 def test_a_dense_media_supplement_trains_beside_the_training_set(tmp_path, tiny_dataset):
     supplement = tmp_path / "media"
     arguments = ("--count", 8, "--resolution", 32, "--spp", 1, "--seed", 2, "--sampler", "dense-media")
@@ -283,6 +284,7 @@ def test_finished_networks_are_not_trained_again(trained, tiny_dataset):
     assert models.load(str(trained / "encoder-8.msgpack")).info["metrics"]["wall_time_s"] == before
 
 
+@pytest.mark.slow
 def test_train_coarse_absorption_grows_the_layer_on_a_plain_decoder(trained, tiny_dataset, tmp_path):
     out = tmp_path / "coarse"
     arguments = ("--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8)  # the layer is the default
@@ -462,6 +464,7 @@ def test_presets_sheet(tmp_path):
     )
 
 
+@pytest.mark.slow
 def test_bench_render_prints_both_configurations():
     result = run("bench-render", "--count", 5)
     assert result.exit_code == 0, result.output

@@ -123,6 +123,7 @@ def long_reference(tmp_path_factory, settings):
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("stop", "code", "first", "again"),
     [

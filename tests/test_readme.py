@@ -148,6 +148,7 @@ def tiny(command: list[str]) -> list[str]:
     return result + [f"{option}={value}" for option, value in small.items() if renders and option not in command]
 
 
+@pytest.mark.slow
 def test_the_quick_start_runs_as_written(tmp_path):
     commands = quick_start_commands()
     assert [command[:2] for command in commands] == [["matfit", "fit"], ["matfit", "render"]]

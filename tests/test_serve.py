@@ -374,6 +374,7 @@ def test_two_pages_fitting_at_once_each_show_their_own(browser, url):
         page.close()
 
 
+@pytest.mark.slow
 def test_the_page_benchmark_reports_every_figure():
     from matfit import bench
 
