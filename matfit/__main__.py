@@ -10,7 +10,7 @@ def main() -> None:
     """
     interrupt.install()
     try:
-        from matfit.cli import app
+        from matfit.app.cli import app
 
         app()
     except KeyboardInterrupt:  # during start-up, before a command took over

@@ -15,7 +15,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from matfit.render import Renderer  # noqa: E402
+from matfit.render.engine import Renderer  # noqa: E402
 
 TEST_RESOLUTION = 16
 TEST_SPP = 16
@@ -34,7 +34,8 @@ def renderer() -> Renderer:
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory, renderer) -> str:
     """Returns the path of a finished 32 px, 4-spp, 48-sample dataset (encoders need 32 px)."""
-    from matfit import dataset, scene
+    from matfit.model import dataset
+    from matfit.render import scene
 
     path = str(tmp_path_factory.mktemp("tiny") / "data")
     data = dataset.prepare(path, dataset.Settings(32, 4, 5, renderer.variant), 48, {"mitsuba": "test", "drjit": "test"})

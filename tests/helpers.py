@@ -5,7 +5,8 @@ import functools
 import jax
 import numpy as np
 
-from matfit import images, models, params
+from matfit import images, params
+from matfit.model import models
 
 R = 32
 

@@ -2,7 +2,9 @@ import numpy as np
 import pytest
 from helpers import decode, random_model, true_point
 
-from matfit import bench, fit, images
+from matfit import images
+from matfit.app import bench
+from matfit.fit import search
 
 
 @pytest.fixture(scope="module")
@@ -22,8 +24,8 @@ def test_compare_and_tables(model):
         np.stack([true_point(1), true_point(2)]), np.stack([decode(model, true_point(1)), decode(model, true_point(2))])
     )
     configurations = {
-        "nn (best-of-n)": fit.Settings(method="nn"),
-        "hybrid 60": fit.Settings(method="hybrid", evaluations=60),
+        "nn (best-of-n)": search.Settings(method="nn"),
+        "hybrid 60": search.Settings(method="hybrid", evaluations=60),
     }
     table = bench.compare(model, targets, configurations)
     assert np.all(
@@ -44,7 +46,7 @@ def test_optimiser_comparison_runs_every_optimiser_from_both_starts(model):
         for start in ("random", "best-of-9"):
             assert row[f"{optimiser} ({start}) evaluations"] > 0
             assert 0.0 <= row[f"{optimiser} ({start})"] < 255.0 and 0.0 < row[f"{optimiser} ({start}) seconds"] < 60.0
-    best_of_n = fit.fit(model, target, fit.Settings(method="nn")).rmse
+    best_of_n = search.fit(model, target, search.Settings(method="nn")).rmse
     assert row["L-BFGS-B (best-of-9)"] <= best_of_n + 1e-4 and row["L-BFGS-B, ours (best-of-9)"] <= best_of_n + 1e-4
     assert row["Nelder-Mead (best-of-9) evaluations"] == 30
 

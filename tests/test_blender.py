@@ -1,4 +1,4 @@
-"""The Blender export and the Cycles round trip (matfit.blender); the bpy tests need `make blender`."""
+"""The Blender export and the Cycles round trip (matfit.render.blender); the bpy tests need `make blender`."""
 
 import json
 import os
@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from matfit import blender, export, images, params, presets
-from matfit.cli import app
+from matfit import images, params
+from matfit.app.cli import app
+from matfit.render import blender, export, presets
 
 try:
     BLENDER = blender.find_blender()

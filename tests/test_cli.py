@@ -11,8 +11,12 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from matfit import fit, images, models, params, presets, render, shipped, verify
-from matfit.cli import app
+from matfit import images, params, shipped
+from matfit.app.cli import app
+from matfit.fit import search as fit
+from matfit.fit import verify
+from matfit.model import models
+from matfit.render import engine, presets
 
 runner = CliRunner()
 
@@ -135,7 +139,7 @@ def test_bad_arguments_give_one_line_errors(tmp_path, arguments, fragments):
     ids=lambda arguments: arguments[0],
 )
 def test_cuda_asked_for_without_a_gpu_is_refused_in_one_line_before_any_work(tmp_path, monkeypatch, arguments):
-    monkeypatch.setattr(render, "cuda_devices", lambda: 0)  # as on a machine without an NVIDIA GPU
+    monkeypatch.setattr(engine, "cuda_devices", lambda: 0)  # as on a machine without an NVIDIA GPU
     result = run(*(a.replace("{tmp}", str(tmp_path)) for a in arguments), "--variant", "cuda_ad_rgb")
     assert_one_line_error(
         result, "variant cuda_ad_rgb is not usable here (no NVIDIA GPU answers libcuda.so.1)", "--variant scalar_rgb"
@@ -316,7 +320,7 @@ def black_png(path, side):
 
 @pytest.fixture(scope="module")
 def target(tiny_dataset, tmp_path_factory):
-    from matfit import dataset
+    from matfit.model import dataset
 
     data = dataset.open_dataset(tiny_dataset)
     path = tmp_path_factory.mktemp("target") / "edited.png"
@@ -351,7 +355,7 @@ def test_fit_writes_params_and_report(trained, target, tmp_path):
     assert 0 < document["evaluations"] <= 10 * 4 * fit.GRADIENT_COST  # at most 10 steps of 4 starts
     assert document["neural_rmse"] <= document["start_rmse"] and document["mitsuba_rmse"] > 0
     assert len(document["target_sha256"]) == 64
-    assert document["mitsuba_variant"] == render.choose_variant(None)[0]  # the variant that verified it
+    assert document["mitsuba_variant"] == engine.choose_variant(None)[0]  # the variant that verified it
     values = params.parse_params_json(out.read_text())
     assert values.shape == (19,)
     assert images.read(str(report)).shape[1] == 5 * 192
@@ -418,7 +422,7 @@ def test_fit_bad_inputs(trained, target, tmp_path):
 
 
 def test_sequence_through_the_cli(trained, tiny_dataset, tmp_path):
-    from matfit import dataset
+    from matfit.model import dataset
 
     data = dataset.open_dataset(tiny_dataset)
     frames = tmp_path / "frames"
@@ -456,7 +460,7 @@ def test_sequence_through_the_cli(trained, tiny_dataset, tmp_path):
 def test_presets_sheet(tmp_path):
     result = run("presets", "-o", tmp_path / "sheet.png", "--size", 32, "--spp", 2)
     assert result.exit_code == 0, result.output
-    from matfit import presets
+    from matfit.render import presets
 
     assert images.read(str(tmp_path / "sheet.png")).shape == (32 + 14, 32 * len(presets.PRESETS), 3)
     assert_one_line_error(
@@ -483,7 +487,7 @@ def test_bench_model_times_the_trained_networks(trained):
 
 
 def test_fit_with_the_gradient_method_an_init_and_verification(trained, target, tmp_path, tiny_dataset):
-    from matfit import dataset
+    from matfit.model import dataset
 
     source = tmp_path / "source.json"
     source.write_text(json.dumps(params.params_document(dataset.open_dataset(tiny_dataset).params[-1])))

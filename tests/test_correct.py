@@ -2,9 +2,11 @@ import numpy as np
 import pytest
 from helpers import Noisy, R, random_model, true_point
 
-from matfit import correct, fit, images, params, presets, verify
+from matfit import images, params
 from matfit.errors import FitError
-from matfit.render import Renderer
+from matfit.fit import correct, search, verify
+from matfit.render import presets
+from matfit.render.engine import Renderer
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +40,9 @@ def test_one_round_removes_an_error_the_decoder_makes_everywhere(model):
     truth, error = true_point(3), bias()
     target = decoded(model, truth) + error
     weights = np.ones((R, R), np.float32)
-    uncorrected = fit.fit(model, target, fit.Settings(method="lbfgsb", starts=2, iterations=60), extra=truth[None])
+    uncorrected = search.fit(
+        model, target, search.Settings(method="lbfgsb", starts=2, iterations=60), extra=truth[None]
+    )
     x = uncorrected.unit
     before = float(images.rmse(decoded(model, x) + error, target))
     point, drawn = correct.step(model, target, weights, x, decoded(model, x) + error, decoded(model, x))
@@ -63,7 +67,7 @@ def test_verification_with_corrections_keeps_the_lowest_estimate_of_the_start_th
     renderer = Recording(R, 8)
     renderer.asked = []
     target = images.srgb_encode(renderer.render(presets.preset("red-plastic"), seed=5))
-    result = fit.fit(model, target, fit.Settings(method="lbfgsb", starts=2, iterations=10))
+    result = search.fit(model, target, search.Settings(method="lbfgsb", starts=2, iterations=10))
     renderer.asked = []
     checked = verify.verify(renderer, result, target, corrections=2, model=model)
     assert checked.corrections == 2 and set(checked.decoded) == {"corrected-1", "corrected-2"}
@@ -111,7 +115,7 @@ def test_verification_with_corrections_keeps_the_lowest_estimate_of_the_start_th
 
 
 def test_a_round_reuses_the_fits_compiled_step(model):
-    from matfit import gradient
+    from matfit.fit import gradient
 
     target, weights = decoded(model, true_point(4)) + bias(), np.ones((R, R), np.float32)
     x = true_point(5).astype(np.float64)
@@ -127,7 +131,7 @@ def test_the_rounds_start_from_the_better_estimate_and_a_worse_last_round_is_not
     model, start_offset, end_offset, origin
 ):
     target = np.full((R, R, 3), 0.4, np.float32)
-    result = fit.fit(model, target, fit.Settings(method="lbfgsb", starts=2, iterations=5))
+    result = search.fit(model, target, search.Settings(method="lbfgsb", starts=2, iterations=5))
     pool = verify.candidates(result, verify.CORRECTED_CANDIDATES)
     offsets = {"start": start_offset, "end-1": end_offset}
     scripted = Noisy(target, {name: (params.from_unit(pool[name]), offsets[name], 0.02) for name in pool})

@@ -11,8 +11,10 @@ import warnings
 import numpy as np
 import pytest
 
-from matfit import dataset, params, render
-from matfit.dataset import DatasetError, Settings
+from matfit import params
+from matfit.model import dataset
+from matfit.model.dataset import DatasetError, Settings
+from matfit.render import engine
 
 VERSIONS = {"mitsuba": "test", "drjit": "test"}
 # The Ray tests need the optional extra `.[cluster]`.
@@ -68,7 +70,7 @@ def test_layout_and_contents(reference, settings, renderer):
     assert meta["resolution"] == 16 and meta["spp"] == 2 and meta["seed"] == 3 and meta["variant"] == settings.variant
     assert params.describe_table_difference(meta["parameter_table"]) is None
     # the stored image is the renderer's image for that sample's parameters and seed
-    again = render.Renderer(16, 2, settings.variant).render(
+    again = engine.Renderer(16, 2, settings.variant).render(
         data.params[5].astype(np.float64), seed=dataset.image_seed(3, 5)
     )
     np.testing.assert_array_equal(data.images[5], again.astype(np.float16))
@@ -354,7 +356,7 @@ def test_every_meta_field_is_checked_by_every_command(tmp_path, reference, chang
     """render-dataset, train and evaluate refuse a damaged meta.json in one line naming the file, the field, the fix."""
     from typer.testing import CliRunner
 
-    from matfit.cli import app
+    from matfit.app.cli import app
 
     for name in ("meta.json", *dataset.ARRAYS):
         (tmp_path / name).write_bytes((reference / name).read_bytes())

@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from matfit import bench, edits
+from matfit import edits
+from matfit.app import bench
 
 
 @pytest.fixture

@@ -1,7 +1,9 @@
 import numpy as np
 import pytest
 
-from matfit import dataset, evaluate, models, params, presets, render
+from matfit import params
+from matfit.model import dataset, evaluate, models
+from matfit.render import engine, presets
 
 
 def test_subsets_split_the_parameter_space_into_thirds():
@@ -34,7 +36,7 @@ def test_preset_references_are_rendered_once_and_kept(tiny_dataset, monkeypatch)
     def refuse(*args, **kwargs):
         raise AssertionError("rendered again")
 
-    monkeypatch.setattr(render, "Renderer", refuse)
+    monkeypatch.setattr(engine, "Renderer", refuse)
     again = evaluate.preset_references(references, spp=2)
     np.testing.assert_array_equal(again["jade"], first["jade"])
     with pytest.raises(AssertionError, match="rendered again"):

@@ -3,7 +3,8 @@ import ast
 import numpy as np
 import pytest
 
-from matfit import export, params, presets
+from matfit import params
+from matfit.render import export, presets
 
 
 @pytest.mark.parametrize("name", ["gold", "amber-glass", "jade"])

@@ -4,8 +4,10 @@ import numpy as np
 import pytest
 from helpers import R, decode, random_model, true_point
 
-from matfit import fit, gradient, images, models, params
-from matfit.fit import FitError, Settings
+from matfit import images, params
+from matfit.fit import gradient, search
+from matfit.fit.search import FitError, Settings
+from matfit.model import models
 
 
 @pytest.fixture(scope="module")
@@ -16,7 +18,7 @@ def model():
 def test_best_of_n_picks_the_closest_candidate(model):
     truth = true_point(1)
     extra = np.stack([true_point(2), truth, true_point(3)])
-    result = fit.fit(model, decode(model, truth), Settings(method="nn"), extra=extra)
+    result = search.fit(model, decode(model, truth), Settings(method="nn"), extra=extra)
     assert result.chosen == "extra-2"
     np.testing.assert_allclose(result.start_image, decode(model, truth), atol=1e-5)
     assert result.rmse == pytest.approx(0.0, abs=1e-3)
@@ -28,7 +30,7 @@ def test_best_of_n_picks_the_closest_candidate(model):
 def test_hybrid_improves_on_its_start_and_stays_in_the_box(model):
     target = decode(model, true_point(4))
     for box in ("clip", "barrier"):
-        result = fit.fit(model, target, Settings(method="hybrid", evaluations=400, box=box))
+        result = search.fit(model, target, Settings(method="hybrid", evaluations=400, box=box))
         assert result.evaluations == 400
         assert result.rmse < 0.8 * result.start_rmse
         assert result.unit.min() >= 0.0 and result.unit.max() <= 1.0
@@ -45,19 +47,19 @@ def test_box_terms():
     clipped = inside.copy()
     clipped[0] = 1.0
     f = {
-        box.value: (lambda x, box=box: float(fit.objective(x, (decoder, variables, target, weights, box))))
-        for box in fit.Box
+        box.value: (lambda x, box=box: float(search.objective(x, (decoder, variables, target, weights, box))))
+        for box in search.Box
     }
-    assert f["clip"](outside) == pytest.approx(f["clip"](clipped) + fit.PENALTY * 0.5, rel=1e-5)
-    assert f["barrier"](outside) >= fit.BARRIER
+    assert f["clip"](outside) == pytest.approx(f["clip"](clipped) + search.PENALTY * 0.5, rel=1e-5)
+    assert f["barrier"](outside) >= search.BARRIER
     assert f["barrier"](inside) == pytest.approx(f["clip"](inside))
 
 
 def test_box_penalty_has_a_zero_gradient_inside_the_box():
-    gradient = jax.grad(fit.distance_outside)(jnp.full(19, 0.5, jnp.float32))
+    gradient = jax.grad(search.distance_outside)(jnp.full(19, 0.5, jnp.float32))
     assert np.all(np.isfinite(gradient)) and np.all(gradient == 0.0)
     outside = jnp.full(19, 0.5, jnp.float32).at[0].set(1.5)
-    np.testing.assert_allclose(jax.grad(fit.distance_outside)(outside)[0], 1.0)
+    np.testing.assert_allclose(jax.grad(search.distance_outside)(outside)[0], 1.0)
 
 
 def test_a_mask_ignores_what_it_blacks_out(model):
@@ -66,28 +68,28 @@ def test_a_mask_ignores_what_it_blacks_out(model):
     spoiled[: R // 2] = 1.0 - spoiled[: R // 2]
     weights = np.ones((R, R), np.float32)
     weights[: R // 2] = 0.0
-    masked = fit.fit(model, spoiled, Settings(method="hybrid", evaluations=300), weights=weights)
-    plain = fit.fit(model, spoiled, Settings(method="hybrid", evaluations=300))
+    masked = search.fit(model, spoiled, Settings(method="hybrid", evaluations=300), weights=weights)
+    plain = search.fit(model, spoiled, Settings(method="hybrid", evaluations=300))
     assert masked.rmse < plain.rmse
 
 
 def test_one_compilation_serves_every_target(model):
     settings = Settings(method="hybrid", evaluations=60)
-    fit.fit(model, decode(model, true_point(6)), settings)
-    before = fit._fit._cache_size()
+    search.fit(model, decode(model, true_point(6)), settings)
+    before = search._fit._cache_size()
     for seed in (7, 8, 9):
-        fit.fit(model, decode(model, true_point(seed)), settings)
-    assert fit._fit._cache_size() == before
+        search.fit(model, decode(model, true_point(seed)), settings)
+    assert search._fit._cache_size() == before
 
 
 def test_optimize_starts_from_a_seeded_random_point(model):
     target = decode(model, true_point(10))
     settings = Settings(method="optimize", evaluations=100)
-    a = fit.fit(model, target, settings, seed=1)
-    before = fit._fit._cache_size()
-    b = fit.fit(model, target, settings, seed=1)
-    c = fit.fit(model, target, settings, seed=2)
-    assert fit._fit._cache_size() == before  # the seed is data: no new compilation
+    a = search.fit(model, target, settings, seed=1)
+    before = search._fit._cache_size()
+    b = search.fit(model, target, settings, seed=1)
+    c = search.fit(model, target, settings, seed=2)
+    assert search._fit._cache_size() == before  # the seed is data: no new compilation
     np.testing.assert_array_equal(a.unit, b.unit)
     assert not np.array_equal(a.unit, c.unit)
 
@@ -103,24 +105,24 @@ def test_optimize_starts_from_a_seeded_random_point(model):
 )
 def test_bad_settings(model, settings, message, field):
     with pytest.raises(FitError, match=message) as raised:
-        fit.fit(model, np.zeros((R, R, 3), np.float32), Settings(**settings))
+        search.fit(model, np.zeros((R, R, 3), np.float32), Settings(**settings))
     assert raised.value.field == field
 
 
 def test_wrong_target_shape_and_bad_mask(model):
     with pytest.raises(FitError, match=r"needs \(32, 32, 3\)"):
-        fit.fit(model, np.zeros((8, 8, 3), np.float32))
+        search.fit(model, np.zeros((8, 8, 3), np.float32))
     with pytest.raises(FitError, match="mask must be"):
-        fit.fit(model, np.zeros((R, R, 3), np.float32), weights=np.zeros((R, R)))
+        search.fit(model, np.zeros((R, R, 3), np.float32), weights=np.zeros((R, R)))
     with pytest.raises(FitError, match="make the mask the same size"):
-        fit.prepare_mask(np.ones((10, 12, 3), np.float32), (12, 12), R, "m.png")
+        search.prepare_mask(np.ones((10, 12, 3), np.float32), (12, 12), R, "m.png")
 
 
 def test_prepare_target_warns_about_aspect():
-    square, notices = fit.prepare_target(np.full((40, 40, 3), 0.2, np.float32), R, "t.png")
+    square, notices = search.prepare_target(np.full((40, 40, 3), 0.2, np.float32), R, "t.png")
     assert square.shape == (R, R, 3) and notices == []
     np.testing.assert_allclose(square, 0.4845292, rtol=1e-4)  # sRGB of linear 0.2
-    _, notices = fit.prepare_target(np.full((40, 50, 3), 0.2, np.float32), R, "t.png")
+    _, notices = search.prepare_target(np.full((40, 50, 3), 0.2, np.float32), R, "t.png")
     assert len(notices) == 1 and "50x40" in notices[0] and "1.250" in notices[0] and "1.000" in notices[0]
 
 
@@ -129,24 +131,26 @@ def test_gradient_methods_reach_a_reachable_target_and_count_their_budget(model,
     truth = true_point(11)
     target = decode(model, truth)
     settings = Settings(method=method, evaluations=60, starts=2, iterations=60, narrow_after=20)
-    best_of_n = fit.fit(model, target, Settings(method="nn"))
-    result = fit.fit(model, target, settings)
+    best_of_n = search.fit(model, target, Settings(method="nn"))
+    result = search.fit(model, target, settings)
     assert result.rmse <= best_of_n.rmse and result.rmse == pytest.approx(result.end_rmse[0])
     assert np.all(np.diff(result.end_rmse) >= 0)  # end points best first
     assert len(result.ends) == (3 if method == "hybrid-lbfgsb" else 2)
     simplex_part = 60 if method == "hybrid-lbfgsb" else 0
-    spent = round((result.evaluations - simplex_part) / fit.GRADIENT_COST)  # value-and-gradient evaluations, all starts
-    assert result.evaluations - simplex_part == pytest.approx(fit.GRADIENT_COST * spent, abs=0.5)  # rounded to whole
+    spent = round(
+        (result.evaluations - simplex_part) / search.GRADIENT_COST
+    )  # value-and-gradient evaluations, all starts
+    assert result.evaluations - simplex_part == pytest.approx(search.GRADIENT_COST * spent, abs=0.5)  # rounded to whole
     assert len(result.ends) <= spent <= 20 * len(result.ends) + 40  # every start 20 steps at most, the best 40 more
-    compiled = [fit._fit, fit._finish, gradient.step]
+    compiled = [search._fit, search._finish, gradient.step]
     before = [function._cache_size() for function in compiled]
-    fit.fit(model, decode(model, true_point(12)), settings)
+    search.fit(model, decode(model, true_point(12)), settings)
     assert [function._cache_size() for function in compiled] == before
 
 
 def test_optimize_reports_its_random_start(model):
     target = decode(model, true_point(13))
-    result = fit.fit(model, target, Settings(method="optimize", evaluations=40), seed=3)
+    result = search.fit(model, target, Settings(method="optimize", evaluations=40), seed=3)
     expected = np.random.default_rng(3).uniform(0.0, 1.0, params.COUNT).astype(np.float32)
     assert result.chosen == "random"
     np.testing.assert_array_equal(result.start, expected)
@@ -154,7 +158,7 @@ def test_optimize_reports_its_random_start(model):
 
 
 def test_gradient_methods_add_the_media_grid_to_best_of_n(model):
-    grid = fit.media_candidates()
+    grid = search.media_candidates()
     assert grid.shape == (48, params.COUNT) and grid.min() >= 0.0 and grid.max() <= 1.0
     assert len({tuple(point) for point in grid}) == 48
     physical = np.stack([params.from_unit(point) for point in grid])
@@ -162,16 +166,16 @@ def test_gradient_methods_add_the_media_grid_to_best_of_n(model):
         np.testing.assert_allclose(physical[:, params.INDEX[name]], 1.0)
     assert sorted(set(np.round(physical[:, params.INDEX["density"]], 6))) == [0.5, 1.0, 2.0, 4.0]
     target = decode(model, grid[17])
-    result = fit.fit(model, target, Settings(method="lbfgsb", starts=1, iterations=1, narrow_after=1))
+    result = search.fit(model, target, Settings(method="lbfgsb", starts=1, iterations=1, narrow_after=1))
     assert result.chosen == "media-18" and result.start_rmse == pytest.approx(0.0, abs=1e-3)
     assert len(result.candidate_rmse) == len(model.encoders) + 48
-    paper = fit.fit(model, target, Settings(method="nn"))
+    paper = search.fit(model, target, Settings(method="nn"))
     assert set(paper.candidate_rmse) == {"encoder-3", "encoder-8"}
 
 
 def test_the_fit_hands_back_the_images_of_its_start_and_end_points(model):
     target = decode(model, true_point(5))
-    result = fit.fit(model, target, Settings(method="lbfgsb", starts=2, iterations=3, narrow_after=2))
+    result = search.fit(model, target, Settings(method="lbfgsb", starts=2, iterations=3, narrow_after=2))
     assert result.end_images.shape == (len(result.ends), R, R, 3)
     for end, image in zip(result.ends, result.end_images, strict=True):
         np.testing.assert_allclose(result.decoded(end), decode(model, end), atol=1e-5)
@@ -188,20 +192,20 @@ def test_on_start_hears_best_of_n_winner_and_never_a_random_start(model):
     def on_start(start):
         heard.append(np.array(start))
 
-    result = fit.fit(
+    result = search.fit(
         model, target, Settings(method="lbfgsb", starts=2, iterations=3, narrow_after=2), on_start=on_start
     )
     assert len(heard) == 1
     # the very bytes verification renders the start from (`verify.candidates`): a prefetched render is found
     assert np.asarray(heard[0], np.float64).tobytes() == np.asarray(result.start, np.float64).tobytes()
-    fit.fit(model, target, Settings(method="optimize", evaluations=40), on_start=on_start)
+    search.fit(model, target, Settings(method="optimize", evaluations=40), on_start=on_start)
     assert len(heard) == 1  # optimize starts from a random point, not from best-of-n's winner
 
 
 def test_a_model_that_decodes_nan_is_refused_and_no_params_json_is_written(model, tmp_path):
     import dataclasses
 
-    from matfit import fitfile
+    from matfit.fit import fitfile
 
     poisoned = jax.tree_util.tree_map(lambda leaf: np.full(np.shape(leaf), np.nan, np.float32), model.decoder.variables)
     broken = dataclasses.replace(model, decoder=dataclasses.replace(model.decoder, variables=poisoned))

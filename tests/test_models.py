@@ -5,7 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from matfit import models, params, presets, scene
+from matfit import params
+from matfit.model import models
+from matfit.render import presets, scene
 
 # The paper's Appendix A as (conv filters in order, FC neurons, dropout), written out independently.
 APPENDIX_A = {

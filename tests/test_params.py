@@ -4,8 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from matfit import params, presets
+from matfit import params
 from matfit.params import ParameterError
+from matfit.render import presets
 
 
 def test_table_has_nineteen_named_bounded_parameters():

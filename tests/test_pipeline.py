@@ -1,4 +1,4 @@
-from matfit import pipeline
+from matfit.model import pipeline
 
 
 def test_the_loader_measure_gathers_batches_of_both_networks_arrays():

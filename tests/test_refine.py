@@ -1,13 +1,15 @@
 import numpy as np
 import pytest
 
-from matfit import images, params, presets, refine, render, scene
+from matfit import images, params
 from matfit.errors import FitError
+from matfit.fit import refine
+from matfit.render import engine, presets, scene
 
 
 @pytest.fixture(scope="module")
 def llvm(renderer):
-    if renderer.variant != render.LLVM_VARIANT:
+    if renderer.variant != engine.LLVM_VARIANT:
         pytest.skip("refinement differentiates with llvm_ad_rgb, which needs libLLVM >= 19")
     import mitsuba as mi
 

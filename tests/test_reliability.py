@@ -19,7 +19,8 @@ import numpy as np
 import pytest
 from helpers import R, decode, random_model, true_point
 
-from matfit import images, models
+from matfit import images
+from matfit.model import models
 
 PROMPT = 10.0  # seconds: the promise is about a second; a hang (the bug) lasted minutes
 
@@ -62,7 +63,7 @@ def assert_interrupted(code: int, error: str, seconds: float, directory) -> None
 
 FIT_FOREVER = """
 import sys
-from matfit import fit, images, interrupt, models
+from matfit import images, interrupt; from matfit.fit import search as fit; from matfit.model import models
 interrupt.install()
 model = models.load_model(sys.argv[1])
 target = images.srgb_encode(images.read(sys.argv[1] + "/target.png"))

@@ -8,8 +8,9 @@ import time
 import numpy as np
 import pytest
 
-from matfit import images, params, presets, render
-from matfit.render import RenderError
+from matfit import images, params
+from matfit.render import engine, presets
+from matfit.render.engine import RenderError
 
 
 def srgb(renderer, seed=0, **values):
@@ -124,7 +125,7 @@ def test_rejects_malformed_materials(renderer):
     ],
 )
 def test_llvm_version_is_read_from_the_file_name(name, major):
-    assert render.llvm_major(f"/usr/lib/x86_64-linux-gnu/{name}") == major
+    assert engine.llvm_major(f"/usr/lib/x86_64-linux-gnu/{name}") == major
 
 
 # What `decide_variant` gives for every request and every finding (GPU usable by Mitsuba, libLLVM >= 19):
@@ -158,12 +159,12 @@ CHOICES = {
 @pytest.mark.parametrize(("requested", "cuda", "llvm"), list(CHOICES))
 def test_the_variant_is_decided_by_what_was_found(requested, cuda, llvm):
     expected = CHOICES[requested, cuda, llvm]
-    if expected not in render.VARIANTS:
+    if expected not in engine.VARIANTS:
         with pytest.raises(RenderError) as refused:
-            render.decide_variant(requested, cuda, llvm, why_not_cuda="no GPU")
+            engine.decide_variant(requested, cuda, llvm, why_not_cuda="no GPU")
         assert str(refused.value).startswith(expected)
         return
-    variant, notice = render.decide_variant(requested, cuda, llvm)
+    variant, notice = engine.decide_variant(requested, cuda, llvm)
     assert variant == expected
     # only the fallback nobody asked for says why
     assert (notice is not None) == (requested is None and variant == "scalar_rgb")
@@ -172,51 +173,51 @@ def test_the_variant_is_decided_by_what_was_found(requested, cuda, llvm):
 def test_variant_choice_on_a_machine_without_a_gpu(monkeypatch, tmp_path):
     library = tmp_path / "libLLVM-19.so"
     library.write_bytes(b"")
-    monkeypatch.setattr(render, "cuda_devices", lambda: 0)
-    assert render.choose_variant("scalar_rgb") == ("scalar_rgb", None)
+    monkeypatch.setattr(engine, "cuda_devices", lambda: 0)
+    assert engine.choose_variant("scalar_rgb") == ("scalar_rgb", None)
     with pytest.raises(RenderError, match="use one of cuda_ad_rgb, llvm_ad_rgb, scalar_rgb"):
-        render.choose_variant("cuda_rgb")
+        engine.choose_variant("cuda_rgb")
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "")  # unset, as far as Dr.Jit is concerned; restored afterwards
-    monkeypatch.setattr(render, "find_libllvm", lambda: str(library))
-    assert render.choose_variant(None) == ("llvm_ad_rgb", None)
+    monkeypatch.setattr(engine, "find_libllvm", lambda: str(library))
+    assert engine.choose_variant(None) == ("llvm_ad_rgb", None)
     assert os.environ["DRJIT_LIBLLVM_PATH"] == str(library)
     with pytest.raises(RenderError, match=r"no NVIDIA GPU answers libcuda.so.1\): use --variant llvm_ad_rgb or"):
-        render.check_request("cuda_ad_rgb")
+        engine.check_request("cuda_ad_rgb")
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "")
-    monkeypatch.setattr(render, "find_libllvm", lambda: None)
-    variant, notice = render.choose_variant(None)
+    monkeypatch.setattr(engine, "find_libllvm", lambda: None)
+    variant, notice = engine.choose_variant(None)
     assert variant == "scalar_rgb" and "scalar_rgb" in notice
     with pytest.raises(RenderError, match="--variant scalar_rgb"):
-        render.choose_variant("llvm_ad_rgb")
+        engine.choose_variant("llvm_ad_rgb")
     with pytest.raises(RenderError, match=r"use --variant scalar_rgb, or leave --variant out"):
-        render.choose_variant("cuda_ad_rgb")
+        engine.choose_variant("cuda_ad_rgb")
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "/nonexistent/libLLVM.so")
     with pytest.raises(RenderError, match="does not exist"):
-        render.choose_variant(None)
+        engine.choose_variant(None)
 
 
 def test_a_gpu_is_looked_for_only_when_the_choice_needs_it(monkeypatch, renderer):
     def no_look(*_):
         raise AssertionError("looked for a GPU")
 
-    monkeypatch.setattr(render, "cuda_devices", no_look)
-    assert render.choose_variant("scalar_rgb")[0] == "scalar_rgb"
+    monkeypatch.setattr(engine, "cuda_devices", no_look)
+    assert engine.choose_variant("scalar_rgb")[0] == "scalar_rgb"
     if renderer.variant == "llvm_ad_rgb":
-        assert render.choose_variant("llvm_ad_rgb")[0] == "llvm_ad_rgb"
-    render.check_request(None)
+        assert engine.choose_variant("llvm_ad_rgb")[0] == "llvm_ad_rgb"
+    engine.check_request(None)
     # a GPU the driver reports, in a process whose Mitsuba already renders with another variant, is not taken
-    monkeypatch.setattr(render, "cuda_devices", lambda: 1)
-    assert render.cuda_problem() == f"this process already renders with {renderer.variant}"
-    assert render.choose_variant(None)[0] == renderer.variant
+    monkeypatch.setattr(engine, "cuda_devices", lambda: 1)
+    assert engine.cuda_problem() == f"this process already renders with {renderer.variant}"
+    assert engine.choose_variant(None)[0] == renderer.variant
 
 
 def test_a_background_renderer_renders_what_one_loaded_in_front_does_and_answers_prefetches(renderer):
-    background = render.Background(renderer.resolution, renderer.spp)
+    background = engine.Background(renderer.resolution, renderer.spp)
     material = params.from_unit(params.sample_index(0, 3))
     other = params.from_unit(params.sample_index(0, 4))
     background.prefetch(material, seed=4)
     loaded = background.renderer()
-    assert isinstance(loaded, render.Renderer) and loaded.variant == renderer.variant
+    assert isinstance(loaded, engine.Renderer) and loaded.variant == renderer.variant
     expected = renderer.render(material, seed=4)
     np.testing.assert_allclose(background.render(material, seed=4), expected, atol=1e-5)
     # the prefetched picture is answered, not rendered again: the scene now holds nothing of it
@@ -230,7 +231,7 @@ def test_a_background_renderer_renders_what_one_loaded_in_front_does_and_answers
 
 
 def test_a_renderer_that_fails_in_the_background_raises_for_whoever_waits():
-    background = render.Background(16, 4, "no_such_variant")
+    background = engine.Background(16, 4, "no_such_variant")
     background.prefetch(params.DEFAULTS, seed=1)
     with pytest.raises(RenderError, match="unknown variant 'no_such_variant'"):
         background.renderer()
@@ -241,7 +242,7 @@ def test_a_renderer_that_fails_in_the_background_raises_for_whoever_waits():
 def test_a_render_process_renders_what_one_in_this_process_does_and_answers_prefetches(renderer):
     material = params.from_unit(params.sample_index(0, 3))
     other = params.from_unit(params.sample_index(0, 4))
-    with render.Process() as child:
+    with engine.Process() as child:
         assert child.variant == renderer.variant and child.renderer() is child
         with pytest.raises(RenderError, match="load"):
             child.render(material, seed=4)
@@ -265,14 +266,14 @@ def test_two_render_processes_render_a_material_to_the_same_bits():
     material = presets.preset("jade")
     pictures = []
     for _ in range(2):
-        with render.Process() as child:
+        with engine.Process() as child:
             child.load(64, 64)  # verification's renders
             pictures.append(child.render(material, seed=7))
     np.testing.assert_array_equal(pictures[0], pictures[1])
 
 
 def test_a_render_process_that_cannot_start_raises_its_reason():
-    with render.Process("no_such_variant") as child:
+    with engine.Process("no_such_variant") as child:
         child.load(16, 4)
         for _ in range(2):  # the reason, every time it is asked, not a pipe's end
             with pytest.raises(RenderError, match="unknown variant 'no_such_variant'"):
@@ -294,7 +295,7 @@ def running(pid: int) -> bool:
 def test_a_render_process_ends_with_its_caller_even_a_killed_one():
     script = (
         "import time\n"
-        "from matfit import render, params\n"
+        "from matfit import params; from matfit.render import engine as render\n"
         "child = render.Process()\n"
         "child.load(16, 4)\n"
         "child.render(params.DEFAULTS, seed=1)\n"
@@ -318,27 +319,27 @@ def test_a_render_process_ends_with_its_caller_even_a_killed_one():
 def test_render_process_messages_round_trip_and_a_cut_one_is_the_pipes_end():
     image = np.arange(2 * 3 * 3, dtype=np.float32).reshape(2, 3, 3)
     pipe = io.BytesIO()
-    render.write_message(pipe, {"done": True}, image)
-    render.write_message(pipe, {"error": "a material is 19 finite values"})
+    engine.write_message(pipe, {"done": True}, image)
+    engine.write_message(pipe, {"error": "a material is 19 finite values"})
     whole = pipe.getvalue()
     pipe.seek(0)
-    header, array = render.read_message(pipe)
+    header, array = engine.read_message(pipe)
     assert header["done"] is True and array.dtype == np.float32
     np.testing.assert_array_equal(array, image)
     array[0, 0, 0] = -1  # the caller's own copy
-    assert render.read_message(pipe) == ({"error": "a material is 19 finite values"}, None)
+    assert engine.read_message(pipe) == ({"error": "a material is 19 finite values"}, None)
     with pytest.raises(EOFError, match="ended"):
-        render.read_message(pipe)
+        engine.read_message(pipe)
     for cut in (3, 12, len(whole) // 2):
         with pytest.raises(EOFError, match="inside a message"):
-            render.read_message(io.BytesIO(whole[:cut]))
+            engine.read_message(io.BytesIO(whole[:cut]))
 
 
 def test_a_render_process_whose_caller_left_ends_without_a_word():
     # The caller's end of the replies is closed before the child's first message (Ctrl-C or kill -9 while it starts).
     requests_read, requests_write = os.pipe()
     replies_read, replies_write = os.pipe()
-    code = f"from matfit import render; render.serve_requests({requests_read}, {replies_write}, 'scalar_rgb')"
+    code = f"from matfit.render import engine; engine.serve_requests({requests_read}, {replies_write}, 'scalar_rgb')"
     child = subprocess.Popen(
         [sys.executable, "-c", code], pass_fds=(requests_read, replies_write), stderr=subprocess.PIPE, text=True
     )
@@ -359,8 +360,8 @@ def test_a_renderer_with_a_thread_count_renders_on_it_whatever_another_renderer_
     original = drjit.thread_count()
     jade = presets.preset("jade")
     try:
-        deciding = render.Renderer(16, 16, threads=1)  # the page verifies on one thread ...
-        large = render.Renderer(24, 4, threads=2)  # ... and renders large pictures on every core
+        deciding = engine.Renderer(16, 16, threads=1)  # the page verifies on one thread ...
+        large = engine.Renderer(24, 4, threads=2)  # ... and renders large pictures on every core
         assert drjit.thread_count() == 2
         first = deciding.render(jade, seed=3)
         assert drjit.thread_count() == 1

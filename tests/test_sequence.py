@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 from helpers import decode, random_model, true_point
 
-from matfit import files, fit, images, sequence
+from matfit import files, images
 from matfit.errors import OutputError
-from matfit.sequence import SequenceError
+from matfit.fit import search, sequence
+from matfit.fit.sequence import SequenceError
 
 
 @pytest.fixture(scope="module")
@@ -43,11 +44,11 @@ def frames(tmp_path, model):
 
 
 def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, model, frames, monkeypatch):
-    settings = fit.Settings(method="hybrid", evaluations=40)
+    settings = search.Settings(method="hybrid", evaluations=40)
     whole = sequence.fit_sequence(model, frames, str(tmp_path / "whole"), settings)
     assert len(whole) == 4
     seen = []
-    original = fit.fit
+    original = search.fit
 
     def spy(model_, target, settings_, weights=None, extra=None):
         result = original(model_, target, settings_, weights, extra)
@@ -55,7 +56,7 @@ def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, mod
         return result
 
     with monkeypatch.context() as patch:
-        patch.setattr(fit, "fit", spy)
+        patch.setattr(search, "fit", spy)
         partial = sequence.fit_sequence(model, frames[:2], str(tmp_path / "parts"), settings)
         resumed = sequence.fit_sequence(model, frames, str(tmp_path / "parts"), settings)
     assert seen[0][0] is None and "extra-1" not in seen[0][1]
@@ -72,7 +73,7 @@ def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, mod
 
 def test_no_reinit_never_offers_the_previous_frame(tmp_path, model, frames):
     results = sequence.fit_sequence(
-        model, frames, str(tmp_path), fit.Settings(method="hybrid", evaluations=30), reinit=False
+        model, frames, str(tmp_path), search.Settings(method="hybrid", evaluations=30), reinit=False
     )
     assert all(frame.start != sequence.PREVIOUS for frame in results)
 
@@ -84,12 +85,12 @@ def test_mixed_sizes_and_other_settings_are_refused(tmp_path, model, frames):
             model,
             sequence.list_frames(str(tmp_path / "frames")),
             str(tmp_path / "out"),
-            fit.Settings(method="hybrid", evaluations=30),
+            search.Settings(method="hybrid", evaluations=30),
         )
     assert not (tmp_path / "out").exists()  # refused before fitting anything
-    sequence.fit_sequence(model, frames[:1], str(tmp_path / "out"), fit.Settings(method="hybrid", evaluations=30))
+    sequence.fit_sequence(model, frames[:1], str(tmp_path / "out"), search.Settings(method="hybrid", evaluations=30))
     with pytest.raises(SequenceError, match="other settings"):
-        sequence.fit_sequence(model, frames, str(tmp_path / "out"), fit.Settings(method="hybrid", evaluations=31))
+        sequence.fit_sequence(model, frames, str(tmp_path / "out"), search.Settings(method="hybrid", evaluations=31))
 
 
 def test_summary_table_sums():
@@ -100,7 +101,7 @@ def test_summary_table_sums():
 
 
 def test_a_changed_frame_and_the_frames_after_it_are_fitted_again(tmp_path, model, frames):
-    settings = fit.Settings(method="hybrid", evaluations=40)
+    settings = search.Settings(method="hybrid", evaluations=40)
     first = sequence.fit_sequence(model, frames, str(tmp_path / "out"), settings)
     again = sequence.fit_sequence(model, frames, str(tmp_path / "out"), settings)
     assert [frame.note for frame in again] == [None] * 4 and all(frame.image is None for frame in again)  # all reused
@@ -119,7 +120,7 @@ def test_a_changed_frame_and_the_frames_after_it_are_fitted_again(tmp_path, mode
 
 
 def test_another_folder_with_the_same_names_is_fitted_again(tmp_path, model, frames):
-    settings = fit.Settings(method="hybrid", evaluations=30)
+    settings = search.Settings(method="hybrid", evaluations=30)
     sequence.fit_sequence(model, frames[:2], str(tmp_path / "out"), settings)
     other = tmp_path / "other"
     other.mkdir()
@@ -130,7 +131,7 @@ def test_another_folder_with_the_same_names_is_fitted_again(tmp_path, model, fra
 
 
 def test_another_model_is_refused_and_a_failed_first_frame_leaves_no_folder(tmp_path, model, frames, monkeypatch):
-    settings = fit.Settings(method="hybrid", evaluations=30)
+    settings = search.Settings(method="hybrid", evaluations=30)
     sequence.fit_sequence(model, frames[:1], str(tmp_path / "out"), settings)
     with pytest.raises(SequenceError, match="another model"):
         sequence.fit_sequence(random_model(seed=1), frames[:1], str(tmp_path / "out"), settings)
@@ -138,7 +139,7 @@ def test_another_model_is_refused_and_a_failed_first_frame_leaves_no_folder(tmp_
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(fit, "fit", interrupted)
+    monkeypatch.setattr(search, "fit", interrupted)
     with pytest.raises(KeyboardInterrupt):
         sequence.fit_sequence(model, frames, str(tmp_path / "new"), settings)
     assert not (tmp_path / "new").exists()
@@ -153,8 +154,8 @@ def test_a_finished_frame_nested_too_deeply_is_one_line_naming_it(tmp_path):
 def test_two_frames_with_one_result_name_are_refused_before_any_fit(tmp_path, model, frames, monkeypatch):
     folder = tmp_path / "frames"
     images.write(str(folder / "f1.jpg"), images.srgb_decode(np.clip(decode(model, true_point(5)), 0, 1)))
-    monkeypatch.setattr(fit, "fit", None)  # a fit would fail: the refusal comes first
-    settings = fit.Settings(method="hybrid", evaluations=30)
+    monkeypatch.setattr(search, "fit", None)  # a fit would fail: the refusal comes first
+    settings = search.Settings(method="hybrid", evaluations=30)
     with pytest.raises(SequenceError, match=r"frames .*f1\.(jpg|png) and .*f1\.(png|jpg) would both write .* f1\.json"):
         sequence.run(model, str(folder), str(tmp_path / "out"), settings)
     with pytest.raises(SequenceError, match="would both write"):
@@ -164,8 +165,8 @@ def test_two_frames_with_one_result_name_are_refused_before_any_fit(tmp_path, mo
 
 def test_outputs_that_are_frames_or_a_read_only_folder_are_refused(tmp_path, model, frames, monkeypatch):
     folder = tmp_path / "frames"
-    monkeypatch.setattr(fit, "fit", None)
-    settings = fit.Settings(method="hybrid", evaluations=30)
+    monkeypatch.setattr(search, "fit", None)
+    settings = search.Settings(method="hybrid", evaluations=30)
     images.write(str(folder / "preview.png"), images.srgb_decode(np.clip(decode(model, true_point(5)), 0, 1)))
     with pytest.raises(OutputError, match=r"preview .*preview\.png is the frame .*choose another out folder"):
         sequence.run(model, str(folder), str(folder), settings)  # the results beside the frames
@@ -175,7 +176,7 @@ def test_outputs_that_are_frames_or_a_read_only_folder_are_refused(tmp_path, mod
 
 def test_a_render_is_made_again_whenever_its_frame_was_fitted_again(tmp_path, model, frames):
     """Frame 2 edited, the run interrupted once its result and frame 3's were rewritten: a resumed run renders both."""
-    settings, out = fit.Settings(method="hybrid", evaluations=40), tmp_path / "out"
+    settings, out = search.Settings(method="hybrid", evaluations=40), tmp_path / "out"
     sequence.run(model, str(tmp_path / "frames"), str(out), settings, render=(16, 2))
     renders = [out / f"f{k}-render.png" for k in range(4)]
     before = [(path.stat().st_ino, path.read_bytes()) for path in renders]

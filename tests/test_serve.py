@@ -21,7 +21,10 @@ import numpy as np
 import pytest
 from helpers import random_model
 
-from matfit import fit, images, params, presets, serve, shipped
+from matfit import images, params, shipped
+from matfit.app import serve
+from matfit.fit import search
+from matfit.render import presets
 
 EXAMPLE = str(shipped.EXAMPLES / "recoloured.png")
 OTHER = str(shipped.EXAMPLES / "desaturated.png")
@@ -88,7 +91,7 @@ def wait(url: str, job: str, seconds: float = 120) -> tuple[int, dict]:
 
 @pytest.fixture(scope="module")
 def studio(tmp_path_factory):
-    studio = serve.Studio(random_model(), "memory", fit.Settings(iterations=10))
+    studio = serve.Studio(random_model(), "memory", search.Settings(iterations=10))
     studio.worker.submit(studio.warm_up).result()
     yield studio
     studio.close()
@@ -116,7 +119,7 @@ def test_a_fit_through_the_api_is_the_fit_the_library_makes(url, studio):
     result = done["result"]
     assert set(result["pictures"]) == {"target", "start", "neural", "mitsuba", "difference"}
     assert all(picture.startswith("data:image/png;base64,") for picture in result["pictures"].values())
-    expected = fit.fit(studio.model, studio_target(studio), studio.settings)
+    expected = search.fit(studio.model, studio_target(studio), studio.settings)
     assert result["start"] == expected.chosen and result["start_rmse"] == pytest.approx(expected.start_rmse, abs=1e-3)
     assert result["mitsuba_rmse"] <= result["start_rmse"] + 50  # a figure, not a placeholder
     document = json.loads(request(f"{url}api/jobs/{answer['job']}/files/params.json")[1])
@@ -376,7 +379,7 @@ def test_two_pages_fitting_at_once_each_show_their_own(browser, url):
 
 @pytest.mark.slow
 def test_the_page_benchmark_reports_every_figure():
-    from matfit import bench
+    from matfit.app import bench
 
     table = bench.serve_speed(random_model(), "memory", fits=3, previews=5, log=lambda _: None, samples=3)
     rows = table.splitlines()[2:]

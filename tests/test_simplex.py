@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.optimize
 
-from matfit import simplex
+from matfit.fit import simplex
 
 N = 19
 

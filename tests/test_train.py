@@ -10,9 +10,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from matfit import dataset, images, models, params, pipeline, train
+from matfit import images, params
 from matfit.errors import DatasetError
-from matfit.train import Config, TrainingError
+from matfit.model import dataset, models, pipeline, train
+from matfit.model.train import Config, TrainingError
 
 TINY_DECODER = models.Decoder(resolution=32, hidden=32, base_channels=16, stage_channels=(16, 8, 8))
 
@@ -477,7 +478,7 @@ def test_a_refused_train_leaves_no_folder(tmp_path, data, renderer):
     """Backward ranges, an unfinished dataset, a start of another architecture: one error line, exit 2, no out/."""
     from typer.testing import CliRunner
 
-    from matfit.cli import app
+    from matfit.app.cli import app
 
     partial = str(tmp_path / "partial")
     dataset.prepare(partial, dataset.Settings(32, 1, 0, renderer.variant), 4, {})

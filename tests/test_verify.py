@@ -2,9 +2,11 @@ import numpy as np
 import pytest
 from helpers import Noisy, R, random_model
 
-from matfit import fit, images, presets, verify
+from matfit import images
+from matfit.fit import search, verify
 from matfit.params import to_unit
-from matfit.render import Renderer
+from matfit.render import presets
+from matfit.render.engine import Renderer
 
 
 @pytest.fixture(scope="module")
@@ -19,7 +21,7 @@ def renderer32():
 
 def test_candidates_start_first_then_distinct_ends(model):
     target = model.decode(np.full((1, 19), 0.3))[0]
-    result = fit.fit(model, target, fit.Settings(method="lbfgsb", starts=2, iterations=5))
+    result = search.fit(model, target, search.Settings(method="lbfgsb", starts=2, iterations=5))
     pool = verify.candidates(result)
     names = list(pool)
     assert names[0] == "start" and 2 <= len(names) <= verify.CANDIDATES
@@ -32,10 +34,10 @@ def test_candidates_start_first_then_distinct_ends(model):
 def test_a_fooled_decoder_never_makes_the_answer_physically_worse_than_the_start(model, renderer32):
     # A random decoder knows nothing of the scene: its optimum for a jade render is physically arbitrary.
     target = images.srgb_encode(renderer32.render(presets.preset("jade"), seed=5))
-    result = fit.fit(
+    result = search.fit(
         model,
         target,
-        fit.Settings(method="lbfgsb", starts=3, iterations=30),
+        search.Settings(method="lbfgsb", starts=3, iterations=30),
         extra=to_unit(presets.preset("jade"))[None],
     )
     assert result.chosen == "extra-1" or result.start_rmse <= result.candidate_rmse["extra-1"]
@@ -50,7 +52,7 @@ def test_a_fooled_decoder_never_makes_the_answer_physically_worse_than_the_start
     assert set(checked.margins) == set(checked.figures) - {checked.chosen}
     assert checked.batches[checked.chosen] == verify.MAX_BATCHES or min(checked.margins.values()) >= verify.LEAD
     again = [
-        images.srgb_encode(renderer32.render(fit.params.from_unit(checked.unit), seed=verify.BATCH_SEED + j, spp=64))
+        images.srgb_encode(renderer32.render(search.params.from_unit(checked.unit), seed=verify.BATCH_SEED + j, spp=64))
         for j in range(checked.batches[checked.chosen])
     ]
     # the kept render is the mean of the chosen candidate's batches (two renders may differ in the last bits)
@@ -58,15 +60,15 @@ def test_a_fooled_decoder_never_makes_the_answer_physically_worse_than_the_start
 
 
 def test_the_verification_table_judges_every_spp_by_one_independent_render(model, renderer32, monkeypatch):
-    from matfit import bench
+    from matfit.app import bench
 
     monkeypatch.setattr(bench, "JUDGE_SPP", 32)  # a tiny judge: the table's logic, not its figures
     units = np.stack([np.full(19, 0.3), np.full(19, 0.6)])
     targets = bench.Targets(
-        units, np.stack([images.srgb_encode(renderer32.render(fit.params.from_unit(u))) for u in units])
+        units, np.stack([images.srgb_encode(renderer32.render(search.params.from_unit(u))) for u in units])
     )
     results = [
-        fit.fit(model, target, fit.Settings(method="lbfgsb", starts=2, iterations=5)) for target in targets.images
+        search.fit(model, target, search.Settings(method="lbfgsb", starts=2, iterations=5)) for target in targets.images
     ]
     table = bench.verification_table(renderer32, results, targets, spps=(4, 8))
     rows = table.splitlines()
@@ -78,12 +80,12 @@ def test_the_verification_table_judges_every_spp_by_one_independent_render(model
 
 
 def test_the_judged_table_compares_answers_under_one_independent_render(renderer32, monkeypatch):
-    from matfit import bench
+    from matfit.app import bench
 
     monkeypatch.setattr(bench, "JUDGE_SPP", 8)
     units = np.stack([np.full(19, 0.3), np.full(19, 0.6)]).astype(np.float32)
     targets = bench.Targets(
-        units, np.stack([images.srgb_encode(renderer32.render(fit.params.from_unit(u), spp=64)) for u in units])
+        units, np.stack([images.srgb_encode(renderer32.render(search.params.from_unit(u), spp=64)) for u in units])
     )
     far = [np.full(19, 0.9), np.full(19, 0.05)]
     table = bench.judged_table(renderer32, {"start": far, "truth again": list(units)}, targets, "start")
@@ -131,9 +133,9 @@ def test_the_estimate_leaves_out_the_renders_noise_which_a_renders_rmse_counts()
 
 def scripted(model, materials_of):
     target = np.full((R, R, 3), 0.4, np.float32)
-    result = fit.fit(model, target, fit.Settings(method="lbfgsb", starts=2, iterations=5))
+    result = search.fit(model, target, search.Settings(method="lbfgsb", starts=2, iterations=5))
     pool = verify.candidates(result, 2)
-    renderer = Noisy(target, {name: (fit.params.from_unit(pool[name]), *materials_of[name]) for name in pool})
+    renderer = Noisy(target, {name: (search.params.from_unit(pool[name]), *materials_of[name]) for name in pool})
     return verify.verify(renderer, result, target, count=2), renderer
 
 
@@ -164,7 +166,7 @@ def test_a_lead_within_the_noise_renders_more_batches_and_a_tie_keeps_the_start(
 
 def test_verification_is_bit_identical_from_run_to_run(model):
     target = np.full((R, R, 3), 0.4, np.float32)
-    result = fit.fit(model, target, fit.Settings(method="lbfgsb", starts=2, iterations=5))
+    result = search.fit(model, target, search.Settings(method="lbfgsb", starts=2, iterations=5))
     runs = [verify.verify(Renderer(R, 8, threads=1), result, target, count=2, spp=8) for _ in range(2)]
     assert runs[0].figures == runs[1].figures and runs[0].margins == runs[1].margins
     np.testing.assert_array_equal(runs[0].rendered, runs[1].rendered)
@@ -172,7 +174,7 @@ def test_verification_is_bit_identical_from_run_to_run(model):
 
 def test_prefetch_start_asks_for_the_very_renders_verify_makes_of_the_start():
     from matfit import params
-    from matfit.render import Background
+    from matfit.render.engine import Background
 
     start = np.asarray(to_unit(presets.preset("jade")), np.float32)  # float32, as the fit hands it over
     expected = params.from_unit(np.asarray(start, np.float64))  # what `verify.candidates` renders

@@ -1,7 +1,7 @@
 """Fitting an image file end to end: read the target and mask, fit, verify in Mitsuba, write every output together.
 
 This is what `matfit fit` does, as a library function: `run(target, model, settings, outputs)`
-reads and checks the inputs, fits (`fit.fit`), lets Mitsuba choose among the fit's final
+reads and checks the inputs, fits (`search.fit`), lets Mitsuba choose among the fit's final
 candidates (`verify.verify`, on by default), and writes params.json, the report, the render and
 the exports under temporary names, renaming them into place only once all of them were written.
 """
@@ -14,9 +14,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from matfit import documents, files, fit, images, models, params, refine, render, shipped, verify
+from matfit import documents, files, images, params, shipped
 from matfit.errors import FitError, ImageError, OutputError
-from matfit.methods import CORRECTIONS
+from matfit.fit import refine, search, verify
+from matfit.fit.methods import CORRECTIONS
+from matfit.model import models
+from matfit.render import engine as render
 
 # The folder holding the package: the clone, or site-packages when installed (the shipped model reads
 # matfit/data/model either way; a user's own paths lie outside it and stay as given).
@@ -74,7 +77,7 @@ class Outputs:
 class Outcome:
     """A finished fit of an image file: the answer, how it was found, the target as fitted, the params.json document."""
 
-    result: fit.Result
+    result: search.Result
     target: np.ndarray  # sRGB (R, R, 3) at the model's resolution
     unit: np.ndarray  # the answer (unit cube): the fit's best, or what Mitsuba verification preferred
     image: np.ndarray  # phi(answer), sRGB
@@ -123,15 +126,15 @@ def read_target(path: str, resolution: int, mask: str | None = None) -> tuple[np
     loaded = images.load(path)
     weights = None
     if mask is not None:
-        weights = fit.prepare_mask(images.load(mask).pixels, loaded.pixels.shape[:2], resolution, mask)
-    target, notices = fit.prepare_target(loaded.pixels, resolution, path)
+        weights = search.prepare_mask(images.load(mask).pixels, loaded.pixels.shape[:2], resolution, mask)
+    target, notices = search.prepare_target(loaded.pixels, resolution, path)
     return target, weights, [*loaded.notices, *notices]
 
 
 def run(
     target: str,
     model: models.Model | str,
-    settings: fit.Settings,
+    settings: search.Settings,
     outputs: Outputs,
     mask: str | None = None,
     seed: int = 0,
@@ -145,8 +148,8 @@ def run(
     """Fits the image file `target` with a model (or a model directory) and writes `outputs`; returns what was found.
 
     `init`: a params.json of the source material, whose parameters join best-of-n's candidates;
-    `renderer`: a `render.Process` to verify with (`fit_file`), or None; `variant`: the Mitsuba variant of the
-    renderer made when none is given (None: `render.choose_variant`'s).
+    `renderer`: an `engine.Process` to verify with (`fit_file`), or None; `variant`: the Mitsuba variant of the
+    renderer made when none is given (None: `engine.choose_variant`'s).
     `verified`: let Mitsuba choose among the fit's final candidates (`verify.verify`), after
     `corrections` rounds of correction (`correct.py`; None: `methods.CORRECTIONS` when verified,
     else none) from the best of them; `refine_steps`:
@@ -182,7 +185,7 @@ def run(
 def fit_file(
     target: str,
     model: models.Model | str,
-    settings: fit.Settings,
+    settings: search.Settings,
     mask: str | None = None,
     seed: int = 0,
     init_values: np.ndarray | None = None,
@@ -198,9 +201,9 @@ def fit_file(
 
     Writes nothing: `run` writes the CLI's files, `serve` offers the same ones for download.
     `init_values`: the source material's physical parameters (joining best-of-n's candidates), read
-    from the file `source` (recorded in the document); `renderer`: a loaded `render.Renderer` at the
-    model's resolution to reuse, a `render.Process` (started early by the caller; it loads the scene
-    here, and cannot refine), or None (a `render.Background` with `variant` is made when verification,
+    from the file `source` (recorded in the document); `renderer`: a loaded `engine.Renderer` at the
+    model's resolution to reuse, an `engine.Process` (started early by the caller; it loads the scene
+    here, and cannot refine), or None (an `engine.Background` with `variant` is made when verification,
     refinement or a render output needs one). Refinement differentiates with the renderer's variant.
     """
     settings.check()
@@ -239,7 +242,7 @@ def fit_file(
         def on_start(start: np.ndarray) -> None:
             verify.prefetch_start(background, start, corrections)
 
-    result = fit.fit(model, target_srgb, settings, weights, extra=extra, seed=seed, on_start=on_start)
+    result = search.fit(model, target_srgb, settings, weights, extra=extra, seed=seed, on_start=on_start)
     if not np.isfinite(result.rmse):  # the decoder's images hold NaN: no figure and no answer can be trusted
         raise FitError(
             f"the model {model_path} decodes images that are not finite (neural RMSE {result.rmse}): "
@@ -277,7 +280,7 @@ def params_text(outcome: Outcome) -> str:
 
 
 def document(
-    outcome: Outcome, settings: fit.Settings, model_path: str, target: str, mask: str | None, init: str | None
+    outcome: Outcome, settings: search.Settings, model_path: str, target: str, mask: str | None, init: str | None
 ) -> dict:
     """Returns the params.json document of a fit: the 19 values with units, and how they were found."""
     result, checked = outcome.result, outcome.verified
@@ -332,7 +335,7 @@ def document(
 
 def report_picture(outcome: Outcome) -> np.ndarray:
     """Returns the report: target | best-of-n start | fit (neural) | fit (Mitsuba render) | difference, as sRGB."""
-    from matfit import report
+    from matfit.fit import report
 
     result = outcome.result
     panels = [
@@ -351,12 +354,12 @@ def write_outputs(outcome: Outcome, outputs: Outputs, batch: files.Batch, render
     if outputs.report is not None:
         images.write(batch.path(outputs.report), images.srgb_decode(report_picture(outcome)))
     if outputs.render is not None:
-        from matfit.render import Renderer
+        from matfit.render.engine import Renderer
 
         large = Renderer(outputs.render_size, outputs.render_spp, renderer.variant if renderer else None)
         images.write(batch.path(outputs.render), large.render(values))
     if outputs.mitsuba_xml is not None or outputs.blender is not None:
-        from matfit import export
+        from matfit.render import export
 
         if outputs.mitsuba_xml is not None:
             files.write_text(batch.path(outputs.mitsuba_xml), export.mitsuba_xml(values))

@@ -34,8 +34,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from matfit import files, images, params, programs, scene
+from matfit import files, images, params, programs
 from matfit.errors import OutputError, WeightsError
+from matfit.render import scene
 
 ENCODER_RESOLUTION = 32
 WEIGHTS_FORMAT = "matfit-weights"

@@ -1,8 +1,8 @@
 """The material test scene in Blender, rendered with Cycles: runs inside Blender's Python, not matfit's.
 
 bpy 4.5 requires numpy < 2 and cannot share matfit's environment, so this module is run in a
-subprocess by `matfit.blender` (`python -m matfit.blender_scene job.json` with a Python that has
-bpy, or `blender -b -P matfit/blender_scene.py -- job.json`). It imports only bpy, NumPy, the
+subprocess by `matfit.render.blender` (`python -m matfit.render.blender_scene job.json` with a Python that has
+bpy, or `blender -b -P matfit/render/blender_scene.py -- job.json`). It imports only bpy, NumPy, the
 NumPy-only modules `params` and `scene`, and `blender_material` (the exported material script,
 whose `node_tree` builds every node tree here too), so it runs with either NumPy.
 
@@ -41,15 +41,17 @@ if __package__ in (None, ""):  # run as a file (`blender -P`, `python blender_sc
     _here = os.path.dirname(os.path.abspath(__file__))
     sys.path[:] = [path for path in sys.path if os.path.abspath(path or ".") != _here]
     _spec = importlib.util.spec_from_file_location(
-        "matfit", os.path.join(_here, "__init__.py"), submodule_search_locations=[_here]
+        "matfit",
+        os.path.join(os.path.dirname(_here), "__init__.py"),
+        submodule_search_locations=[os.path.dirname(_here)],
     )
     sys.modules["matfit"] = importlib.util.module_from_spec(_spec)
     _spec.loader.exec_module(sys.modules["matfit"])
 
 import bpy
 
-from matfit import scene
-from matfit.blender_material import node_tree
+from matfit.render import scene
+from matfit.render.blender_material import node_tree
 
 # Mitsuba (x, y, z), y up -> Blender (x, -z, y), z up.
 MITSUBA_TO_BLENDER = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])

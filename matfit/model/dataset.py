@@ -37,8 +37,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import documents, files, interrupt, params, render, scene, shipped
+from matfit import documents, files, interrupt, params, shipped
 from matfit.errors import DatasetError, RenderError
+from matfit.render import engine as render
+from matfit.render import scene
 
 FORMAT = "matfit-dataset"
 FORMAT_VERSION = 1
@@ -92,7 +94,7 @@ class Settings:
 
 def default_workers(variant: str) -> int:
     """Returns how many render processes a dataset renders with unless told: GPU_WORKERS on a GPU, else one per core."""
-    from matfit.render import CUDA_VARIANT
+    from matfit.render.engine import CUDA_VARIANT
 
     return GPU_WORKERS if variant == CUDA_VARIANT else min(os.cpu_count() or 1, MAX_WORKERS)
 
@@ -165,7 +167,7 @@ class Dataset:
         """
         if os.path.isfile(path):
             return np.load(path)
-        from matfit.render import Renderer
+        from matfit.render.engine import Renderer
 
         shape = materials.shape[:2]
         parts = path[: -len(".npy")] + ".parts"
@@ -477,7 +479,7 @@ def init_worker(
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     if new_session:
         os.setsid()
-    from matfit.render import Renderer, mitsuba
+    from matfit.render.engine import Renderer, mitsuba
 
     # One rendering thread per process: Dr.Jit's threads add samples into the film in an order
     # that varies from run to run, which changes the last bit of a few pixels. One thread keeps
@@ -519,7 +521,7 @@ class _Worker:
         replies_read, replies_write = os.pipe()
         package = str(shipped.PACKAGE.parent)  # this very matfit, wherever it lies
         code = (
-            f"import sys; sys.path.insert(0, {package!r}); from matfit import dataset; dataset.serve_chunks("
+            f"import sys; sys.path.insert(0, {package!r}); from matfit.model import dataset; dataset.serve_chunks("
             f"{requests_read}, {replies_write}, {settings.resolution}, {settings.spp}, {settings.variant!r})"
         )
         try:
@@ -650,7 +652,7 @@ def render_scene_image(dataset: Dataset, settings: Settings) -> None:
     path = os.path.join(dataset.path, SCENE_FILE)
     if os.path.isfile(path):
         return
-    from matfit.render import render_without_sphere
+    from matfit.render.engine import render_without_sphere
 
     image = render_without_sphere(
         settings.resolution, SCENE_SPP, settings.variant, seed=image_seed(settings.seed, 2**32 - 1)
@@ -671,7 +673,7 @@ def render_missing(
     interruption (Ctrl-C, or KeyboardInterrupt from `progress`) keeps everything written so far;
     the same call later continues from there. `workers=0` renders in this process instead (no
     start-up cost, but a Ctrl-C that lands inside a render is swallowed by Mitsuba). With
-    `ray_address` the chunks are Ray tasks on that cluster instead (`matfit.cluster`; "local"
+    `ray_address` the chunks are Ray tasks on that cluster instead (`matfit.model.cluster`; "local"
     starts a Ray of `workers` CPUs for this call); this process still stores every result, so the
     protocol and the bytes are the same. `progress(done, total, images_per_second)` is called
     after each chunk. The scene without its sphere (`SCENE_FILE`, `SCENE_SPP` samples) is
@@ -696,7 +698,7 @@ def render_missing(
     if not tasks:
         return 0
     if ray_address is not None:
-        from matfit import cluster
+        from matfit.model import cluster
 
         executor = functools.partial(cluster.ray_results, address=ray_address)
     else:
@@ -739,7 +741,7 @@ def render_dataset(
     if workers is not None and not 1 <= workers <= MAX_WORKERS:
         raise DatasetError(f"workers {workers} is out of range: use 1 to {MAX_WORKERS}", field="workers")
     if ray_address is not None:
-        from matfit import cluster
+        from matfit.model import cluster
 
         cluster.check(ray_address)
     chosen, notice = render.choose_variant(variant)

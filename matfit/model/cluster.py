@@ -15,7 +15,7 @@ Why the images travel through Ray's object store rather than being written by th
 shared storage: the driver is the dataset's only writer, so the done flags need no locking, the
 dataset can live on the driver's local disk (no shared file system on the cluster), and two
 workers never write the same memory page of done.npy, which on NFS would lose flags. The cost is
-the transfer into the driver, measured by `python -m matfit.cluster` (docs/training.md#ray): far below what one
+the transfer into the driver, measured by `python -m matfit.model.cluster` (docs/training.md#ray): far below what one
 driver can absorb until a cluster has hundreds of cores.
 """
 
@@ -31,8 +31,8 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from matfit import dataset
-from matfit.dataset import DatasetError, Results, Settings, Task
+from matfit.model import dataset
+from matfit.model.dataset import DatasetError, Results, Settings, Task
 
 # A task whose worker dies (kill -9, out of memory, a node lost) is run again this many times.
 RETRIES = 3

@@ -5,7 +5,7 @@
 - painted-highlight.png: red plastic with a sharp white highlight painted on (a local edit that
   asks for a glossier coat).
 
-Run `make examples` (python -m matfit.examples matfit/data/examples) to make them again.
+Run `make examples` (python -m matfit.app.examples matfit/data/examples) to make them again.
 """
 
 from __future__ import annotations
@@ -13,8 +13,9 @@ from __future__ import annotations
 import os
 import sys
 
-from matfit import images, presets
+from matfit import images
 from matfit.edits import hue_rotate, paint_highlight, saturate
+from matfit.render import presets
 
 SIZE = 256
 SPP = 256
@@ -29,7 +30,7 @@ EXAMPLES = {
 
 def make(directory: str, size: int = SIZE, spp: int = SPP) -> list[str]:
     """Renders the presets and writes the edited examples into `directory`; returns their paths."""
-    from matfit.render import Renderer
+    from matfit.render.engine import Renderer
 
     renderer = Renderer(size, spp)
     written = []

@@ -1,6 +1,6 @@
 """The input pipeline: a rendered dataset's arrays as the networks see them (data only, no training).
 
-`python -m matfit.pipeline` measures how fast training's host side gathers batches (`measure_loader`).
+`python -m matfit.model.pipeline` measures how fast training's host side gathers batches (`measure_loader`).
 """
 
 from __future__ import annotations
@@ -10,9 +10,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from matfit import images, models
-from matfit.dataset import Dataset
+from matfit import images
 from matfit.errors import DatasetError
+from matfit.model import models
+from matfit.model.dataset import Dataset
 
 CHUNK = 1024  # images converted at a time: float32 copies of the whole set would not fit in memory at 128 px
 

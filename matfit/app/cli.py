@@ -17,8 +17,11 @@ from typing import Annotated
 
 import typer
 
-from matfit import console, dataset, documents, options, params, presets
-from matfit.methods import MAX_ITERATIONS, MAX_POLISH, MAX_STARTS, Box, Method, Settings
+from matfit import documents, params
+from matfit.app import console, options
+from matfit.fit.methods import MAX_ITERATIONS, MAX_POLISH, MAX_STARTS, Box, Method, Settings
+from matfit.model import dataset
+from matfit.render import presets
 
 app = typer.Typer(
     cls=console.OneLineErrors,
@@ -70,7 +73,7 @@ def render(
     variant: options.Variant = None,
 ) -> None:
     """Render one material in the test scene with Mitsuba: the artist's starting image."""
-    from matfit import render as render_module
+    from matfit.render import engine as render_module
 
     values = presets.material(options.text(params_file), preset, seed if random else None)
     if random:
@@ -107,7 +110,7 @@ def blender_check(
     variant: options.Variant = None,
 ) -> None:
     """Render materials through the exported Blender script in Cycles and with Mitsuba, and compare them."""
-    from matfit import blender as round_trip
+    from matfit.render import blender as round_trip
 
     setup = round_trip.Setup(size, spp, blender, variant)
     comparison = round_trip.check(str(out), preset or None, [str(path) for path in params_file or []], setup, log)
@@ -131,7 +134,7 @@ def serve(
     variant: options.Variant = None,
 ) -> None:
     """Serve a local page that fits edited pictures as you save them (--watch), with sliders and a Mitsuba render."""
-    from matfit import serve as studio
+    from matfit.app import serve as studio
 
     studio.serve(
         str(model),
@@ -165,7 +168,7 @@ def render_dataset(
     sampler: options.Sampler = "uniform",
 ) -> None:
     """Render a training set of sampled materials; run it again to resume or to grow it."""
-    from matfit.progress import Progress
+    from matfit.app.progress import Progress
 
     with Progress(f"rendering {out}") as progress:
         counter = progress.counter()
@@ -215,12 +218,12 @@ def fit_command(
     variant: options.Variant = None,
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
-    from matfit import render as render_module
+    from matfit.render import engine as render_module
 
     render_module.check_request(variant)
     # Verification's Mitsuba starts in a child process now, on the other core, while this one imports JAX.
     with render_module.Process(variant) if verify and not refine else contextlib.nullcontext() as renderer:
-        from matfit import fitfile
+        from matfit.fit import fitfile
 
         text = options.text
         outputs = fitfile.Outputs(str(output), text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
@@ -270,8 +273,8 @@ def sequence(
     init: options.Init = None,
 ) -> None:
     """Fit every frame of an edited sequence, reusing each optimum for the next frame; resumable."""
-    from matfit import sequence as sequence_module
-    from matfit.progress import Progress
+    from matfit.app.progress import Progress
+    from matfit.fit import sequence as sequence_module
 
     settings = Settings(method=method, evaluations=evaluations)
     rendered = (size, spp) if render else None
@@ -328,8 +331,8 @@ def train(
     ] = True,
 ) -> None:
     """Train the decoder and/or the encoders; run the same command again to resume after an interruption."""
-    from matfit import train as train_module
-    from matfit.progress import TrainingProgress
+    from matfit.app.progress import TrainingProgress
+    from matfit.model import train as train_module
 
     names = train_module.parse_arch(arch)
     config = train_module.Config(
@@ -363,8 +366,8 @@ def evaluate(
 
     The decoder's RMSE over all references, each third (transmissive, scattering, opaque) and each preset.
     """
-    from matfit import evaluate as evaluate_module
-    from matfit import models
+    from matfit.model import evaluate as evaluate_module
+    from matfit.model import models
 
     data = dataset.open_dataset(str(references))  # the cheaper check first
     model = models.load_model(str(model_path))
@@ -380,7 +383,7 @@ def bench_render(
     variant: options.Variant = None,
 ) -> None:
     """Measure images per second of `Renderer` against a bare `mi.render` loop on the same scene."""
-    from matfit import bench
+    from matfit.app import bench
 
     typer.echo(bench.render_speed(count, variant))
 
@@ -391,7 +394,7 @@ def bench_model(
     repeats: Annotated[int, typer.Option(min=10, max=1_000_000, help="Timed decoder calls.")] = 500,
 ) -> None:
     """Time loading a model (all networks, weights ready in memory) and the decoder's forward pass at batch 1."""
-    from matfit import bench
+    from matfit.app import bench
 
     typer.echo(bench.model_speed(str(model_path), repeats))
 
@@ -403,7 +406,8 @@ def bench_fit(
     evaluations: options.Evaluations = 1500,
 ) -> None:
     """Compare the fitting methods on reachable targets: neural and Mitsuba RMSE, warm fit time."""
-    from matfit import bench, fitfile
+    from matfit.app import bench
+    from matfit.fit import fitfile
 
     typer.echo(bench.fit_comparison(fitfile.load_model(str(model_path)), count, evaluations, log=log))
 
@@ -415,7 +419,8 @@ def bench_sequence(
     frames_out: options.FramesOut = None,
 ) -> None:
     """Reinitialisation against per-frame fitting on a built-in sequence (a rising black level), as in the paper."""
-    from matfit import bench, fitfile
+    from matfit.app import bench
+    from matfit.fit import fitfile
 
     typer.echo(bench.sequence_benchmark(fitfile.load_model(str(model_path)), frames, options.text(frames_out)))
 
@@ -427,8 +432,8 @@ def bench(
     full: options.Full = False,
 ) -> None:
     """Reproduce the paper's evaluation tables on the built-in edit suite (quick version by default)."""
-    from matfit import bench as bench_module
-    from matfit import fitfile
+    from matfit.app import bench as bench_module
+    from matfit.fit import fitfile
 
     model = fitfile.load_model(str(model_path))
     label = fitfile.display_path(str(model_path))
@@ -438,7 +443,8 @@ def bench(
 @command
 def bench_serve(model_path: options.Model = options.DEFAULT_MODEL, fits: options.Fits = 100) -> None:
     """Time the page: a saved file to its result, a slider to its preview; memory after 10 fits and after --fits."""
-    from matfit import bench, fitfile
+    from matfit.app import bench
+    from matfit.fit import fitfile
 
     model = fitfile.load_model(str(model_path))
     typer.echo(bench.serve_speed(model, fitfile.display_path(str(model_path)), fits, log=log))

@@ -52,7 +52,8 @@ import xml.etree.ElementTree as ElementTree
 
 import numpy as np
 
-from matfit import params, scene, shipped
+from matfit import params, shipped
+from matfit.render import scene
 
 MATERIAL_ID = "matfit-material"
 MEDIUM_ID = "matfit-interior"
@@ -157,7 +158,7 @@ def blender_inputs(values: np.ndarray) -> tuple[dict, dict]:
     return principled, volume
 
 
-SCRIPT = shipped.PACKAGE / "blender_material.py"  # filled in per material
+SCRIPT = shipped.PACKAGE / "render" / "blender_material.py"  # filled in per material
 
 
 def blender_script(values: np.ndarray, name: str = "matfit") -> str:

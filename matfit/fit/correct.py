@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from matfit import fit, gradient, models
+from matfit.fit import gradient, search
+from matfit.model import models
 
 # Gradient steps of a round's fit (it starts next to the answer of the corrected target): the fewest whose rounds judge
 # as well as twice as many, at half the cost (docs/fitting.md#correction; the measurement: docs/decisions.md).
@@ -54,7 +55,7 @@ def step(
     """
     data = (model.decoder.variables, corrected_target(target, rendered, decoded), np.asarray(weights, np.float32))
     ends, _, _ = gradient.minimise(
-        fit.gradient_objective(model.decoder.module), np.asarray(unit, np.float32)[None], data, iterations
+        search.gradient_objective(model.decoder.module), np.asarray(unit, np.float32)[None], data, iterations
     )
     point = np.clip(np.asarray(ends[0], np.float64), 0.0, 1.0)
     decoded = models.apply(model.decoder.module, model.decoder.variables, point[None].astype(np.float32))

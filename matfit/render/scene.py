@@ -1,7 +1,7 @@
 """The material test scene as plain data: camera, lights, floor, backdrop and the shaded sphere.
 
 No Mitsuba import here: transforms are `Transform` records and the environment map is a NumPy
-array; `render.py` turns them into Mitsuba objects. Keeping the scene as data lets the exporters
+array; `engine.py` turns them into Mitsuba objects. Keeping the scene as data lets the exporters
 write the same shader that the renderer uses, and lets tests inspect the scene without rendering.
 
 Layout (units: the sphere's radius): a unit sphere at the origin resting on a checker floor at

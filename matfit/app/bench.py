@@ -17,8 +17,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import documents, edits, files, fit, images, models, params, presets, verify
-from matfit.methods import CORRECTIONS
+from matfit import documents, edits, files, images, params
+from matfit.fit import search, verify
+from matfit.fit.methods import CORRECTIONS
+from matfit.model import models
+from matfit.render import presets
 
 TARGET_SEED = 1
 TARGET_OFFSET = 100_000  # sample indices far from the reference set's 0..N
@@ -43,47 +46,47 @@ def reachable_targets(renderer, count: int, spp: int = 256) -> Targets:
     return Targets(unit, np.stack(rendered))
 
 
-_DEFAULT = fit.Settings()
+_DEFAULT = search.Settings()
 DEFAULT_LABEL = (
     f"lbfgsb, {_DEFAULT.starts} starts x {_DEFAULT.narrow_after}, the best to {_DEFAULT.iterations} (default)"
 )
 
 
-def default_configurations(evaluations: int) -> dict[str, fit.Settings]:
+def default_configurations(evaluations: int) -> dict[str, search.Settings]:
     """Returns the compared configurations: the paper's three methods and our variations."""
     return {
-        "nn (best-of-n)": fit.Settings(method=fit.Method.nn),
-        f"optimize {evaluations} (random start)": fit.Settings(method="optimize", evaluations=evaluations),
-        "hybrid 50": fit.Settings(method=fit.Method.hybrid, evaluations=50),
-        "hybrid 300": fit.Settings(method=fit.Method.hybrid, evaluations=300),
-        f"hybrid {evaluations}": fit.Settings(method=fit.Method.hybrid, evaluations=evaluations),
-        f"hybrid {evaluations}, paper's barrier": fit.Settings(
-            method=fit.Method.hybrid, evaluations=evaluations, box="barrier"
+        "nn (best-of-n)": search.Settings(method=search.Method.nn),
+        f"optimize {evaluations} (random start)": search.Settings(method="optimize", evaluations=evaluations),
+        "hybrid 50": search.Settings(method=search.Method.hybrid, evaluations=50),
+        "hybrid 300": search.Settings(method=search.Method.hybrid, evaluations=300),
+        f"hybrid {evaluations}": search.Settings(method=search.Method.hybrid, evaluations=evaluations),
+        f"hybrid {evaluations}, paper's barrier": search.Settings(
+            method=search.Method.hybrid, evaluations=evaluations, box="barrier"
         ),
-        f"hybrid {evaluations}, fixed coefficients": fit.Settings(
-            method=fit.Method.hybrid, evaluations=evaluations, adaptive=False
+        f"hybrid {evaluations}, fixed coefficients": search.Settings(
+            method=search.Method.hybrid, evaluations=evaluations, adaptive=False
         ),
-        f"hybrid {evaluations} + polish 200": fit.Settings(
-            method=fit.Method.hybrid, evaluations=evaluations, polish_steps=200
+        f"hybrid {evaluations} + polish 200": search.Settings(
+            method=search.Method.hybrid, evaluations=evaluations, polish_steps=200
         ),
-        "lbfgsb, 1 start": fit.Settings(method=fit.Method.lbfgsb, starts=1),
-        "lbfgsb, 4 starts x 50": fit.Settings(iterations=50, narrow_after=50),
-        DEFAULT_LABEL: fit.Settings(),
-        "hybrid-lbfgsb 300, 4 starts": fit.Settings(method=fit.Method.hybrid_lbfgsb, evaluations=300, starts=4),
+        "lbfgsb, 1 start": search.Settings(method=search.Method.lbfgsb, starts=1),
+        "lbfgsb, 4 starts x 50": search.Settings(iterations=50, narrow_after=50),
+        DEFAULT_LABEL: search.Settings(),
+        "hybrid-lbfgsb 300, 4 starts": search.Settings(method=search.Method.hybrid_lbfgsb, evaluations=300, starts=4),
     }
 
 
 def compare(
-    model: models.Model, targets: Targets, configurations: dict[str, fit.Settings], progress=None
+    model: models.Model, targets: Targets, configurations: dict[str, search.Settings], progress=None
 ) -> dict[str, dict]:
     """Fits every target with every configuration; returns per configuration the results' figures."""
     table = {}
     for label, settings in configurations.items():
-        fit.fit(model, targets.images[0], settings)  # compile outside the timing
+        search.fit(model, targets.images[0], settings)  # compile outside the timing
         errors, seconds, results = [], [], []
         for k, target in enumerate(targets.images):
             started = time.perf_counter()
-            result = fit.fit(model, target, settings)
+            result = search.fit(model, target, settings)
             seconds.append(time.perf_counter() - started)
             errors.append(result.rmse)
             results.append(result)
@@ -93,7 +96,7 @@ def compare(
     return table
 
 
-def mitsuba_rmse(renderer, results: list[fit.Result], targets: Targets, spp: int = 256) -> np.ndarray:
+def mitsuba_rmse(renderer, results: list[search.Result], targets: Targets, spp: int = 256) -> np.ndarray:
     """Returns the RMSE of a fresh Mitsuba render of each result against its target."""
     errors = []
     for k, (result, target) in enumerate(zip(results, targets.images, strict=True)):
@@ -121,7 +124,7 @@ def no_worse(errors, start_errors) -> np.ndarray:
     return np.asarray(errors) <= np.asarray(start_errors) + RENDER_JITTER
 
 
-def verification_table(renderer, results: list[fit.Result], targets: Targets, spps=VERIFICATION_SPP) -> str:
+def verification_table(renderer, results: list[search.Result], targets: Targets, spps=VERIFICATION_SPP) -> str:
     """Returns how verification's spp decides (Markdown): per spp, its renders' seconds, the Mitsuba RMSE of the
     candidate it keeps as an independent JUDGE_SPP render sees it, and how often it keeps what the highest spp keeps.
     """
@@ -219,11 +222,11 @@ def sequence_table(
     """Returns the paper's sequence table: per-frame RMSE with and without reinitialisation, for each budget."""
     runs = {}
     for budget in budgets:
-        settings = fit.Settings(method=fit.Method.hybrid, evaluations=budget)
+        settings = search.Settings(method=search.Method.hybrid, evaluations=budget)
         for reinit in (False, True):
             errors, previous = [], None
             for frame in frames:
-                result = fit.fit(model, frame, settings, extra=previous if reinit else None)
+                result = search.fit(model, frame, settings, extra=previous if reinit else None)
                 errors.append(result.rmse)
                 previous = result.unit[None]
             runs[(budget, reinit)] = np.array(errors)
@@ -293,12 +296,12 @@ def random_guess_rmse(model: models.Model, target: np.ndarray, seeds: int) -> fl
 
 
 def default_fit(model: models.Model, renderer, target: np.ndarray) -> dict:
-    """Returns matfit's default fit of a target (`fit.Settings()`, Mitsuba-verified and corrected, as `matfit fit`):
+    """Returns matfit's default fit of a target (`search.Settings()`, Mitsuba-verified and corrected, as `matfit fit`):
     neural figures, time, values."""
-    settings = fit.Settings()
-    fit.fit(model, target, settings)  # compile outside the timing
+    settings = search.Settings()
+    search.fit(model, target, settings)  # compile outside the timing
     started = time.perf_counter()
-    result = fit.fit(model, target, settings)
+    result = search.fit(model, target, settings)
     checked = verify.verify(renderer, result, target, corrections=CORRECTIONS, model=model)
     return {
         "default": float(images.rmse(model.decode(checked.unit)[0], target)),
@@ -316,16 +319,16 @@ def main_table(model: models.Model, cases, budgets=BUDGETS, seeds: int = 5, rend
     rows = []
     for name, description, target in cases:
         row = {"case": name, "description": description, "random": random_guess_rmse(model, target, seeds)}
-        row["best_of_n"] = fit.fit(model, target, fit.Settings(method=fit.Method.nn)).rmse
+        row["best_of_n"] = search.fit(model, target, search.Settings(method=search.Method.nn)).rmse
         if renderer is not None:
             row.update(default_fit(model, renderer, target))
         for budget in budgets:
-            for method in (fit.Method.optimize, fit.Method.hybrid):  # compile outside the timing
-                fit.fit(model, target, fit.Settings(method=method, evaluations=budget))
-            settings = fit.Settings(method=fit.Method.optimize, evaluations=budget)
-            optimised = [fit.fit(model, target, settings, seed=seed) for seed in range(seeds)]
+            for method in (search.Method.optimize, search.Method.hybrid):  # compile outside the timing
+                search.fit(model, target, search.Settings(method=method, evaluations=budget))
+            settings = search.Settings(method=search.Method.optimize, evaluations=budget)
+            optimised = [search.fit(model, target, settings, seed=seed) for seed in range(seeds)]
             started = time.perf_counter()
-            hybrid = fit.fit(model, target, fit.Settings(method=fit.Method.hybrid, evaluations=budget))
+            hybrid = search.fit(model, target, search.Settings(method=search.Method.hybrid, evaluations=budget))
             row[f"optimize_{budget}"] = float(np.mean([r.rmse for r in optimised]))
             row[f"optimize_{budget}_seconds"] = float(np.mean([r.seconds for r in optimised]))
             row[f"hybrid_{budget}"] = hybrid.rmse
@@ -351,7 +354,7 @@ def optimiser_table(model: models.Model, cases, evaluations: int = 1500, basin_s
 def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int, basin_seconds: float) -> dict:
     """Returns RMSE, seconds and evaluations spent of every optimiser from both starts on one target.
 
-    Every budget counts objective evaluations, a value-and-gradient as `fit.GRADIENT_COST` of them:
+    Every budget counts objective evaluations, a value-and-gradient as `search.GRADIENT_COST` of them:
     scipy's L-BFGS-B stops at `evaluations / GRADIENT_COST` calls (`maxfun`), SLSQP and CG at as
     many iterations (they may call more often; the table says how many they spent). "L-BFGS-B
     (ours)" is matfit's gradient stage (`gradient.py`, one value-and-gradient per step) with the
@@ -361,14 +364,14 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
     import jax.numpy as jnp
     import scipy.optimize
 
-    from matfit import gradient
+    from matfit.fit import gradient
 
     decoder, variables = model.decoder.module, model.decoder.variables
     weights = jnp.ones(target.shape[:2], jnp.float32)
     target_j = jnp.asarray(target)
     args = (decoder, variables, target_j, weights)
-    bounded_grad = jax.jit(jax.value_and_grad(lambda x: fit.decoded_rmse(x, args)))
-    penalised_grad = jax.jit(jax.value_and_grad(lambda x: fit.objective(x, (*args, fit.Box.clip))))
+    bounded_grad = jax.jit(jax.value_and_grad(lambda x: search.decoded_rmse(x, args)))
+    penalised_grad = jax.jit(jax.value_and_grad(lambda x: search.objective(x, (*args, search.Box.clip))))
 
     def host(function):
         def evaluate(x):
@@ -377,11 +380,11 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
 
         return evaluate
 
-    calls = max(1, int(evaluations // fit.GRADIENT_COST))
+    calls = max(1, int(evaluations // search.GRADIENT_COST))
     box = [(0.0, 1.0)] * params.COUNT
 
     def ours(x0):
-        ends, _, steps = gradient.minimise(fit.gradient_objective(decoder), x0[None], args[1:], calls)
+        ends, _, steps = gradient.minimise(search.gradient_objective(decoder), x0[None], args[1:], calls)
         return ends[0], steps
 
     solvers = {
@@ -395,7 +398,7 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
             host(penalised_grad), x0, jac=True, method="CG", options={"maxiter": calls}
         ),
     }
-    best = fit.fit(model, target, fit.Settings(method=fit.Method.nn))
+    best = search.fit(model, target, search.Settings(method=search.Method.nn))
     starts = {
         "random": np.random.default_rng(0).uniform(0.0, 1.0, params.COUNT).astype(np.float32),
         "best-of-9": best.start,
@@ -403,7 +406,7 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
     row = {}
 
     def record(name: str, x: np.ndarray, seconds: float, spent: float) -> None:
-        row[name] = float(fit.decoded_rmse(jnp.asarray(np.clip(x, 0.0, 1.0), jnp.float32), args))
+        row[name] = float(search.decoded_rmse(jnp.asarray(np.clip(x, 0.0, 1.0), jnp.float32), args))
         row[f"{name} seconds"] = seconds
         row[f"{name} evaluations"] = int(spent)
 
@@ -416,17 +419,20 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
                 f"{solver_name} ({start_name})",
                 solution.x,
                 time.perf_counter() - started,
-                solution.nfev * fit.GRADIENT_COST,
+                solution.nfev * search.GRADIENT_COST,
             )
         ours(jnp.asarray(x0))
         started = time.perf_counter()
         end, count = ours(jnp.asarray(x0))
         record(
-            f"L-BFGS-B, ours ({start_name})", np.asarray(end), time.perf_counter() - started, count * fit.GRADIENT_COST
+            f"L-BFGS-B, ours ({start_name})",
+            np.asarray(end),
+            time.perf_counter() - started,
+            count * search.GRADIENT_COST,
         )
         started = time.perf_counter()
-        method = fit.Method.hybrid if start_name == "best-of-9" else fit.Method.optimize
-        result = fit.fit(model, target, fit.Settings(method=method, evaluations=evaluations))
+        method = search.Method.hybrid if start_name == "best-of-9" else search.Method.optimize
+        result = search.fit(model, target, search.Settings(method=method, evaluations=evaluations))
         record(f"Nelder-Mead ({start_name})", result.unit, time.perf_counter() - started, result.evaluations)
         deadline = time.perf_counter() + basin_seconds
         started = time.perf_counter()
@@ -440,7 +446,7 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
             callback=lambda x, f, accept, deadline=deadline: time.perf_counter() > deadline,
         )
         record(
-            f"basin-hopping ({start_name})", hopped.x, time.perf_counter() - started, hopped.nfev * fit.GRADIENT_COST
+            f"basin-hopping ({start_name})", hopped.x, time.perf_counter() - started, hopped.nfev * search.GRADIENT_COST
         )
     return row
 
@@ -450,9 +456,9 @@ def case_picture(
 ) -> np.ndarray:
     """Returns target | best-of-9 | optimiser | hybrid | Mitsuba render of hybrid (| of the default, if `row` has it),
     and stores in `row` the RMSE of Mitsuba renders of the best-of-9, optimiser (seed 0), hybrid and default results."""
-    from matfit import report
+    from matfit.fit import report
 
-    best = fit.fit(model, target, fit.Settings(method=fit.Method.nn))
+    best = search.fit(model, target, search.Settings(method=search.Method.nn))
 
     def decode(values):
         return model.decode(params.to_unit(np.asarray(values)))[0]
@@ -532,7 +538,7 @@ def suite_report(
         f"(best-of-9, optimiser seed 0 and hybrid at {budgets[-1]}) at 256 spp and compare it with the target: "
         "the neural renderer's own error shows there.",
         "",
-        f"## 1b. matfit's default ({fit.Settings().method.value}, Mitsuba-verified, {CORRECTIONS} corrections) "
+        f"## 1b. matfit's default ({search.Settings().method.value}, Mitsuba-verified, {CORRECTIONS} corrections) "
         "against its start and the paper's hybrid",
         "",
         "Mitsuba RMSE of a fresh 256-spp render (seed independent of verification's) against the target.",
@@ -544,7 +550,7 @@ def suite_report(
         "",
         "## 2. Optimisers from a random and from the best-of-9 start (RMSE; seconds and evaluations spent in brackets)",
         "",
-        f"Budget {1500} objective evaluations each, a value-and-gradient counted as {fit.GRADIENT_COST:g}; "
+        f"Budget {1500} objective evaluations each, a value-and-gradient counted as {search.GRADIENT_COST:g}; "
         "basin-hopping is time-boxed.",
         "",
     ]
@@ -646,7 +652,7 @@ def budget_plot(main: list[dict], path: str, budgets=BUDGETS) -> None:
 
 def render_speed(count: int, variant: str | None = None) -> str:
     """Returns a Markdown table: images per second of `Renderer` against a bare `mi.render` loop, same materials."""
-    from matfit.render import Renderer
+    from matfit.render.engine import Renderer
 
     lines = ["| resolution | spp | matfit img/s | bare mi.render img/s | matfit / bare |", "|---|---|---|---|---|"]
     for resolution, spp in ((64, 16), (128, 32)):
@@ -690,7 +696,7 @@ def model_speed(model_path: str, repeats: int) -> str:
 
 def fit_comparison(model: models.Model, count: int, evaluations: int, log=print) -> str:
     """Returns the methods compared on `count` reachable targets: neural and Mitsuba RMSE, warm fit time (Markdown)."""
-    from matfit.render import Renderer
+    from matfit.render.engine import Renderer
 
     renderer = Renderer(model.resolution, 256)
     log(f"rendering {count} reachable targets at {model.resolution} px, 256 spp")
@@ -724,7 +730,7 @@ def fit_comparison(model: models.Model, count: int, evaluations: int, log=print)
 
 def sequence_benchmark(model: models.Model, frames: int, frames_out: str | None = None) -> str:
     """Returns the reinitialisation table on the built-in black-level sequence; writes the frames to `frames_out`."""
-    from matfit.render import Renderer
+    from matfit.render.engine import Renderer
 
     if frames_out is not None:
         files.check_folder(frames_out, field="frames_out")
@@ -743,7 +749,7 @@ def run_suite(model: models.Model, model_label: str, out: str, full: bool = Fals
     Quick: 5 seeds, basin-hopping time-boxed to 5 s, 40 sequence frames; `full`: 10, 60 s, 120.
     Returns the report's Markdown.
     """
-    from matfit.render import Renderer
+    from matfit.render.engine import Renderer
 
     files.check_folder(out, [(name, os.path.join(out, name)) for name in ("report.md", "report.json")])
     seeds, basin_seconds, frames = (10, 60.0, 120) if full else (5, 5.0, 40)
@@ -790,7 +796,8 @@ def serve_speed(
     import threading
     import urllib.request
 
-    from matfit import serve, shipped
+    from matfit import shipped
+    from matfit.app import serve
 
     examples = [str(shipped.EXAMPLES / f"{name}.png") for name in ("recoloured", "desaturated", "painted-highlight")]
     contents = []

@@ -10,9 +10,10 @@ from typing import Annotated, Literal
 
 import typer
 
-from matfit import dataset, params, shipped
-from matfit.methods import CORRECTIONS, MAX_EVALUATIONS, MIN_EVALUATIONS, Box, Method
-from matfit.render import VARIANTS
+from matfit import params, shipped
+from matfit.fit.methods import CORRECTIONS, MAX_EVALUATIONS, MIN_EVALUATIONS, Box, Method
+from matfit.model import dataset
+from matfit.render.engine import VARIANTS
 
 DEFAULT_MODEL = shipped.MODEL
 MAX_SIZE = 4096

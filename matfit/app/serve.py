@@ -44,8 +44,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from matfit import documents, export, files, fit, fitfile, images, interrupt, models, params, presets, shipped, verify
+from matfit import documents, files, images, interrupt, params, shipped
 from matfit.errors import ImageError, MatfitError, OutputError, ParameterError
+from matfit.fit import fitfile, search, verify
+from matfit.model import models
+from matfit.render import export, presets
 
 MAX_UPLOAD_BYTES = 50 * 1024 * 1024  # an upload larger than this is refused before it is read
 MAX_JSON_BYTES = 1024 * 1024  # the body of a JSON request (19 values: a few hundred bytes) or of a params.json upload
@@ -108,7 +111,7 @@ def png_bytes(srgb: np.ndarray) -> bytes:
 
 def fit_result(outcome: fitfile.Outcome) -> dict:
     """Returns the page's view of a fit: figures, the five pictures of the report, the 19 parameters."""
-    from matfit import report
+    from matfit.fit import report
 
     result, document = outcome.result, outcome.document
     return {
@@ -153,12 +156,12 @@ class Studio:
     """The loaded model, its renderer, the one worker that runs fits and renders, and every job."""
 
     def __init__(
-        self, model: models.Model, model_label: str, settings: fit.Settings | None = None, variant: str | None = None
+        self, model: models.Model, model_label: str, settings: search.Settings | None = None, variant: str | None = None
     ):
         self.model = model
         self.variant = variant  # the Mitsuba variant (None: render.choose_variant's)
         self.model_label = model_label
-        self.settings = settings or fit.Settings()
+        self.settings = settings or search.Settings()
         self.folder = tempfile.mkdtemp(prefix="matfit-serve-")
         interrupt.register(self.folder)  # a Ctrl-C that skips `close` still removes it
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="matfit-fit")
@@ -182,7 +185,7 @@ class Studio:
     def renderer(self, size: int):
         """Returns the Mitsuba renderer of a size, loaded once (on the worker thread)."""
         if size not in self.renderers:
-            from matfit.render import Renderer
+            from matfit.render.engine import Renderer
 
             # The model's resolution verifies fits: one thread, so the page's answer is the command line's, bit for bit;
             # larger pictures render on every core.
@@ -200,7 +203,7 @@ class Studio:
     def warm_up(self) -> None:
         """Compiles the fit and loads the renderer before the first page asks (a fit of a grey picture)."""
         grey = np.full((self.model.resolution, self.model.resolution, 3), 0.5, np.float32)
-        fit.fit(self.model, grey, self.settings)
+        search.fit(self.model, grey, self.settings)
         self.renderer(self.model.resolution)
         self.preview(params.DEFAULTS)
 
@@ -703,10 +706,10 @@ def serve(
 ) -> None:
     """Loads the model, compiles the fit, and serves the page until Ctrl-C; `ready(url)` is called once it listens.
 
-    `variant`: the Mitsuba variant of its renders (None: `render.choose_variant`'s)."""
+    `variant`: the Mitsuba variant of its renders (None: `engine.choose_variant`'s)."""
     import uvicorn
 
-    from matfit.render import check_request
+    from matfit.render.engine import check_request
 
     check_watch(watch)
     check_listen(host, port)

@@ -39,8 +39,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import correct, fit, images, models, params
+from matfit import images, params
 from matfit.errors import FitError
+from matfit.fit import correct, search
+from matfit.model import models
 
 CANDIDATES = 5  # without correction: the start and up to four end points, every end of the default 4-start fit
 # With correction the start and the best end choose where the rounds start, and the last round joins them.
@@ -71,7 +73,7 @@ class Verified:
     corrections: int = 0  # rounds of correction run
 
 
-def candidates(result: fit.Result, count: int = CANDIDATES) -> dict[str, np.ndarray]:
+def candidates(result: search.Result, count: int = CANDIDATES) -> dict[str, np.ndarray]:
     """Returns the candidates to render, by name: the start, then the fit's distinct end points, best neural first."""
     chosen = {"start": np.asarray(result.start, np.float64)}
     ends = result.ends if result.ends is not None else result.unit[None]
@@ -85,7 +87,7 @@ def candidates(result: fit.Result, count: int = CANDIDATES) -> dict[str, np.ndar
 
 def verify(
     renderer,
-    result: fit.Result,
+    result: search.Result,
     target: np.ndarray,
     weights: np.ndarray | None = None,
     count: int | None = None,
@@ -229,7 +231,7 @@ def decide(
 
 
 def prefetch_start(renderer, start: np.ndarray, corrections: int = 0, spp: int = SPP) -> None:
-    """Starts, on a `render.Background` or `render.Process`, the renders `verify` will make of the fit's start (unit
+    """Starts, on an `engine.Background` or `engine.Process`, the renders `verify` will make of the fit's start (unit
     cube): its first BATCHES batches (`corrections` changes nothing: the start is judged by the same batches)."""
     values = params.from_unit(np.asarray(start, np.float64))  # as `candidates` and `rendered` make them
     for j in range(BATCHES):

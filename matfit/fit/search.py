@@ -39,9 +39,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from matfit import gradient, images, models, params, programs
+from matfit import images, params, programs
 from matfit.errors import FitError
-from matfit.methods import Box, Method, Settings
+from matfit.fit import gradient
+from matfit.fit.methods import Box, Method, Settings
+from matfit.model import models
 
 __all__ = ["Box", "FitError", "Method", "Result", "Settings", "fit", "objective", "prepare_mask", "prepare_target"]
 
@@ -155,7 +157,7 @@ def _fit(
     ends = candidates[chosen][None]
     evaluations = jnp.array(0, jnp.float32)
     if settings.method.uses_simplex:
-        from matfit import simplex  # optimistix and equinox: imported only for Nelder-Mead (a cold start's time)
+        from matfit.fit import simplex  # optimistix and equinox: imported only for Nelder-Mead (a cold start's time)
 
         y0 = start if settings.method == Method.optimize else candidates[chosen]
         solver = simplex.NelderMead(adaptive=settings.adaptive, initial_step=settings.initial_step)

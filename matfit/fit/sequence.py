@@ -31,8 +31,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import documents, files, fit, images, models, params
+from matfit import documents, files, images, params
 from matfit.errors import SequenceError
+from matfit.fit import search
+from matfit.model import models
 
 FRAME_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr")
 PREVIOUS = "previous frame"
@@ -115,7 +117,7 @@ def check_outputs(frames: list[str], out: str, rendered: bool, init: str | None 
     files.check_folder(out, outputs, [("frame", frame) for frame in frames] + [("init", init)])
 
 
-def run_settings(settings: fit.Settings, reinit: bool, model: models.Model) -> dict:
+def run_settings(settings: search.Settings, reinit: bool, model: models.Model) -> dict:
     """Returns what a resumed run must share with the run that wrote the finished frames."""
     return {
         "method": settings.method,
@@ -190,7 +192,7 @@ def check_sizes(frames: list[str]) -> None:
 
 def load_frame(path: str, resolution: int) -> np.ndarray:
     """Returns a frame as the model's sRGB target (sizes were checked from the headers by `check_sizes`)."""
-    target, _ = fit.prepare_target(images.load(path).pixels, resolution, path)
+    target, _ = search.prepare_target(images.load(path).pixels, resolution, path)
     return target
 
 
@@ -198,7 +200,7 @@ def fit_sequence(
     model: models.Model,
     frames: list[str],
     out: str,
-    settings: fit.Settings,
+    settings: search.Settings,
     reinit: bool = True,
     progress: Callable[[int, int, Frame], None] | None = None,
     init: np.ndarray | None = None,
@@ -238,7 +240,7 @@ def _fit_frames(model, frames, out, settings, reinit, progress, init) -> list[Fr
             results.append(frame)
         else:
             extra = np.asarray(previous, np.float32)[None] if previous is not None else None
-            result = fit.fit(model, target, settings, extra=extra)
+            result = search.fit(model, target, settings, extra=extra)
             start = (INIT if index == 0 else PREVIOUS) if result.chosen == "extra-1" else result.chosen
             frame = Frame(
                 path,
@@ -291,7 +293,7 @@ def summary_table(results: list[Frame]) -> str:
 
 def preview(model: models.Model, results: list[Frame], columns: int = 12, tile: int = 96) -> np.ndarray:
     """Returns an sRGB strip: targets on top, fitted (neural) images below, for up to `columns` frames."""
-    from matfit import report
+    from matfit.fit import report
 
     chosen = np.unique(np.linspace(0, len(results) - 1, min(columns, len(results))).round().astype(int))
     decoded = model.decode(np.stack([results[k].unit for k in chosen]))
@@ -310,7 +312,7 @@ def run(
     model: models.Model | str,
     frames_path: str,
     out: str,
-    settings: fit.Settings,
+    settings: search.Settings,
     reinit: bool = True,
     render: tuple[int, int] | None = None,
     progress: Callable[[int, int, float], None] | None = None,
@@ -334,7 +336,7 @@ def run(
         )
     check_outputs(frames, out, render is not None, init)
     if isinstance(model, str):
-        from matfit import fitfile
+        from matfit.fit import fitfile
 
         model = fitfile.load_model(model)
     started = time.perf_counter()
@@ -367,7 +369,7 @@ def render_frames(results: list[Frame], out: str, size: int, spp: int) -> None:
         if os.path.exists(path) and recorded == {**settings, "sha256": files.sha256(path)}:
             continue
         if renderer is None:
-            from matfit.render import Renderer
+            from matfit.render.engine import Renderer
 
             renderer = Renderer(size, spp)
         images.write(path, renderer.render(params.from_unit(frame.unit)))

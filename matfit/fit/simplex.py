@@ -25,7 +25,7 @@ selects one by phase, and evaluates the objective once, batched across the vmapp
 The vertices only ever get replaced by better points (shrink keeps the best), so the best vertex
 is the best point seen: it is the `y` every step returns. The box [lower, upper] only places the
 initial simplex: vertex k is y0 + h e_k, or y0 - h e_k where that would leave the box. Keeping the
-search inside the box is the objective's business (a barrier or a clip-plus-penalty, `fit.py`).
+search inside the box is the objective's business (a barrier or a clip-plus-penalty, `search.py`).
 """
 
 from __future__ import annotations

@@ -37,10 +37,11 @@ import numpy as np
 import optax
 from flax import serialization
 
-from matfit import dataset, documents, files, images, models, params, pipeline
-from matfit.dataset import Dataset
+from matfit import documents, files, images, params
 from matfit.errors import TrainingError
-from matfit.models import NETWORKS
+from matfit.model import dataset, models, pipeline
+from matfit.model.dataset import Dataset
+from matfit.model.models import NETWORKS
 
 CHECKPOINT_FORMAT = "matfit-checkpoint"
 # The paper trains the isomorphic encoders 6, 7 and 9 for different numbers of epochs.

@@ -3,7 +3,7 @@
 The fit minimises the decoder's error; refinement then minimises the physical render's error
 directly. The 19 unit-cube coordinates are one Dr.Jit array with gradients; they are mapped onto
 the physical ranges (`physical`, the same affine map as `params.from_unit`) and onto the scene's
-values exactly as `render.Renderer.set_material` writes them (`scene.medium_textures` for the
+values exactly as `engine.Renderer.set_material` writes them (`scene.medium_textures` for the
 medium), the test scene is rendered with `prbvolpath` (path replay with media: the backward pass
 costs about what the forward pass does and stores no path), and the loss is `images.rmse` written
 in Dr.Jit (sRGB encode after clipping, 0-255, optionally mask-weighted). A projected Adam step in
@@ -30,7 +30,7 @@ and very noisy; it is left free because the acceptance render guards it. What do
 scene: camera, lights, geometry.
 
 What is kept: the refined point is rendered with the scene's own integrator (`volpathmis`,
-`render.Renderer`) at ACCEPT_SPP next to the start, both with one
+`engine.Renderer`) at ACCEPT_SPP next to the start, both with one
 common seed that no refinement step used, and it is kept only if its render is closer to the
 target. The answer is never physically worse than the input, as that render sees it.
 """
@@ -43,8 +43,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from matfit import images, params, render, scene
+from matfit import images, params
 from matfit.errors import FitError, RenderError
+from matfit.render import engine, scene
 
 SPP = 16  # samples per pixel of a refinement step's gradient: noisy, but Adam averages them over steps
 PRIMAL = 4  # the step's image (the residual) takes PRIMAL x SPP samples: see the module docstring
@@ -108,13 +109,13 @@ def medium_textures(values: list) -> tuple:
 
 
 def set_material(scene_parameters, values: list) -> None:
-    """Writes physical Dr.Jit values into a loaded test scene, as `render.Renderer.set_material` writes NumPy ones."""
+    """Writes physical Dr.Jit values into a loaded test scene, as `engine.Renderer.set_material` writes NumPy ones."""
     import mitsuba as mi
 
-    index, keys = params.INDEX, render.Keys()
+    index, keys = params.INDEX, engine.Keys()
     scene_parameters[keys.base_color] = mi.Color3f(*values[index["base_color_r"] : index["base_color_b"] + 1])
-    for name in render.SCALAR_BSDF_PARAMETERS:
-        scene_parameters[render.Keys.scalar(name)] = values[index[name]]
+    for name in engine.SCALAR_BSDF_PARAMETERS:
+        scene_parameters[engine.Keys.scalar(name)] = values[index[name]]
     sigma_t, albedo = medium_textures(values)
     scene_parameters[keys.sigma_t] = sigma_t
     scene_parameters[keys.albedo] = albedo
@@ -146,19 +147,19 @@ def normalised_weights(weights: np.ndarray) -> np.ndarray:
 def _differentiable_scene(resolution: int, requested: str | None = None):
     """Returns (mi, scene, traversed parameters) of the test scene under `prbvolpath`, loaded once per resolution.
 
-    `requested`: the variant of the renderer that the fit verifies with (None: `render.choose_variant`'s); a
+    `requested`: the variant of the renderer that the fit verifies with (None: `engine.choose_variant`'s); a
     differentiable one, cuda_ad_rgb or llvm_ad_rgb.
     """
-    variant, _ = render.choose_variant(requested)
-    if variant == render.SCALAR_VARIANT:
+    variant, _ = engine.choose_variant(requested)
+    if variant == engine.SCALAR_VARIANT:
         raise RenderError(
-            f"refinement differentiates with {render.LLVM_VARIANT}, which needs libLLVM >= {render.MINIMUM_LLVM}: "
+            f"refinement differentiates with {engine.LLVM_VARIANT}, which needs libLLVM >= {engine.MINIMUM_LLVM}: "
             "install Debian's libllvm19 or set DRJIT_LIBLLVM_PATH, or leave refinement off"
         )
-    mi = render.mitsuba(variant)
+    mi = engine.mitsuba(variant)
     description = scene.scene(resolution, SPP)
     description["integrator"] = {"type": "prbvolpath", "max_depth": MAX_DEPTH}
-    loaded = mi.load_dict(render.to_mitsuba(mi, description))
+    loaded = mi.load_dict(engine.to_mitsuba(mi, description))
     return mi, loaded, mi.traverse(loaded)
 
 
@@ -187,7 +188,7 @@ def refine(
     target: np.ndarray,
     steps: int,
     weights: np.ndarray | None = None,
-    renderer: render.Renderer | None = None,
+    renderer: engine.Renderer | None = None,
     spp: int = SPP,
     seed: int = SEED,
     rate: float = RATE,
@@ -195,7 +196,7 @@ def refine(
     """Returns the material after `steps` projected Adam steps on its Mitsuba RMSE, kept only if its render improves.
 
     `unit`: the start (19 unit-cube values); `target`: the sRGB image (R, R, 3) to match; `weights`:
-    per-pixel weights (R, R), as the fit's mask; `renderer`: a `render.Renderer` at R px for the two
+    per-pixel weights (R, R), as the fit's mask; `renderer`: an `engine.Renderer` at R px for the two
     acceptance renders (one is made if None), whose variant the steps differentiate with (cuda_ad_rgb or
     llvm_ad_rgb). Step k renders with seed `seed + k` and `spp` samples.
     """
@@ -207,7 +208,7 @@ def refine(
     variant = renderer.variant if renderer is not None else None  # the steps render with the renderer's variant
     refined, losses = _descend(start, np.asarray(target, np.float32), weights, steps, spp, seed, rate, variant)
     descended = time.perf_counter() - started
-    renderer = renderer or render.Renderer(resolution, ACCEPT_SPP, variant)
+    renderer = renderer or engine.Renderer(resolution, ACCEPT_SPP, variant)
     renders = {"before": images.srgb_encode(renderer.render(params.from_unit(start), seed=ACCEPT_SEED, spp=ACCEPT_SPP))}
     # Where the steps found nothing better than the start, its render is reused: two renders of one material differ
     # in the last bits (the threads' order of summation), and that must not count as an improvement.

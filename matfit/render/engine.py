@@ -32,8 +32,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from matfit import params, scene, shipped
+from matfit import params, shipped
 from matfit.errors import RenderError
+from matfit.render import scene
 
 CUDA_VARIANT = "cuda_ad_rgb"
 LLVM_VARIANT = "llvm_ad_rgb"
@@ -398,7 +399,7 @@ class Process:
         # directory holds.
         package = str(shipped.PACKAGE.parent)
         code = (
-            f"import sys; sys.path.insert(0, {package!r}); from matfit import render; "
+            f"import sys; sys.path.insert(0, {package!r}); from matfit.render import engine as render; "
             f"render.serve_requests({requests_read}, {replies_write}, {variant!r})"
         )
         try:
