@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from matfit import images, params
 from matfit.app.cli import app
-from matfit.render import blender, export, presets
+from matfit.render import blender, blender_mapping, export, presets
 
 try:
     BLENDER = blender.find_blender()
@@ -180,3 +180,56 @@ def test_cycles_renders_the_scene_like_mitsuba():
     # and the comparison can fail: gold's Cycles render against blue rubber's Mitsuba render
     swapped = images.rmse(images.srgb_encode(comparison.cycles[0]), images.srgb_encode(comparison.mitsuba[1]))
     assert swapped > 3 * max(comparison.rmse)
+
+
+# The export cannot carry the medium's colour and density apart: Blender holds their product, the extinction
+# density x -ln(colour) (blender_mapping's docstring), which is compared instead.
+MEDIUM_PRODUCT = ("medium_color_r", "medium_color_g", "medium_color_b", "density")
+
+
+def assert_round_trip(values, back, missing):
+    """Every parameter the export carries comes back within 1e-3; the medium as its extinction."""
+    for name, expected, got in zip(params.NAMES, values, back, strict=True):
+        if name not in missing and name not in MEDIUM_PRODUCT:
+            assert got == pytest.approx(expected, abs=1e-3), name
+    if "density" not in missing:
+        np.testing.assert_allclose(
+            params.medium_coefficients(back)[0], params.medium_coefficients(values)[0], atol=1e-3
+        )
+
+
+@pytest.mark.parametrize("name", list(presets.PRESETS))
+def test_import_of_the_export_gives_back_every_carried_parameter(name):
+    values = presets.preset(name)
+    principled, volume = export.blender_inputs(values)
+    carried_volume = volume if blender_mapping.has_volume(principled, volume) else None
+    back, missing, notes = export.from_blender_inputs(principled, carried_volume)
+    assert notes == []
+    assert_round_trip(values, back, missing)
+    # what cannot come back is named, and only that
+    metal, transmissive = values[params.INDEX["metallic"]] == 1.0, values[params.INDEX["spec_trans"]] == 1.0
+    assert ("spec_tint" in missing) == (metal or transmissive)  # the transmissive presets are white
+    assert ("sheen" in missing) == (metal or transmissive)
+    assert ("density" in missing) == (not transmissive)
+
+
+def test_import_clips_and_names_what_matfit_cannot_show():
+    principled, volume = export.blender_inputs(presets.preset("velvet"))
+    principled.update({"Sheen Weight": 0.5, "Specular IOR Level": 0.8, "Subsurface Weight": 0.3, "IOR": 1.45})
+    back, missing, notes = export.from_blender_inputs(principled, None)
+    assert "density" in missing and back[params.INDEX["sheen"]] == 1.0
+    assert back[params.INDEX["specular"]] == pytest.approx(((1.45 - 1) / 2.45) ** 2 / 0.08)
+    assert notes == [
+        "sheen 5 clipped to [0, 1]",
+        "Specular IOR Level 0.8 shown as 0.5",
+        "Subsurface Weight ignored (matfit's shader has none)",
+    ]
+    # a thick medium: density grows until the darkest channel keeps the lowest colour
+    glass = presets.preset("amber-glass")
+    principled, volume = export.blender_inputs(glass)
+    volume = {**volume, "absorption_density": 5 * volume["absorption_density"]}
+    back, _, notes = export.from_blender_inputs(principled, volume)
+    assert notes == []
+    sigma_t = params.medium_coefficients(back)[0]
+    np.testing.assert_allclose(sigma_t, 5 * params.medium_coefficients(glass)[0], rtol=1e-9)
+    assert back[params.INDEX["medium_color_b"]] == pytest.approx(0.01) and back[params.INDEX["density"]] > 1

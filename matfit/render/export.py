@@ -53,7 +53,7 @@ import xml.etree.ElementTree as ElementTree
 import numpy as np
 
 from matfit import params, shipped
-from matfit.render import scene
+from matfit.render import blender_mapping, scene
 
 MATERIAL_ID = "matfit-material"
 MEDIUM_ID = "matfit-interior"
@@ -93,69 +93,26 @@ def mitsuba_xml(values: np.ndarray) -> str:
     return ElementTree.tostring(root, encoding="unicode") + "\n"
 
 
-# Rec. 709 luminance, as Mitsuba's `luminance` of an RGB colour: the Disney tints divide by it.
-LUMINANCE = np.array([0.212671, 0.715160, 0.072169])
-# Measured mapping constants (Cycles against Mitsuba on calibration materials that are not presets;
-# see the module docstring).
-SHEEN_WEIGHT_SCALE = 0.1
-SHEEN_ROUGHNESS = 0.5
-COAT_WEIGHT_SCALE = 0.5
-
-
-def eta_from_specular(specular: float) -> float:
-    """Returns Mitsuba's index of refraction for `specular`: F0 = 0.08 specular = ((eta - 1) / (eta + 1))^2."""
-    return float(2.0 / (1.0 - np.sqrt(0.08 * max(specular, 1e-3))) - 1.0)
-
-
-def disney_tint(base: np.ndarray, amount: float) -> np.ndarray:
-    """Returns 1 + amount x (base / luminance(base) - 1): the Disney tint of Mitsuba's spec_tint and sheen_tint."""
-    luminance = float(LUMINANCE @ base)
-    hue = base / luminance if luminance > 0 else np.ones(3)
-    return 1.0 + amount * (hue - 1.0)
+# The mapping's constants and formulas live in blender_mapping (the import reads the same table);
+# named here too, since the script's header and the tests speak of them as the export's.
+SHEEN_WEIGHT_SCALE = blender_mapping.SHEEN_WEIGHT_SCALE
+SHEEN_ROUGHNESS = blender_mapping.SHEEN_ROUGHNESS
+COAT_WEIGHT_SCALE = blender_mapping.COAT_WEIGHT_SCALE
+eta_from_specular = blender_mapping.eta_from_specular
 
 
 def blender_inputs(values: np.ndarray) -> tuple[dict, dict]:
-    """Returns (Principled BSDF inputs, volume settings) for Blender 4.x, as plain data."""
-    v = dict(zip(params.NAMES, (float(x) for x in values), strict=True))
-    base = np.array([v["base_color_r"], v["base_color_g"], v["base_color_b"]])
-    metallic = v["metallic"]
-
-    def colour(rgb: np.ndarray) -> list[float]:
-        return [*map(float, rgb), 1.0]
-
-    # One Specular Tint serves Blender's dielectric F0 and its metal edge (F82) tint; Mitsuba's
-    # metal is plain Schlick on the base colour (edge tint white).
-    specular_tint = disney_tint(base, v["spec_tint"]) * (1.0 - metallic) + metallic
-    # Mitsuba's sheen belongs to its diffuse lobe: weighted by 1 - metallic, absent once spec_trans is 1.
-    sheen = v["sheen"] * (1.0 - metallic) if v["spec_trans"] < 1.0 else 0.0
-    principled = {
-        "Base Color": colour(base),
-        "Metallic": metallic,
-        "Roughness": v["roughness"],
-        "Diffuse Roughness": 0.0,
-        "Anisotropic": v["anisotropic"],
-        "IOR": eta_from_specular(v["specular"]),
-        "Specular IOR Level": 0.5,
-        "Specular Tint": colour(specular_tint),
-        "Sheen Weight": SHEEN_WEIGHT_SCALE * sheen,
-        "Sheen Roughness": SHEEN_ROUGHNESS,
-        "Sheen Tint": colour(disney_tint(base, v["sheen_tint"])),
-        "Coat Weight": COAT_WEIGHT_SCALE * v["clearcoat"],
-        "Coat Roughness": float(np.sqrt(0.1 + (0.001 - 0.1) * v["clearcoat_gloss"])),
-        "Coat IOR": 1.5,
-        "Transmission Weight": v["spec_trans"],
-    }
+    """Returns (Principled BSDF inputs, volume settings) for Blender 4.x, as plain data (blender_mapping.to_blender)."""
     sigma_t, albedo = params.medium_coefficients(values)
-    sigma_s, sigma_a = albedo * sigma_t, (1.0 - albedo) * sigma_t
-    scatter_density, absorb_density = float(sigma_s.max()), float(sigma_a.max())
-    volume = {
-        "absorption_density": absorb_density,
-        "absorption_color": [float(1.0 - a / absorb_density) if absorb_density > 0 else 1.0 for a in sigma_a] + [1.0],
-        "scatter_density": scatter_density,
-        "scatter_color": [float(s / scatter_density) if scatter_density > 0 else 0.0 for s in sigma_s] + [1.0],
-        "anisotropy": v["phase_g"],
-    }
-    return principled, volume
+    named = dict(zip(params.NAMES, map(float, values), strict=True))
+    return blender_mapping.to_blender(named, list(map(float, sigma_t)), list(map(float, albedo)))
+
+
+def from_blender_inputs(principled: dict, volume: dict | None) -> tuple[np.ndarray, dict[str, str], list[str]]:
+    """Returns (physical vector (19,), missing, notes) of Blender inputs: the import, defaults filled."""
+    bounds = {p.name: (p.low, p.high) for p in params.PARAMETERS}
+    values, missing, notes = blender_mapping.from_blender(principled, volume, bounds)
+    return params.from_mapping(values), missing, notes
 
 
 SCRIPT = shipped.PACKAGE / "render" / "blender_material.py"  # filled in per material
