@@ -3,7 +3,7 @@ VENV ?= .venv
 PYTHON ?= python3
 BIN := $(VENV)/bin
 
-.PHONY: install llvm blender test check lint format bench presets examples model clean
+.PHONY: install llvm blender blender-extension test check lint format bench presets examples model clean
 
 install: $(BIN)/matfit llvm
 	@$(BIN)/matfit --help >/dev/null && echo "matfit installed in $(VENV): run '$(BIN)/matfit --help' or activate with '. $(BIN)/activate'"
@@ -41,23 +41,28 @@ $(BLENDER_VENV)/.installed: pyproject.toml
 	@touch $@
 	@echo "bpy $$($(BLENDER_VENV)/bin/python -c 'import bpy; print(bpy.app.version_string)') installed in $(BLENDER_VENV): matfit blender-check can run"
 
+# The Blender extension (docs/blender.md#the-extension): blender/extension/ with the mapping table, zipped for
+# Edit > Preferences > Get Extensions > Install from Disk.
+blender-extension: $(BIN)/matfit
+	$(BIN)/python blender/build.py dist
+
 # Every test. `make check` is the quick loop while working: the same lint, every test but the slow end-to-end ones.
 test: $(BIN)/matfit
-	$(BIN)/ruff check matfit tests
-	$(BIN)/ruff format --check matfit tests
+	$(BIN)/ruff check matfit tests blender
+	$(BIN)/ruff format --check matfit tests blender
 	$(BIN)/python -m pytest -q
 
 check: $(BIN)/matfit
-	$(BIN)/ruff check matfit tests
-	$(BIN)/ruff format --check matfit tests
+	$(BIN)/ruff check matfit tests blender
+	$(BIN)/ruff format --check matfit tests blender
 	$(BIN)/python -m pytest -q -m "not slow"
 
 lint: $(BIN)/matfit
-	$(BIN)/ruff check matfit tests
+	$(BIN)/ruff check matfit tests blender
 
 format: $(BIN)/matfit
-	$(BIN)/ruff format matfit tests
-	$(BIN)/ruff check --fix matfit tests
+	$(BIN)/ruff format matfit tests blender
+	$(BIN)/ruff check --fix matfit tests blender
 
 bench: $(BIN)/matfit
 	$(BIN)/matfit bench-render --count 100

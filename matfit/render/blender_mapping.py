@@ -60,6 +60,7 @@ NEUTRAL = {
 BASE = ("base_color_r", "base_color_g", "base_color_b")
 MEDIUM_COLOUR = ("medium_color_r", "medium_color_g", "medium_color_b")
 MEDIUM = (*MEDIUM_COLOUR, "density", "scattering", "phase_g")
+CLIP_TOLERANCE = 1e-5  # Blender keeps its inputs in float32: a value at its bound may come back just past it
 TINY = 1e-6  # below it a weight, a density or a hue difference is taken as none
 
 
@@ -139,7 +140,7 @@ def has_volume(principled: dict, volume: dict) -> bool:
 
 def _clip(name: str, value: float, bounds: dict, notes: list[str]) -> float:
     low, high = bounds[name]
-    if value < low - 1e-9 or value > high + 1e-9:
+    if value < low - CLIP_TOLERANCE or value > high + CLIP_TOLERANCE:
         notes.append(f"{name} {value:.3g} clipped to [{low:g}, {high:g}]")
     return min(max(value, low), high)
 
@@ -187,7 +188,8 @@ def from_blender(
         values["sheen_tint"] = _clip("sheen_tint", amount, bounds, notes)
     values["clearcoat"] = _clip("clearcoat", float(principled["Coat Weight"]) / COAT_WEIGHT_SCALE, bounds, notes)
     gloss = (0.1 - float(principled["Coat Roughness"]) ** 2) / (0.1 - 0.001)
-    values["clearcoat_gloss"] = _clip("clearcoat_gloss", gloss, bounds, notes)
+    # Blender's default Coat Roughness (0.03) is sharper than Disney's glossiest coat: said only where a coat shows.
+    values["clearcoat_gloss"] = _clip("clearcoat_gloss", gloss, bounds, notes if values["clearcoat"] > 0 else [])
     for blender, neutral in FIXED.items():
         if blender in principled and abs(float(principled[blender]) - neutral) > 1e-4:
             notes.append(f"{blender} {float(principled[blender]):.3g} shown as {neutral:g}")

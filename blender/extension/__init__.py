@@ -1,0 +1,300 @@
+"""matfit in Blender: a picture of the active material for a 2D editor, and the edited picture back to a material.
+
+A panel in the Material properties (docs/blender.md#the-extension) with two operators, each of which
+runs the matfit command line (its path in the extension's preferences) in a subprocess:
+- `matfit.picture`: reads the active material (`material.read`) into matfit's parameters through
+  blender_mapping, the table the export writes with, and renders it in matfit's test scene
+  (`matfit render`) to a PNG;
+- `matfit.fit`: fits the edited picture (`matfit fit ... --blender script.py`) and runs the exported
+  script, which puts the material on the selected meshes exactly as it does from the Text Editor.
+From the panel both run in the background (a timer polls the subprocess, its last line in the status
+bar, Esc cancels); called from Python (`bpy.ops.matfit.fit(filepath=...)`, as headless Blender and
+the tests do) they wait for it. `matfit.follow` refits each time the edited file changes.
+Every failure is one line in Blender's report, never a traceback.
+"""
+
+import json
+import os
+
+import bpy
+from bpy.props import BoolProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+
+from . import blender_mapping, jobs, material
+
+with open(os.path.join(os.path.dirname(__file__), "parameters.json")) as _file:
+    BOUNDS = {p["name"]: (p["low"], p["high"]) for p in json.load(_file)}
+POLL_SECONDS = 0.25
+
+
+def preferences(context):
+    return context.preferences.addons[__package__].preferences
+
+
+class MatfitPreferences(bpy.types.AddonPreferences):
+    bl_idname = __package__
+
+    command: StringProperty(
+        name="matfit command",
+        description="The matfit executable (or a command line such as 'python -m matfit')",
+        default="matfit",
+    )
+    size: IntProperty(name="Picture size", description="Side of the picture in pixels", default=512, min=8)
+    spp: IntProperty(name="Samples per pixel", description="Of the picture and the fit's renders", default=256, min=1)
+    fit_options: StringProperty(
+        name="Fit options", description="More options for `matfit fit`, e.g. '--method nn'", default=""
+    )
+
+    def draw(self, context):
+        for name in ("command", "size", "spp", "fit_options"):
+            self.layout.prop(self, name)
+
+
+class MatfitSettings(bpy.types.PropertyGroup):
+    picture: StringProperty(
+        name="Picture", description="Where the picture is saved", default="//matfit-picture.png", subtype="FILE_PATH"
+    )
+    edited: StringProperty(
+        name="Edited picture", description="The picture as the 2D editor saved it", subtype="FILE_PATH"
+    )
+    radius: FloatProperty(
+        name="Object radius",
+        description="The medium's densities are per unit of this radius; 0: half the active object's largest side",
+        default=0.0,
+        min=0.0,
+    )
+    following: BoolProperty(name="Following", default=False)
+
+
+def _absolute(path):
+    return os.path.abspath(bpy.path.abspath(path))
+
+
+def _radius(context, settings):
+    if settings.radius > 0:
+        return settings.radius
+    obj = context.active_object
+    return max(obj.dimensions) / 2 if obj is not None and max(obj.dimensions) > 0 else 1.0
+
+
+class _Background:
+    """What both operators share: start a job, wait for it (execute) or poll it (invoke + modal), then finish."""
+
+    _job = None
+    _timer = None
+
+    def _run(self, context):
+        try:
+            self._job = self.start(context)
+        except (material.MaterialError, jobs.JobError, OSError) as error:
+            self.report({"ERROR"}, str(error))
+            return False
+        return True
+
+    def _end(self, context):
+        try:
+            self.finish(context, self._job)
+        except (jobs.JobError, OSError, ValueError, KeyError) as error:
+            self.report({"ERROR"}, str(error))
+            return {"CANCELLED"}
+        return {"FINISHED"}
+
+    def execute(self, context):
+        if not self._run(context):
+            return {"CANCELLED"}
+        self._job.wait()
+        return self._end(context)
+
+    def invoke(self, context, event):
+        if not self._run(context):
+            return {"CANCELLED"}
+        manager = context.window_manager
+        self._timer = manager.event_timer_add(POLL_SECONDS, window=context.window)
+        manager.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def _stop(self, context):
+        context.window_manager.event_timer_remove(self._timer)
+        context.workspace.status_text_set(None)
+
+    def modal(self, context, event):
+        if event.type == "ESC":
+            self._job.cancel()
+            self._stop(context)
+            self.report({"WARNING"}, f"matfit: {self.bl_label.lower()} cancelled")
+            return {"CANCELLED"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        if self._job.poll() is None:
+            context.workspace.status_text_set(f"matfit: {self._job.last_line()} (Esc cancels)")
+            return {"PASS_THROUGH"}
+        self._stop(context)
+        return self._end(context)
+
+
+class MATFIT_OT_picture(_Background, bpy.types.Operator):  # noqa: N801 (Blender's naming of operators and panels)
+    """Render the active material in matfit's test scene and save the picture, to edit in a 2D editor"""
+
+    bl_idname = "matfit.picture"
+    bl_label = "Picture of this material"
+
+    @classmethod
+    def poll(cls, context):
+        return context.object is not None
+
+    def start(self, context):
+        settings = context.scene.matfit
+        principled, volume, self._notes = material.read(context.object.active_material, _radius(context, settings))
+        values, _, notes = blender_mapping.from_blender(principled, volume, BOUNDS)
+        self._notes += notes
+        self._picture = _absolute(settings.picture)
+        os.makedirs(os.path.dirname(self._picture), exist_ok=True)
+        stem = os.path.splitext(self._picture)[0]
+        with open(stem + ".params.json", "w") as file:
+            json.dump({"params": values}, file, indent=2)
+        prefs = preferences(context)
+        options = ["--size", str(prefs.size), "--spp", str(prefs.spp)]
+        return jobs.Job(prefs.command, ["render", stem + ".params.json", "-o", self._picture, *options])
+
+    def finish(self, context, job):
+        job.check()
+        unmapped = f"; not mapped: {', '.join(self._notes)}" if self._notes else ""
+        self.report({"WARNING"} if self._notes else {"INFO"}, f"matfit: picture saved to {self._picture}{unmapped}")
+
+
+class MATFIT_OT_fit(_Background, bpy.types.Operator):  # noqa: N801 (Blender's naming of operators and panels)
+    """Fit the edited picture and put the material on the selected objects"""
+
+    bl_idname = "matfit.fit"
+    bl_label = "Fit edited picture"
+
+    filepath: StringProperty(
+        name="Edited picture", description="Default: the panel's Edited picture", subtype="FILE_PATH"
+    )
+
+    def start(self, context):
+        return start_fit(context, self.filepath or context.scene.matfit.edited)
+
+    def finish(self, context, job):
+        self.report({"INFO"}, finish_fit(context, job))
+
+
+def start_fit(context, path):
+    """Returns the running `matfit fit` of the edited picture at `path`; remembers the path in the scene."""
+    if not path:
+        raise jobs.JobError("matfit: choose the edited picture first (the panel's Edited picture)")
+    edited = _absolute(path)
+    if not os.path.isfile(edited):
+        raise jobs.JobError(f"matfit: no edited picture at {edited}: choose the file the 2D editor saved")
+    context.scene.matfit.edited = edited
+    stem = os.path.splitext(edited)[0]
+    prefs = preferences(context)
+    outputs = {"params": stem + ".params.json", "script": stem + ".blender.py"}
+    arguments = ["fit", edited, "-o", outputs["params"], "--blender", outputs["script"]]
+    arguments += ["--size", str(prefs.size), "--spp", str(prefs.spp), *jobs.split(prefs.fit_options)]
+    job = jobs.Job(prefs.command, arguments)
+    job.outputs = outputs
+    return job
+
+
+def finish_fit(context, job):
+    """Puts the fitted material on the selected meshes by running the exported script; returns the report line."""
+    job.check()
+    with open(job.outputs["params"]) as file:
+        document = json.load(file)
+    script = job.outputs["script"]
+    with open(script) as file:
+        exec(compile(file.read(), script, "exec"), {"__name__": "__main__", "__file__": script})
+    meshes = [obj.name for obj in context.selected_objects if obj.type == "MESH"]
+    return (
+        f"matfit: material 'matfit' on {len(meshes)} selected mesh(es), "
+        f"neural RMSE {document['neural_rmse']:.2f}, Mitsuba RMSE {document.get('mitsuba_rmse') or float('nan'):.2f}"
+    )
+
+
+class MATFIT_OT_follow(bpy.types.Operator):  # noqa: N801 (Blender's naming of operators and panels)
+    """Refit each time the 2D editor saves the edited picture (Esc or the button stops)"""
+
+    bl_idname = "matfit.follow"
+    bl_label = "Follow the picture"
+
+    _timer = None
+    _job = None
+    _seen = None
+
+    def invoke(self, context, event):
+        settings = context.scene.matfit
+        if settings.following:
+            settings.following = False
+            return {"FINISHED"}
+        path = _absolute(settings.edited)
+        if not settings.edited or not os.path.isfile(path):
+            self.report({"ERROR"}, "matfit: fit an edited picture once first: Follow watches that file")
+            return {"CANCELLED"}
+        settings.following = True
+        self._seen = os.stat(path).st_mtime_ns
+        self._timer = context.window_manager.event_timer_add(POLL_SECONDS * 4, window=context.window)
+        context.window_manager.modal_handler_add(self)
+        return {"RUNNING_MODAL"}
+
+    def _stop(self, context):
+        if self._job is not None:
+            self._job.cancel()
+        context.window_manager.event_timer_remove(self._timer)
+        context.scene.matfit.following = False
+        context.workspace.status_text_set(None)
+
+    def modal(self, context, event):
+        settings = context.scene.matfit
+        if event.type == "ESC" or not settings.following:
+            self._stop(context)
+            return {"CANCELLED"}
+        if event.type != "TIMER":
+            return {"PASS_THROUGH"}
+        try:
+            if self._job is not None and self._job.poll() is not None:
+                job, self._job = self._job, None
+                self.report({"INFO"}, finish_fit(context, job))
+            changed = os.stat(_absolute(settings.edited)).st_mtime_ns
+            if self._job is None and changed != self._seen:
+                self._seen = changed
+                self._job = start_fit(context, settings.edited)
+        except (jobs.JobError, OSError, ValueError, KeyError) as error:
+            self.report({"ERROR"}, str(error))
+            self._job = None
+        status = self._job.last_line() if self._job is not None else "waiting for the edited picture to change"
+        context.workspace.status_text_set(f"matfit follows {os.path.basename(settings.edited)}: {status}")
+        return {"PASS_THROUGH"}
+
+
+class MATFIT_PT_material(bpy.types.Panel):  # noqa: N801 (Blender's naming of operators and panels)
+    bl_label = "matfit"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "material"
+
+    def draw(self, context):
+        settings = context.scene.matfit
+        layout = self.layout
+        layout.prop(settings, "picture")
+        layout.prop(settings, "radius")
+        layout.operator(MATFIT_OT_picture.bl_idname, icon="RENDER_STILL")
+        layout.separator()
+        layout.prop(settings, "edited")
+        layout.operator(MATFIT_OT_fit.bl_idname, icon="IMPORT")
+        label = "Stop following" if settings.following else MATFIT_OT_follow.bl_label
+        layout.operator(MATFIT_OT_follow.bl_idname, text=label, icon="FILE_REFRESH")
+
+
+CLASSES = (MatfitPreferences, MatfitSettings, MATFIT_OT_picture, MATFIT_OT_fit, MATFIT_OT_follow, MATFIT_PT_material)
+
+
+def register():
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.matfit = PointerProperty(type=MatfitSettings)
+
+
+def unregister():
+    del bpy.types.Scene.matfit
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)
