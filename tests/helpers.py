@@ -4,6 +4,7 @@ import functools
 
 import jax
 import numpy as np
+import pytest
 
 from matfit import images, params
 from matfit.model import models
@@ -67,3 +68,19 @@ class Noisy:
         _, offset, spread = self.materials[name] if name is not None else (None, 0.3, 0.0)
         noise = np.random.default_rng(seed).normal(0, 1, self.target.shape)
         return images.srgb_decode(np.clip(self.target + offset + spread * noise, 0, 1).astype(np.float32))
+
+
+# The export cannot carry the medium's colour and density apart: Blender holds their product, the extinction
+# density x -ln(colour) (blender_mapping's docstring), which is compared instead.
+MEDIUM_PRODUCT = ("medium_color_r", "medium_color_g", "medium_color_b", "density")
+
+
+def assert_round_trip(values, back, missing):
+    """Every parameter the export carries comes back within 1e-3; the medium as its extinction."""
+    for name, expected, got in zip(params.NAMES, values, back, strict=True):
+        if name not in missing and name not in MEDIUM_PRODUCT:
+            assert got == pytest.approx(expected, abs=1e-3), name
+    if "density" not in missing:
+        np.testing.assert_allclose(
+            params.medium_coefficients(back)[0], params.medium_coefficients(values)[0], atol=1e-3
+        )

@@ -6,6 +6,7 @@ import subprocess
 
 import numpy as np
 import pytest
+from helpers import assert_round_trip
 from typer.testing import CliRunner
 
 from matfit import images, params
@@ -180,22 +181,6 @@ def test_cycles_renders_the_scene_like_mitsuba():
     # and the comparison can fail: gold's Cycles render against blue rubber's Mitsuba render
     swapped = images.rmse(images.srgb_encode(comparison.cycles[0]), images.srgb_encode(comparison.mitsuba[1]))
     assert swapped > 3 * max(comparison.rmse)
-
-
-# The export cannot carry the medium's colour and density apart: Blender holds their product, the extinction
-# density x -ln(colour) (blender_mapping's docstring), which is compared instead.
-MEDIUM_PRODUCT = ("medium_color_r", "medium_color_g", "medium_color_b", "density")
-
-
-def assert_round_trip(values, back, missing):
-    """Every parameter the export carries comes back within 1e-3; the medium as its extinction."""
-    for name, expected, got in zip(params.NAMES, values, back, strict=True):
-        if name not in missing and name not in MEDIUM_PRODUCT:
-            assert got == pytest.approx(expected, abs=1e-3), name
-    if "density" not in missing:
-        np.testing.assert_allclose(
-            params.medium_coefficients(back)[0], params.medium_coefficients(values)[0], atol=1e-3
-        )
 
 
 @pytest.mark.parametrize("name", list(presets.PRESETS))

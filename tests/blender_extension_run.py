@@ -1,0 +1,148 @@
+"""Runs inside Blender's Python for tests/test_blender_extension.py: installs the extension zip, runs its operators.
+
+Usage: python blender_extension_run.py job.json report.json, in a fresh user folder ($BLENDER_USER_RESOURCES).
+job.json: {"zip", "command", "size", "spp", "fit_options", "imports": {name: exported script},
+"picture": {"script", "out"}, "refusals": [kind], "fit": edited picture, "failures": [[command, edited]]}.
+The scene: "source" (active, selected, holds the material to picture), "bare" (selected, no slots),
+"shared_a" (selected) and "shared_b" (not selected) sharing a mesh with the material "keep", and a selected light.
+The report holds what each step gave back and the line each operator reported.
+"""
+
+import json
+import sys
+
+import bpy
+
+MODULE = "bl_ext.user_default.matfit"
+
+
+def mesh_object(name, mesh=None):
+    if mesh is None:
+        mesh = bpy.data.meshes.new(name)
+        mesh.from_pydata([(0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)], [], [(0, 1, 2)])
+    obj = bpy.data.objects.new(name, mesh)
+    bpy.context.scene.collection.objects.link(obj)
+    return obj
+
+
+def build_scene():
+    """Returns "source" of a new scene; everything before it is removed (loading a file would turn the add-on off)."""
+    for collection in (bpy.data.objects, bpy.data.meshes, bpy.data.lights, bpy.data.materials):
+        for item in list(collection):
+            collection.remove(item)
+    source = mesh_object("source")
+    mesh_object("bare")
+    shared_a = mesh_object("shared_a")
+    mesh_object("shared_b", shared_a.data)
+    shared_a.data.materials.append(bpy.data.materials.new("keep"))
+    lamp = bpy.data.objects.new("lamp", bpy.data.lights.new("lamp", "POINT"))
+    bpy.context.scene.collection.objects.link(lamp)
+    for obj in bpy.context.scene.objects:
+        obj.select_set(obj.name != "shared_b")
+    bpy.context.view_layer.objects.active = source
+    return source
+
+
+def run_script(path, name="__main__"):
+    with open(path) as file:
+        exec(compile(file.read(), path, "exec"), {"__name__": name, "__file__": path})
+
+
+def operator(call):
+    """Returns (outcome, error line) of an operator call; Blender turns an ERROR report into a RuntimeError."""
+    try:
+        return sorted(call()), None
+    except RuntimeError as error:
+        return ["CANCELLED"], str(error).strip()
+
+
+def refused_material(kind):
+    """Returns a material matfit cannot represent: a texture on Base Color, a Glass BSDF or an Emission shader."""
+    material = bpy.data.materials.new(kind)
+    material.use_nodes = True
+    nodes, links = material.node_tree.nodes, material.node_tree.links
+    output = nodes["Material Output"]
+    if kind == "texture":
+        texture = nodes.new("ShaderNodeTexImage")
+        links.new(texture.outputs["Color"], nodes["Principled BSDF"].inputs["Base Color"])
+    else:
+        shader = nodes.new("ShaderNodeBsdfGlass" if kind == "glass" else "ShaderNodeEmission")
+        links.new(shader.outputs[0], output.inputs["Surface"])
+    return material
+
+
+def value(socket):
+    default = socket.default_value
+    return list(default) if hasattr(default, "__len__") else float(default)
+
+
+def slots():
+    return {
+        obj.name: [(slot.link, slot.material.name if slot.material else None) for slot in obj.material_slots]
+        for obj in bpy.context.scene.objects
+        if obj.type == "MESH"
+    }
+
+
+def main(job_path, report_path):
+    with open(job_path) as file:
+        job = json.load(file)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    installed = bpy.ops.extensions.package_install_files(
+        filepath=job["zip"], repo="user_default", enable_on_install=True
+    )
+    report = {"installed": sorted(installed), "version": bpy.app.version_string}
+    prefs = bpy.context.preferences.addons[MODULE].preferences
+    prefs.command, prefs.size, prefs.spp, prefs.fit_options = (
+        job["command"],
+        job["size"],
+        job["spp"],
+        job["fit_options"],
+    )
+    extension = sys.modules[MODULE]
+    bounds = extension.BOUNDS
+
+    report["imports"] = {}
+    for name, script in job.get("imports", {}).items():
+        build_scene()
+        run_script(script)
+        material = bpy.data.materials[name]
+        principled, volume, notes = extension.material.read(material, 1.0)
+        values, missing, more = extension.blender_mapping.from_blender(principled, volume, bounds)
+        report["imports"][name] = {"values": values, "missing": missing, "notes": notes + more}
+
+    if "picture" in job:
+        source = build_scene()
+        run_script(job["picture"]["script"])  # the preset's material on every selected mesh, "source" among them
+        bpy.context.scene.matfit.picture = job["picture"]["out"]
+        bpy.context.scene.matfit.radius = 1.0
+        report["picture"] = operator(bpy.ops.matfit.picture)
+        report["picture_material"] = source.active_material.name
+
+    report["refusals"] = {}
+    for kind in job.get("refusals", []):
+        source = build_scene()
+        source.data.materials.append(refused_material(kind))
+        bpy.context.scene.matfit.picture = job["picture"]["out"] + f".{kind}.png"
+        report["refusals"][kind] = operator(bpy.ops.matfit.picture)
+
+    if "fit" in job:
+        build_scene()
+        report["fit"] = operator(lambda: bpy.ops.matfit.fit(filepath=job["fit"]))
+        report["slots"] = slots()
+        report["shared_mesh_materials"] = [m.name for m in bpy.data.objects["shared_a"].data.materials]
+        if "matfit" in bpy.data.materials:
+            bsdf = bpy.data.materials["matfit"].node_tree.nodes["Principled BSDF"]
+            report["fitted"] = {
+                socket.name: value(socket) for socket in bsdf.inputs if hasattr(socket, "default_value")
+            }
+    report["failures"] = []
+    for command, edited in job.get("failures", []):
+        prefs.command = command
+        report["failures"].append(operator(lambda path=edited: bpy.ops.matfit.fit(filepath=path)))
+    with open(report_path, "w") as file:
+        json.dump(report, file)
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:3])

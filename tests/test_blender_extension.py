@@ -1,0 +1,188 @@
+"""The Blender extension (blender/extension/): its zip installed into a fresh bpy session, every operator run there.
+
+One Blender session (tests/blender_extension_run.py) does every step, since starting bpy, matfit's renders and
+the fit cost seconds each; the tests read its report. Needs `make blender` (skipped with the reason otherwise).
+"""
+
+import json
+import os
+import subprocess
+import sys
+import zipfile
+
+import numpy as np
+import pytest
+from helpers import assert_round_trip
+
+from matfit import images, params, shipped
+from matfit.render import blender, export, presets
+
+try:
+    BLENDER = blender.find_blender()
+except blender.BlenderError:
+    BLENDER = None
+pytestmark = pytest.mark.skipif(BLENDER is None, reason="bpy 4.5 is not installed: run `make blender` (.venv-blender)")
+ROOT = shipped.PACKAGE.parent
+RUN = os.path.join(os.path.dirname(__file__), "blender_extension_run.py")
+SIZE, SPP = 32, 16  # the picture's and the fit's renders: small, the checks compare like with like
+FIT_OPTIONS = ["--method", "nn"]
+PICTURE_PRESET = "jade"  # transmission and a scattering medium: every part of the mapping
+EDITED = str(shipped.EXAMPLES / "recoloured.png")
+REFUSALS = ("texture", "glass", "emission")
+
+
+def matfit(*arguments, folder):
+    """Runs the matfit command line as the extension does; returns its output."""
+    result = subprocess.run(
+        [sys.executable, "-m", "matfit", *arguments], capture_output=True, text=True, check=True, cwd=folder
+    )
+    return result.stdout
+
+
+def open_bytes(path):
+    with open(path, "rb") as file:
+        return file.read()
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    """Returns (report, folder, Blender's output) of one bpy session that ran every step."""
+    folder = tmp_path_factory.mktemp("extension")
+    built = subprocess.run(
+        [sys.executable, str(ROOT / "blender" / "build.py"), str(folder / "dist")],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    command = folder / "matfit"
+    command.write_text(f'#!/bin/sh\nexec "{sys.executable}" -m matfit "$@"\n')
+    command.chmod(0o755)
+    imports = {}
+    for name in presets.PRESETS:
+        imports[name] = str(folder / f"{name}.py")
+        (folder / f"{name}.py").write_text(export.blender_script(presets.preset(name), name=name))
+    (folder / "picture.py").write_text(export.blender_script(presets.preset(PICTURE_PRESET)))
+    (folder / "edited.png").write_bytes(open_bytes(EDITED))
+    (folder / "not-a-picture.png").write_text("not a picture")
+    job = {
+        "zip": built.stdout.strip(),
+        "command": str(command),
+        "size": SIZE,
+        "spp": SPP,
+        "fit_options": " ".join(FIT_OPTIONS),
+        "imports": imports,
+        "picture": {"script": str(folder / "picture.py"), "out": str(folder / "pictures" / "picture.png")},
+        "refusals": list(REFUSALS),
+        "fit": str(folder / "edited.png"),
+        "failures": [
+            [str(folder / "no-such-matfit"), str(folder / "edited.png")],
+            [str(command), str(folder / "not-a-picture.png")],
+        ],
+    }
+    (folder / "job.json").write_text(json.dumps(job))
+    environment = {**os.environ, "PYTHONNOUSERSITE": "1", "BLENDER_USER_RESOURCES": str(folder / "user")}
+    run = subprocess.run(
+        [BLENDER, RUN, str(folder / "job.json"), str(folder / "report.json")],
+        capture_output=True,
+        text=True,
+        env=environment,
+    )
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
+    return json.loads((folder / "report.json").read_text()), folder, run.stdout + run.stderr
+
+
+def test_the_zip_carries_the_mapping_table_and_installs(session):
+    report, folder, _ = session
+    assert report["installed"] == ["FINISHED"] and report["version"].startswith("4.")
+    (zip_path,) = (folder / "dist").iterdir()
+    with zipfile.ZipFile(zip_path) as archive:
+        assert archive.read("blender_mapping.py") == (ROOT / "matfit" / "render" / "blender_mapping.py").read_bytes()
+        assert json.loads(archive.read("parameters.json")) == params.table()
+        assert "blender_manifest.toml" in archive.namelist()
+
+
+@pytest.mark.parametrize("name", list(presets.PRESETS))
+def test_import_of_every_exported_preset_gives_back_its_parameters(session, name):
+    imported = session[0]["imports"][name]
+    assert imported["notes"] == []
+    back = params.from_mapping(imported["values"])
+    assert_round_trip(presets.preset(name), back, imported["missing"])
+
+
+def test_picture_of_an_exported_preset_is_matfit_render_of_the_preset_within_noise(session):
+    report, folder, output = session
+    assert report["picture"] == [["FINISHED"], None] and report["picture_material"] == "matfit"
+    assert f"picture saved to {folder / 'pictures' / 'picture.png'}" in output
+    picture = images.read(str(folder / "pictures" / "picture.png"))
+    renders = {}
+    for preset, seed in ((PICTURE_PRESET, 0), (PICTURE_PRESET, 1), ("milk", 0)):
+        out = str(folder / f"{preset}-{seed}.png")
+        matfit("render", "--preset", preset, "--seed", str(seed), "--size", str(SIZE), "--spp", str(SPP), "-o", out,
+               folder=folder)  # fmt: skip
+        renders[preset, seed] = images.read(out)
+    noise = float(images.rmse(renders[PICTURE_PRESET, 1], renders[PICTURE_PRESET, 0]))
+    assert float(images.rmse(picture, renders[PICTURE_PRESET, 0])) <= noise
+    # and the check can fail: another preset is further away than the noise
+    assert float(images.rmse(picture, renders["milk", 0])) > 2 * noise
+
+
+@pytest.mark.parametrize("kind", REFUSALS)
+def test_a_material_matfit_cannot_represent_gets_one_line(session, kind):
+    report, folder, output = session
+    outcome, line = report["refusals"][kind]
+    assert "Traceback" not in output
+    if kind == "texture":  # read at the socket's own value, and said so in the report line
+        assert outcome == ["FINISHED"]
+        lines = [text for text in output.splitlines() if "Image Texture" in text]
+        assert lines == [
+            f"Warning: matfit: picture saved to {folder / 'pictures' / 'picture.png.texture.png'}; not mapped: "
+            "Base Color (Image Texture) "
+            "read at their unlinked values, distribution MULTI_GGX shown as GGX"
+        ]
+    else:
+        label = {"glass": "Glass BSDF", "emission": "Emission"}[kind]
+        assert outcome == ["CANCELLED"] and "\n" not in line
+        assert line == (
+            f"Error: matfit: material '{kind}': its Surface is {label}, which matfit cannot represent; "
+            "use a Principled BSDF there (for glass: Transmission Weight 1)"
+        )
+
+
+def test_a_missing_or_failing_matfit_shows_its_error_line(session):
+    report, folder, _ = session
+    missing, failing = report["failures"]
+    assert missing == [
+        ["CANCELLED"],
+        f"Error: matfit: cannot run '{folder / 'no-such-matfit'}' (No such file or directory): "
+        "set its path in Edit > Preferences > Add-ons > matfit",
+    ]
+    assert failing[0] == ["CANCELLED"] and "\n" not in failing[1]
+    assert failing[1].startswith(f"Error: matfit ({folder / 'matfit'}) failed: error: ")
+    assert "not-a-picture.png" in failing[1]
+
+
+def test_fit_puts_the_values_matfit_fit_writes_on_the_selected_objects_only(session):
+    report, folder, output = session
+    assert report["fit"] == [["FINISHED"], None]
+    assert report["slots"] == {
+        "source": [["OBJECT", "matfit"]],
+        "bare": [["OBJECT", "matfit"]],
+        "shared_a": [["OBJECT", "matfit"]],
+        "shared_b": [["DATA", "keep"]],
+    }
+    assert report["shared_mesh_materials"] == ["keep"]
+    # the same fit from the command line, with the settings the extension passed
+    reference = str(folder / "reference.json")
+    matfit("fit", EDITED, "-o", reference, "--size", str(SIZE), "--spp", str(SPP), *FIT_OPTIONS, folder=folder)
+    document = json.loads(open_bytes(reference))
+    principled, _ = export.blender_inputs(params.from_document(document, reference))
+    for key, expected in principled.items():
+        assert report["fitted"][key] == pytest.approx(expected, rel=1e-6, abs=1e-6), key
+    line = (
+        f"Info: matfit: material 'matfit' on 3 selected mesh(es), neural RMSE {document['neural_rmse']:.2f}, "
+        f"Mitsuba RMSE {document['mitsuba_rmse']:.2f}"
+    )
+    assert line in output.splitlines()
+    np.testing.assert_allclose(
+        params.read_file(str(folder / "edited.params.json")), params.read_file(reference), atol=1e-6
+    )
