@@ -2,14 +2,18 @@
 
 Usage: python blender_extension_run.py job.json report.json, in a fresh user folder ($BLENDER_USER_RESOURCES).
 job.json: {"zip", "command", "size", "spp", "fit_options", "imports": {name: exported script},
-"picture": {"script", "out"}, "refusals": [kind], "fit": edited picture, "failures": [[command, edited]]}.
+"picture": {"script", "out"}, "refusals": [kind], "fit": edited picture, "failures": [[command, edited]],
+"follow": {"edited", "saved"}, "cancel": edited picture}.
 The scene: "source" (active, selected, holds the material to picture), "bare" (selected, no slots),
 "shared_a" (selected) and "shared_b" (not selected) sharing a mesh with the material "keep", and a selected light.
 The report holds what each step gave back and the line each operator reported.
 """
 
 import json
+import os
+import shutil
 import sys
+import time
 
 import bpy
 
@@ -140,6 +144,32 @@ def main(job_path, report_path):
     for command, edited in job.get("failures", []):
         prefs.command = command
         report["failures"].append(operator(lambda path=edited: bpy.ops.matfit.fit(filepath=path)))
+    prefs.command = job["command"]
+
+    if "follow" in job:  # what the Follow operator does at each timer tick, ticked here
+        build_scene()
+        edited = job["follow"]["edited"]
+        bpy.context.scene.matfit.edited = edited
+        follower = extension.Follower(bpy.context)
+        report["follow_idle"] = [follower.step(bpy.context), follower.status()]
+        shutil.copy(job["follow"]["saved"], edited)  # the 2D editor saves the picture
+        seen = os.stat(edited).st_mtime_ns
+        os.utime(edited, ns=(seen, max(seen, follower.seen) + 10**9))
+        line, deadline = None, time.monotonic() + 600
+        while line is None and time.monotonic() < deadline:
+            time.sleep(0.25)
+            line = follower.step(bpy.context)
+        report["follow"] = line
+        bsdf = bpy.data.materials["matfit"].node_tree.nodes["Principled BSDF"]
+        report["follow_fitted"] = {s.name: value(s) for s in bsdf.inputs if hasattr(s, "default_value")}
+
+    if "cancel" in job:  # what Esc does to a running fit
+        running = extension.jobs.Job(prefs.command, ["fit", job["cancel"], "-o", job["cancel"] + ".json"])
+        time.sleep(1.0)
+        status = running.status()
+        start = time.monotonic()
+        running.cancel()
+        report["cancel"] = {"status": status, "code": running.poll(), "seconds": time.monotonic() - start}
     with open(report_path, "w") as file:
         json.dump(report, file)
 

@@ -6,6 +6,7 @@ the fit cost seconds each; the tests read its report. Needs `make blender` (skip
 
 import json
 import os
+import re
 import subprocess
 import sys
 import zipfile
@@ -64,6 +65,7 @@ def session(tmp_path_factory):
     (folder / "picture.py").write_text(export.blender_script(presets.preset(PICTURE_PRESET)))
     (folder / "edited.png").write_bytes(open_bytes(EDITED))
     (folder / "not-a-picture.png").write_text("not a picture")
+    (folder / "follow.png").write_bytes(open_bytes(EDITED))
     job = {
         "zip": built.stdout.strip(),
         "command": str(command),
@@ -78,6 +80,8 @@ def session(tmp_path_factory):
             [str(folder / "no-such-matfit"), str(folder / "edited.png")],
             [str(command), str(folder / "not-a-picture.png")],
         ],
+        "follow": {"edited": str(folder / "follow.png"), "saved": str(shipped.EXAMPLES / "desaturated.png")},
+        "cancel": str(folder / "edited.png"),
     }
     (folder / "job.json").write_text(json.dumps(job))
     environment = {**os.environ, "PYTHONNOUSERSITE": "1", "BLENDER_USER_RESOURCES": str(folder / "user")}
@@ -186,3 +190,26 @@ def test_fit_puts_the_values_matfit_fit_writes_on_the_selected_objects_only(sess
     np.testing.assert_allclose(
         params.read_file(str(folder / "edited.params.json")), params.read_file(reference), atol=1e-6
     )
+
+
+def test_follow_refits_when_the_picture_is_saved(session):
+    report, folder, _ = session
+    assert report["follow_idle"] == [None, "matfit follows follow.png: waiting for the picture to change (Esc stops)"]
+    document = json.loads(open_bytes(folder / "follow.params.json"))
+    assert report["follow"] == (
+        f"matfit: material 'matfit' on 3 selected mesh(es), neural RMSE {document['neural_rmse']:.2f}, "
+        f"Mitsuba RMSE {document['mitsuba_rmse']:.2f}"
+    )
+    # the saved picture (desaturated copper) was fitted, not the one Follow started with (recoloured plastic)
+    followed = params.read_file(str(folder / "follow.params.json"))
+    metallic = params.INDEX["metallic"]
+    assert followed[metallic] > 0.5 > params.read_file(str(folder / "edited.params.json"))[metallic]
+    principled, _ = export.blender_inputs(followed)
+    for key, expected in principled.items():
+        assert report["follow_fitted"][key] == pytest.approx(expected, rel=1e-6, abs=1e-6), key
+
+
+def test_esc_stops_a_running_fit_at_once(session):
+    cancel = session[0]["cancel"]
+    assert re.fullmatch(r"matfit fit running for \d+ s(: .*)?", cancel["status"])
+    assert cancel["code"] != 0 and cancel["seconds"] < 5

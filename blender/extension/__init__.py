@@ -9,7 +9,8 @@ runs the matfit command line (its path in the extension's preferences) in a subp
   script, which puts the material on the selected meshes exactly as it does from the Text Editor.
 From the panel both run in the background (a timer polls the subprocess, its last line in the status
 bar, Esc cancels); called from Python (`bpy.ops.matfit.fit(filepath=...)`, as headless Blender and
-the tests do) they wait for it. `matfit.follow` refits each time the edited file changes.
+the tests do) they wait for it. `matfit.follow` refits each time the edited file changes (`Follower`, one
+step per timer tick).
 Every failure is one line in Blender's report, never a traceback.
 """
 
@@ -65,6 +66,14 @@ class MatfitSettings(bpy.types.PropertyGroup):
     following: BoolProperty(name="Following", default=False)
 
 
+def one_line(error):
+    """Returns the report line of an error: the extension's own as written, any other with its kind."""
+    if isinstance(error, (material.MaterialError, jobs.JobError)):
+        return str(error)
+    text = str(error).strip().splitlines()
+    return f"matfit: {type(error).__name__}: {text[-1] if text else 'no message'}"
+
+
 def _absolute(path):
     return os.path.abspath(bpy.path.abspath(path))
 
@@ -85,16 +94,16 @@ class _Background:
     def _run(self, context):
         try:
             self._job = self.start(context)
-        except (material.MaterialError, jobs.JobError, OSError) as error:
-            self.report({"ERROR"}, str(error))
+        except Exception as error:  # every failure is one report line, never a traceback
+            self.report({"ERROR"}, one_line(error))
             return False
         return True
 
     def _end(self, context):
         try:
             self.finish(context, self._job)
-        except (jobs.JobError, OSError, ValueError, KeyError) as error:
-            self.report({"ERROR"}, str(error))
+        except Exception as error:  # every failure is one report line, never a traceback
+            self.report({"ERROR"}, one_line(error))
             return {"CANCELLED"}
         return {"FINISHED"}
 
@@ -125,7 +134,7 @@ class _Background:
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
         if self._job.poll() is None:
-            context.workspace.status_text_set(f"matfit: {self._job.last_line()} (Esc cancels)")
+            context.workspace.status_text_set(f"matfit: {self._job.status()} (Esc cancels)")
             return {"PASS_THROUGH"}
         self._stop(context)
         return self._end(context)
@@ -205,10 +214,44 @@ def finish_fit(context, job):
     with open(script) as file:
         exec(compile(file.read(), script, "exec"), {"__name__": "__main__", "__file__": script})
     meshes = [obj.name for obj in context.selected_objects if obj.type == "MESH"]
+    hint = "" if meshes else " (select meshes and fit again to put it on them)"
+    mitsuba = document.get("mitsuba_rmse")  # absent with --no-verify
     return (
-        f"matfit: material 'matfit' on {len(meshes)} selected mesh(es), "
-        f"neural RMSE {document['neural_rmse']:.2f}, Mitsuba RMSE {document.get('mitsuba_rmse') or float('nan'):.2f}"
+        f"matfit: material 'matfit' on {len(meshes)} selected mesh(es){hint}, "
+        f"neural RMSE {document['neural_rmse']:.2f}" + (f", Mitsuba RMSE {mitsuba:.2f}" if mitsuba is not None else "")
     )
+
+
+class Follower:
+    """Refits the edited picture each time its file changes: `step` once per timer tick, headless too."""
+
+    def __init__(self, context):
+        settings = context.scene.matfit
+        self.path = _absolute(settings.edited)
+        if not settings.edited or not os.path.isfile(self.path):
+            raise jobs.JobError("matfit: fit an edited picture once first: Follow watches that file")
+        self.seen = os.stat(self.path).st_mtime_ns
+        self.job = None
+
+    def step(self, context):
+        """Finishes a fit that has ended and starts one if the file changed; returns the finished fit's line."""
+        line = None
+        if self.job is not None and self.job.poll() is not None:
+            job, self.job = self.job, None
+            line = finish_fit(context, job)
+        changed = os.stat(self.path).st_mtime_ns
+        if self.job is None and changed != self.seen:
+            self.seen = changed
+            self.job = start_fit(context, self.path)
+        return line
+
+    def status(self):
+        activity = self.job.status() if self.job is not None else "waiting for the picture to change"
+        return f"matfit follows {os.path.basename(self.path)}: {activity} (Esc stops)"
+
+    def stop(self):
+        if self.job is not None:
+            self.job.cancel()
 
 
 class MATFIT_OT_follow(bpy.types.Operator):  # noqa: N801 (Blender's naming of operators and panels)
@@ -218,51 +261,39 @@ class MATFIT_OT_follow(bpy.types.Operator):  # noqa: N801 (Blender's naming of o
     bl_label = "Follow the picture"
 
     _timer = None
-    _job = None
-    _seen = None
+    _follower = None
 
     def invoke(self, context, event):
         settings = context.scene.matfit
         if settings.following:
-            settings.following = False
+            settings.following = False  # the running operator sees it at its next tick and stops
             return {"FINISHED"}
-        path = _absolute(settings.edited)
-        if not settings.edited or not os.path.isfile(path):
-            self.report({"ERROR"}, "matfit: fit an edited picture once first: Follow watches that file")
+        try:
+            self._follower = Follower(context)
+        except jobs.JobError as error:
+            self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         settings.following = True
-        self._seen = os.stat(path).st_mtime_ns
         self._timer = context.window_manager.event_timer_add(POLL_SECONDS * 4, window=context.window)
         context.window_manager.modal_handler_add(self)
         return {"RUNNING_MODAL"}
 
-    def _stop(self, context):
-        if self._job is not None:
-            self._job.cancel()
-        context.window_manager.event_timer_remove(self._timer)
-        context.scene.matfit.following = False
-        context.workspace.status_text_set(None)
-
     def modal(self, context, event):
-        settings = context.scene.matfit
-        if event.type == "ESC" or not settings.following:
-            self._stop(context)
+        if event.type == "ESC" or not context.scene.matfit.following:
+            self._follower.stop()
+            context.window_manager.event_timer_remove(self._timer)
+            context.scene.matfit.following = False
+            context.workspace.status_text_set(None)
             return {"CANCELLED"}
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
         try:
-            if self._job is not None and self._job.poll() is not None:
-                job, self._job = self._job, None
-                self.report({"INFO"}, finish_fit(context, job))
-            changed = os.stat(_absolute(settings.edited)).st_mtime_ns
-            if self._job is None and changed != self._seen:
-                self._seen = changed
-                self._job = start_fit(context, settings.edited)
-        except (jobs.JobError, OSError, ValueError, KeyError) as error:
-            self.report({"ERROR"}, str(error))
-            self._job = None
-        status = self._job.last_line() if self._job is not None else "waiting for the edited picture to change"
-        context.workspace.status_text_set(f"matfit follows {os.path.basename(settings.edited)}: {status}")
+            line = self._follower.step(context)
+            if line is not None:
+                self.report({"INFO"}, line)
+        except Exception as error:  # every failure is one report line, never a traceback
+            self.report({"ERROR"}, one_line(error))
+        context.workspace.status_text_set(self._follower.status())
         return {"PASS_THROUGH"}
 
 

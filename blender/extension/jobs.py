@@ -4,6 +4,7 @@ import collections
 import shlex
 import subprocess
 import threading
+import time
 
 FIX = "set its path in Edit > Preferences > Add-ons > matfit"
 
@@ -27,8 +28,9 @@ class Job:
         words = split(command)
         if not words:
             raise JobError(f"matfit: no matfit command: {FIX}")
-        self.command = command
+        self.command, self.arguments = command, arguments
         self.outputs = {}
+        self.started = time.monotonic()
         self._lines = collections.deque(maxlen=20)
         try:
             self._process = subprocess.Popen(
@@ -52,8 +54,10 @@ class Job:
         self._process.wait()
         self._reader.join()
 
-    def last_line(self):
-        return self._lines[-1] if self._lines else "starting"
+    def status(self):
+        """Returns the status bar's text: what runs, for how long, and matfit's last line."""
+        line = f": {self._lines[-1]}" if self._lines else ""
+        return f"matfit {self.arguments[0]} running for {time.monotonic() - self.started:.0f} s{line}"
 
     def cancel(self):
         if self._process.poll() is None:
