@@ -28,6 +28,7 @@ a channel would keep less than the lowest colour, then the smallest density that
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 # Rec. 709 luminance, as Mitsuba's `luminance` of an RGB colour: the Disney tints divide by it.
 LUMINANCE = (0.212671, 0.715160, 0.072169)
@@ -50,7 +51,7 @@ FIXED = {
     "Coat IOR": 1.5,
 }
 # Inputs matfit's shader has no counterpart for, with the value at which they do nothing.
-NEUTRAL = {
+NEUTRAL: dict[str, float | tuple[float, float, float]] = {
     "Subsurface Weight": 0.0,
     "Emission Strength": 0.0,
     "Alpha": 1.0,
@@ -74,17 +75,17 @@ def specular_from_eta(eta: float) -> float:
     return ((eta - 1.0) / (eta + 1.0)) ** 2 / 0.08
 
 
-def _hue(base: tuple[float, float, float]) -> tuple[float, float, float]:
+def _hue(base: Sequence[float]) -> tuple[float, ...]:
     luminance = sum(w * c for w, c in zip(LUMINANCE, base, strict=True))
     return tuple(c / luminance for c in base) if luminance > 0 else (1.0, 1.0, 1.0)
 
 
-def disney_tint(base: tuple[float, float, float], amount: float) -> tuple[float, float, float]:
+def disney_tint(base: Sequence[float], amount: float) -> tuple[float, ...]:
     """Returns 1 + amount x (base / luminance(base) - 1): the Disney tint of Mitsuba's spec_tint and sheen_tint."""
     return tuple(1.0 + amount * (h - 1.0) for h in _hue(base))
 
 
-def tint_amount(base: tuple[float, float, float], tint: tuple[float, float, float]) -> float | None:
+def tint_amount(base: Sequence[float], tint: Sequence[float]) -> float | None:
     """Returns the amount whose `disney_tint` of `base` is closest to `tint` (least squares), None for a grey base."""
     away = [h - 1.0 for h in _hue(base)]
     spread = sum(a * a for a in away)
@@ -190,9 +191,17 @@ def from_blender(
     gloss = (0.1 - float(principled["Coat Roughness"]) ** 2) / (0.1 - 0.001)
     # Blender's default Coat Roughness (0.03) is sharper than Disney's glossiest coat: said only where a coat shows.
     values["clearcoat_gloss"] = _clip("clearcoat_gloss", gloss, bounds, notes if values["clearcoat"] > 0 else [])
-    for blender, neutral in FIXED.items():
-        if blender in principled and abs(float(principled[blender]) - neutral) > 1e-4:
-            notes.append(f"{blender} {float(principled[blender]):.3g} shown as {neutral:g}")
+    notes += _unshown(principled)
+    _medium_from_blender(volume, spec_trans, bounds, values, missing, notes)
+    return values, missing, notes
+
+
+def _unshown(principled: dict) -> list[str]:
+    """Returns a note for each input matfit's shader holds at another value (`FIXED`) or has no counterpart for."""
+    notes = []
+    for blender, fixed in FIXED.items():
+        if blender in principled and abs(float(principled[blender]) - fixed) > 1e-4:
+            notes.append(f"{blender} {float(principled[blender]):.3g} shown as {fixed:g}")
     for blender, neutral in NEUTRAL.items():
         value = principled.get(blender)
         if value is None:
@@ -203,8 +212,7 @@ def from_blender(
             differs = abs(float(value) - neutral) > 1e-4
         if differs:
             notes.append(f"{blender} ignored (matfit's shader has none)")
-    _medium_from_blender(volume, spec_trans, bounds, values, missing, notes)
-    return values, missing, notes
+    return notes
 
 
 def _medium_from_blender(
