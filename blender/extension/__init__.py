@@ -75,6 +75,9 @@ def one_line(error):
 
 
 def _absolute(path):
+    """Returns a panel path as an absolute one: "//" is the .blend file's folder, or the home folder while unsaved."""
+    if path.startswith("//") and not bpy.data.filepath:
+        return os.path.join(os.path.expanduser("~"), path[2:])
     return os.path.abspath(bpy.path.abspath(path))
 
 
