@@ -118,6 +118,10 @@ def test_picture_of_an_exported_preset_is_matfit_render_of_the_preset_within_noi
     assert report["picture"] == [["FINISHED"], None] and report["picture_material"] == "matfit"
     assert f"picture saved to {folder / 'pictures' / 'picture.png'}" in output
     picture = images.read(str(folder / "pictures" / "picture.png"))
+    # the parameters it rendered, beside it: the preset's within 1e-3 (matfit's defaults where the export carries none)
+    source = params.read_file(str(folder / "pictures" / "picture.source.json"))
+    imported = report["imports"][PICTURE_PRESET]
+    assert_round_trip(presets.preset(PICTURE_PRESET), source, imported["missing"])
     renders = {}
     for preset, seed in ((PICTURE_PRESET, 0), (PICTURE_PRESET, 1), ("milk", 0)):
         out = str(folder / f"{preset}-{seed}.png")

@@ -137,7 +137,7 @@ class _Background:
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
         if self._job.poll() is None:
-            context.workspace.status_text_set(f"matfit: {self._job.status()} (Esc cancels)")
+            context.workspace.status_text_set(f"{self._job.status()} (Esc cancels)")
             return {"PASS_THROUGH"}
         self._stop(context)
         return self._end(context)
@@ -160,12 +160,13 @@ class MATFIT_OT_picture(_Background, bpy.types.Operator):  # noqa: N801 (Blender
         self._notes += notes
         self._picture = _absolute(settings.picture)
         os.makedirs(os.path.dirname(self._picture), exist_ok=True)
-        stem = os.path.splitext(self._picture)[0]
-        with open(stem + ".params.json", "w") as file:
+        # .source.json, not .params.json: a fit of the picture edited in place writes NAME.params.json
+        source = os.path.splitext(self._picture)[0] + ".source.json"
+        with open(source, "w") as file:
             json.dump({"params": values}, file, indent=2)
         prefs = preferences(context)
         options = ["--size", str(prefs.size), "--spp", str(prefs.spp)]
-        return jobs.Job(prefs.command, ["render", stem + ".params.json", "-o", self._picture, *options])
+        return jobs.Job(prefs.command, ["render", source, "-o", self._picture, *options])
 
     def finish(self, context, job):
         job.check()
