@@ -28,7 +28,7 @@ import types
 import numpy as np
 
 from matfit import images, params, shipped
-from matfit.app import bench
+from matfit.app.bench import reachable as bench  # the reachable targets and the judge of every benchmark
 from matfit.fit import fitfile, methods, search, verify
 from matfit.render import presets
 from matfit.render.engine import Renderer

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from matfit import edits
-from matfit.app import bench
+from matfit.app.bench import suite
 
 
 @pytest.fixture
@@ -44,7 +44,7 @@ def test_blur_keeps_dark_pixels_and_softens_the_highlight():
 
 
 def test_the_suite_has_eight_cases_with_a_control():
-    assert [case[0] for case in bench.SUITE] == [
+    assert [case[0] for case in suite.SUITE] == [
         "control",
         "saturation+",
         "greyscale",
@@ -54,8 +54,8 @@ def test_the_suite_has_eight_cases_with_a_control():
         "highlight blur",
         "mix",
     ]
-    assert bench.SUITE[0][0] == "control"
+    assert suite.SUITE[0][0] == "control"
     image = np.full((8, 8, 3), 0.5)
-    for name, _, sources, edit in bench.SUITE:
+    for name, _, sources, edit in suite.SUITE:
         out = edit(*[image] * len(sources))
         assert out.shape == image.shape and np.all((out >= 0) & (out <= 1)), name

@@ -379,9 +379,9 @@ def test_two_pages_fitting_at_once_each_show_their_own(browser, url):
 
 @pytest.mark.slow
 def test_the_page_benchmark_reports_every_figure():
-    from matfit.app import bench
+    from matfit.app.bench import page
 
-    table = bench.serve_speed(random_model(), "memory", fits=3, previews=5, log=lambda _: None, samples=3)
+    table = page.serve_speed(random_model(), "memory", fits=3, previews=5, log=lambda _: None, samples=3)
     rows = table.splitlines()[2:]
     assert [row.split(" | ")[0] for row in rows] == [
         "| warm fit through the library, the CLI's path (median of 3)",

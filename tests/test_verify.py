@@ -60,17 +60,17 @@ def test_a_fooled_decoder_never_makes_the_answer_physically_worse_than_the_start
 
 
 def test_the_verification_table_judges_every_spp_by_one_independent_render(model, renderer32, monkeypatch):
-    from matfit.app import bench
+    from matfit.app.bench import fits, reachable
 
-    monkeypatch.setattr(bench, "JUDGE_SPP", 32)  # a tiny judge: the table's logic, not its figures
+    monkeypatch.setattr(fits, "JUDGE_SPP", 32)  # a tiny judge: the table's logic, not its figures
     units = np.stack([np.full(19, 0.3), np.full(19, 0.6)])
-    targets = bench.Targets(
+    targets = reachable.Targets(
         units, np.stack([images.srgb_encode(renderer32.render(search.params.from_unit(u))) for u in units])
     )
     results = [
         search.fit(model, target, search.Settings(method="lbfgsb", starts=2, iterations=5)) for target in targets.images
     ]
-    table = bench.verification_table(renderer32, results, targets, spps=(4, 8))
+    table = fits.verification_table(renderer32, results, targets, spps=(4, 8))
     rows = table.splitlines()
     assert len(rows) == 2 + 2 + 2 and rows[-1].startswith("| the best-of-n start |")
     assert rows[3].startswith("| 8 |") and rows[3].endswith("| 2/2 |")  # the highest spp agrees with itself
@@ -80,15 +80,15 @@ def test_the_verification_table_judges_every_spp_by_one_independent_render(model
 
 
 def test_the_judged_table_compares_answers_under_one_independent_render(renderer32, monkeypatch):
-    from matfit.app import bench
+    from matfit.app.bench import fits, reachable
 
-    monkeypatch.setattr(bench, "JUDGE_SPP", 8)
+    monkeypatch.setattr(fits, "JUDGE_SPP", 8)
     units = np.stack([np.full(19, 0.3), np.full(19, 0.6)]).astype(np.float32)
-    targets = bench.Targets(
+    targets = reachable.Targets(
         units, np.stack([images.srgb_encode(renderer32.render(search.params.from_unit(u), spp=64)) for u in units])
     )
     far = [np.full(19, 0.9), np.full(19, 0.05)]
-    table = bench.judged_table(renderer32, {"start": far, "truth again": list(units)}, targets, "start")
+    table = fits.judged_table(renderer32, {"start": far, "truth again": list(units)}, targets, "start")
     rows = [row.split("|") for row in table.splitlines()[2:]]
     floor = float(rows[0][2])
     assert rows[1][1].strip() == "start" and rows[1][4].strip() == "2/2"

@@ -383,9 +383,9 @@ def bench_render(
     variant: options.Variant = None,
 ) -> None:
     """Measure images per second of `Renderer` against a bare `mi.render` loop on the same scene."""
-    from matfit.app import bench
+    from matfit.app.bench import speed
 
-    typer.echo(bench.render_speed(count, variant))
+    typer.echo(speed.render_speed(count, variant))
 
 
 @command
@@ -394,9 +394,9 @@ def bench_model(
     repeats: Annotated[int, typer.Option(min=10, max=1_000_000, help="Timed decoder calls.")] = 500,
 ) -> None:
     """Time loading a model (all networks, weights ready in memory) and the decoder's forward pass at batch 1."""
-    from matfit.app import bench
+    from matfit.app.bench import speed
 
-    typer.echo(bench.model_speed(str(model_path), repeats))
+    typer.echo(speed.model_speed(str(model_path), repeats))
 
 
 @command
@@ -406,10 +406,10 @@ def bench_fit(
     evaluations: options.Evaluations = 1500,
 ) -> None:
     """Compare the fitting methods on reachable targets: neural and Mitsuba RMSE, warm fit time."""
-    from matfit.app import bench
+    from matfit.app.bench import fits
     from matfit.fit import fitfile
 
-    typer.echo(bench.fit_comparison(fitfile.load_model(str(model_path)), count, evaluations, log=log))
+    typer.echo(fits.fit_comparison(fitfile.load_model(str(model_path)), count, evaluations, log=log))
 
 
 @command
@@ -419,10 +419,10 @@ def bench_sequence(
     frames_out: options.FramesOut = None,
 ) -> None:
     """Reinitialisation against per-frame fitting on a built-in sequence (a rising black level), as in the paper."""
-    from matfit.app import bench
+    from matfit.app.bench import sequence
     from matfit.fit import fitfile
 
-    typer.echo(bench.sequence_benchmark(fitfile.load_model(str(model_path)), frames, options.text(frames_out)))
+    typer.echo(sequence.sequence_benchmark(fitfile.load_model(str(model_path)), frames, options.text(frames_out)))
 
 
 @command
@@ -432,19 +432,19 @@ def bench(
     full: options.Full = False,
 ) -> None:
     """Reproduce the paper's evaluation tables on the built-in edit suite (quick version by default)."""
-    from matfit.app import bench as bench_module
+    from matfit.app.bench import suite_report
     from matfit.fit import fitfile
 
     model = fitfile.load_model(str(model_path))
     label = fitfile.display_path(str(model_path))
-    typer.echo(bench_module.run_suite(model, label, str(out), full, log=log))
+    typer.echo(suite_report.run_suite(model, label, str(out), full, log=log))
 
 
 @command
 def bench_serve(model_path: options.Model = options.DEFAULT_MODEL, fits: options.Fits = 100) -> None:
     """Time the page: a saved file to its result, a slider to its preview; memory after 10 fits and after --fits."""
-    from matfit.app import bench
+    from matfit.app.bench import page
     from matfit.fit import fitfile
 
     model = fitfile.load_model(str(model_path))
-    typer.echo(bench.serve_speed(model, fitfile.display_path(str(model_path)), fits, log=log))
+    typer.echo(page.serve_speed(model, fitfile.display_path(str(model_path)), fits, log=log))
