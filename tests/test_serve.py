@@ -1,6 +1,6 @@
 """`matfit serve`: the JSON API through a real server, then the page in a real browser (headless Chromium).
 
-The server runs in a thread (`serve.running`) with a tiny random model; the browser tests skip with
+The server runs in a thread (`running`) with a tiny random model; the browser tests skip with
 the reason where Debian's Chromium or Playwright is not installed (CI installs both).
 """
 
@@ -22,8 +22,13 @@ import pytest
 from helpers import random_model
 
 from matfit import images, params, shipped
-from matfit.app import serve
-from matfit.fit import search
+from matfit.app.serve import uploads
+from matfit.app.serve.routes import create_app
+from matfit.app.serve.server import check_listen, running
+from matfit.app.serve.studio import Studio
+from matfit.app.serve.watch import check_watch, settled
+from matfit.errors import ImageError, OutputError
+from matfit.fit import fitfile, search
 from matfit.render import presets
 
 EXAMPLE = str(shipped.EXAMPLES / "recoloured.png")
@@ -91,7 +96,7 @@ def wait(url: str, job: str, seconds: float = 120) -> tuple[int, dict]:
 
 @pytest.fixture(scope="module")
 def studio(tmp_path_factory):
-    studio = serve.Studio(random_model(), "memory", search.Settings(iterations=10))
+    studio = Studio(random_model(), "memory", search.Settings(iterations=10))
     studio.worker.submit(studio.warm_up).result()
     yield studio
     studio.close()
@@ -107,7 +112,7 @@ def watched(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def url(studio, watched):
-    with serve.running(studio, watched) as address:
+    with running(studio, watched) as address:
         yield address
 
 
@@ -134,7 +139,7 @@ def test_a_fit_through_the_api_is_the_fit_the_library_makes(url, studio):
 
 
 def studio_target(studio):
-    target, _, _ = serve.fitfile.read_target(EXAMPLE, studio.model.resolution)
+    target, _, _ = fitfile.read_target(EXAMPLE, studio.model.resolution)
     return target
 
 
@@ -155,7 +160,7 @@ def test_bad_uploads_are_4xx_with_a_message_and_the_next_upload_works(url, tmp_p
 
 
 def test_a_picture_with_too_many_pixels_is_refused_before_it_is_decoded(url, tmp_path, monkeypatch):
-    monkeypatch.setattr(serve, "MAX_UPLOAD_PIXELS", 100)
+    monkeypatch.setattr(uploads, "MAX_UPLOAD_PIXELS", 100)
     code, answer = start_fit(url, EXAMPLE)
     assert code == 413 and "the picture is 256x256, more than" in answer["error"]
 
@@ -271,20 +276,20 @@ def test_a_half_written_watched_file_is_waited_for_not_reported(tmp_path):
             file.write(data)
 
     threading.Thread(target=finish).start()
-    assert run_to_end(serve.settled(path)) is None
+    assert run_to_end(settled(path)) is None
 
 
 def test_a_port_in_use_is_refused_with_the_fix(url):
     port = int(url.rsplit(":", 1)[1].strip("/"))
-    with pytest.raises(serve.OutputError, match=f"cannot listen on 127.0.0.1:{port} .*choose another --port"):
-        serve.check_listen("127.0.0.1", port)
+    with pytest.raises(OutputError, match=f"cannot listen on 127.0.0.1:{port} .*choose another --port"):
+        check_listen("127.0.0.1", port)
 
 
 def test_bad_watch_paths_are_refused_with_the_fix(tmp_path):
-    with pytest.raises(serve.ImageError, match="is not a picture or a folder"):
-        serve.check_watch(str(tmp_path / "notes.txt"))
-    with pytest.raises(serve.ImageError, match="its folder does not exist"):
-        serve.check_watch(str(tmp_path / "missing" / "edit.png"))
+    with pytest.raises(ImageError, match="is not a picture or a folder"):
+        check_watch(str(tmp_path / "notes.txt"))
+    with pytest.raises(ImageError, match="its folder does not exist"):
+        check_watch(str(tmp_path / "missing" / "edit.png"))
 
 
 # --- the page in a real browser ---------------------------------------------------------------------------------
@@ -423,7 +428,7 @@ def test_a_mask_of_another_size_is_a_422_naming_the_fix(url):
 
 
 def test_an_upload_over_the_byte_cap_is_a_413(url, monkeypatch):
-    monkeypatch.setattr(serve, "MAX_UPLOAD_BYTES", 1000)
+    monkeypatch.setattr(uploads, "MAX_UPLOAD_BYTES", 1000)
     code, answer = start_fit(url, EXAMPLE)
     assert code == 413 and "more than 0 MB: scale it down" in answer["error"]
 
@@ -495,7 +500,7 @@ def call(app, path: str, chunks: list[bytes], headers: dict) -> tuple[int, dict,
 
 
 def test_request_bodies_over_their_cap_are_a_413_and_not_read_beyond_it(studio):
-    app = serve.create_app(studio)
+    app = create_app(studio)
     json_type = {"Content-Type": "application/json"}
     chunks = [b'{"values": [', *[b"0.5, " * 20_000] * 60, b"0.5]}"]  # 6 MB, sent without a Content-Length
     status, answer, unread = call(app, "/api/preview", chunks, json_type)
@@ -509,10 +514,10 @@ def test_request_bodies_over_their_cap_are_a_413_and_not_read_beyond_it(studio):
     form = {"Content-Type": "multipart/form-data; boundary=xyz", "Content-Length": str(2 * 2**20)}
     status, answer, _ = call(app, "/api/params", [b"--xyz"], form)
     assert status == 413 and "choose a params.json that matfit wrote" in answer["error"]
-    form["Content-Length"] = str(serve.MAX_FIT_BYTES + 1)
+    form["Content-Length"] = str(uploads.MAX_FIT_BYTES + 1)
     status, answer, _ = call(app, "/api/fit", [b"--xyz"], form)
     assert status == 413 and answer["error"].startswith(
-        f"the request body is more than {serve.MAX_FIT_BYTES / 2**20:g}"
+        f"the request body is more than {uploads.MAX_FIT_BYTES / 2**20:g}"
     )
     body = json.dumps({"values": presets.preset("gold").tolist(), "size": 16, "spp": 1}).encode()
     status, _, _ = call(app, "/api/render", [body[:100], body[100:]], json_type)

@@ -134,9 +134,9 @@ def serve(
     variant: options.Variant = None,
 ) -> None:
     """Serve a local page that fits edited pictures as you save them (--watch), with sliders and a Mitsuba render."""
-    from matfit.app import serve as studio
+    from matfit.app.serve import server
 
-    studio.serve(
+    server.serve(
         str(model),
         host,
         port,

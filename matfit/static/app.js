@@ -1,4 +1,4 @@
-// matfit serve: the page. Talks to the JSON API of matfit/app/serve.py; no library, nothing from the internet.
+// matfit serve: the page. Talks to the JSON API of matfit/app/serve/routes.py; no library, nothing from the internet.
 "use strict";
 const $ = (id) => document.getElementById(id);
 const state = { parameters: [], presets: {}, values: [], init: null, lastFit: null, renderJob: null };

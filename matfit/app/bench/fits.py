@@ -18,7 +18,6 @@ from matfit.fit.methods import CORRECTIONS
 from matfit.model import models
 
 _DEFAULT = search.Settings()
-
 DEFAULT_LABEL = (
     f"lbfgsb, {_DEFAULT.starts} starts x {_DEFAULT.narrow_after}, the best to {_DEFAULT.iterations} (default)"
 )

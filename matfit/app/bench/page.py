@@ -19,7 +19,7 @@ def serve_speed(
 
     Warm fit and latency are medians of `samples` fits; memory is read after `samples` fits and after `fits`.
 
-    The server runs in this process (`serve.running`), the client is this process too, over HTTP on
+    The server runs in this process (`server.running`), the client is this process too, over HTTP on
     the loopback: the latency is measured from the watched file's write to the moment the client,
     told of the job by the page's event stream, reads the finished result, as the page does.
     """
@@ -28,14 +28,16 @@ def serve_speed(
     import urllib.request
 
     from matfit import shipped
-    from matfit.app import serve
+    from matfit.app.serve.server import running
+    from matfit.app.serve.studio import Studio
+    from matfit.fit import fitfile
 
     examples = [str(shipped.EXAMPLES / f"{name}.png") for name in ("recoloured", "desaturated", "painted-highlight")]
     contents = []
     for path in examples:
         with open(path, "rb") as file:
             contents.append(file.read())
-    studio = serve.Studio(model, model_label)
+    studio = Studio(model, model_label)
     studio.worker.submit(studio.warm_up).result()
     folder = tempfile.mkdtemp(prefix="matfit-bench-serve-")
     watched = os.path.join(folder, "edit.png")
@@ -45,9 +47,7 @@ def serve_speed(
     for k in range(samples):
         started = time.perf_counter()
         renderer = studio.renderer(model.resolution)
-        studio.worker.submit(
-            serve.fitfile.fit_file, examples[k % 3], model, studio.settings, renderer=renderer
-        ).result()
+        studio.worker.submit(fitfile.fit_file, examples[k % 3], model, studio.settings, renderer=renderer).result()
         warm.append(time.perf_counter() - started)
     events: list[tuple[float, dict]] = []
 
@@ -65,7 +65,7 @@ def serve_speed(
                 return answer
             time.sleep(0.02)
 
-    with serve.running(studio, watched) as url:
+    with running(studio, watched) as url:
         threading.Thread(target=listen, args=(url,), daemon=True).start()
         time.sleep(0.5)
         latency = []

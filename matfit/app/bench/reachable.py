@@ -14,7 +14,6 @@ import numpy as np
 from matfit import images, params
 
 TARGET_SEED = 1
-
 TARGET_OFFSET = 100_000  # sample indices far from the reference set's 0..N
 
 
@@ -42,9 +41,7 @@ def rendered_rmse(renderer, unit: np.ndarray, target: np.ndarray, seed: int, spp
 
 
 JUDGE_SPP = 1024  # the independent render that judges what verification kept
-
 JUDGE_SEED = 977
-
 # Two renders of the same material with the same seed differ by up to ~5e-6 per pixel (Mitsuba's LLVM backend sums
 # across threads in no fixed order), so their RMSE differ in the sixth decimal: an answer that is its start, judged
 # again, must count as no worse. Comparisons of RMSE against the start allow this much.

@@ -14,7 +14,6 @@ from matfit.model import models
 from matfit.render import presets
 
 BUDGETS = (50, 300, 1500)  # the paper's Nelder-Mead budgets, in evaluations
-
 # The edit suite: (name, what was done, source presets, edit of their sRGB renders).
 SUITE = (
     ("control", "unedited render of held-out parameters (reachable)", ("held-out",), lambda a: a),

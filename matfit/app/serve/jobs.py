@@ -1,0 +1,96 @@
+"""A job (one fit or render asked for by one page) and the page's view of its result: the figures, the pictures
+as PNG, the files the CLI writes for the same fit."""
+
+from __future__ import annotations
+
+import base64
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from matfit import documents, images
+from matfit.fit import fitfile
+from matfit.render import export
+
+FILES = {
+    "params.json": "application/json",
+    "material.xml": "application/xml",
+    "material.py": "text/x-python",
+    "report.png": "image/png",
+}
+
+
+@dataclass
+class Job:
+    """One fit or render asked for by one page: its progress, and its result or error."""
+
+    id: str
+    kind: str  # "fit" or "render"
+    state: str = "queued"  # queued, running, done, error, cancelled, superseded
+    stage: str = "queued"
+    progress: float = 0.0
+    error: str | None = None
+    status: int = 200  # the HTTP status of the job's answer: 4xx for the user's errors
+    result: dict | None = None
+    outcome: fitfile.Outcome | None = None
+    cancelled: threading.Event = field(default_factory=threading.Event)
+    created: float = field(default_factory=time.perf_counter)
+    finished: float | None = None
+
+    def answer(self) -> dict:
+        """Returns what the page is told about the job (strict JSON: a figure that is not finite is null)."""
+        answer = {"job": self.id, "kind": self.kind, "state": self.state, "stage": self.stage}
+        answer["progress"] = round(self.progress, 3)
+        if self.error is not None:
+            answer["error"] = self.error
+        if self.result is not None:
+            answer["result"] = self.result
+        return documents.finite(answer)
+
+
+def png_data_url(srgb: np.ndarray) -> str:
+    """Returns an sRGB image in [0, 1] as a PNG data URL for the page."""
+    return "data:image/png;base64," + base64.b64encode(png_bytes(srgb)).decode()
+
+
+def png_bytes(srgb: np.ndarray) -> bytes:
+    """Returns an sRGB image in [0, 1] as PNG bytes (8-bit), encoded by the CLI's own writer."""
+    return images.encode(images.srgb_decode(np.clip(np.asarray(srgb, np.float32), 0.0, 1.0)), ".png")
+
+
+def fit_result(outcome: fitfile.Outcome) -> dict:
+    """Returns the page's view of a fit: figures, the five pictures of the report, the 19 parameters."""
+    from matfit.fit import report
+
+    result, document = outcome.result, outcome.document
+    return {
+        "neural_rmse": round(outcome.neural_rmse, 3),
+        "mitsuba_rmse": document.get("mitsuba_rmse"),
+        "start": result.chosen,
+        "start_rmse": round(result.start_rmse, 3),
+        "kept": outcome.verified.chosen if outcome.verified is not None else None,
+        "evaluations": result.evaluations,
+        "seconds": document["wall_time_s"],
+        "values": [round(float(v), 6) for v in outcome.values],
+        "pictures": {
+            "target": png_data_url(outcome.target),
+            "start": png_data_url(result.start_image),
+            "neural": png_data_url(outcome.image),
+            "mitsuba": png_data_url(outcome.rendered),
+            "difference": png_data_url(report.difference(outcome.rendered, outcome.target)),
+        },
+        "notices": outcome.notices,
+        "mask": document.get("mask"),
+    }
+
+
+def fit_files(outcome: fitfile.Outcome) -> dict[str, bytes]:
+    """Returns the files the CLI writes for the same fit (`fit -o params.json --report --mitsuba-xml --blender`)."""
+    return {
+        "params.json": fitfile.params_text(outcome).encode(),
+        "material.xml": export.mitsuba_xml(outcome.values).encode(),
+        "material.py": export.blender_script(outcome.values).encode(),
+        "report.png": png_bytes(fitfile.report_picture(outcome)),
+    }
