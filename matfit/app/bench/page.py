@@ -11,6 +11,8 @@ import numpy as np
 from matfit import params
 from matfit.model import models
 
+EXAMPLES = ("recoloured", "desaturated", "painted-highlight")  # the shipped edits the page is timed on
+
 
 def serve_speed(
     model: models.Model, model_label: str, fits: int = 100, previews: int = 200, log=print, samples: int = 10
@@ -25,14 +27,12 @@ def serve_speed(
     """
     import tempfile
     import threading
-    import urllib.request
 
     from matfit import shipped
     from matfit.app.serve.server import running
     from matfit.app.serve.studio import Studio
-    from matfit.fit import fitfile
 
-    examples = [str(shipped.EXAMPLES / f"{name}.png") for name in ("recoloured", "desaturated", "painted-highlight")]
+    examples = [str(shipped.EXAMPLES / f"{name}.png") for name in EXAMPLES]
     contents = []
     for path in examples:
         with open(path, "rb") as file:
@@ -43,61 +43,15 @@ def serve_speed(
     watched = os.path.join(folder, "edit.png")
     with open(watched, "wb") as file:
         file.write(contents[0])
-    warm = []
-    for k in range(samples):
-        started = time.perf_counter()
-        renderer = studio.renderer(model.resolution)
-        studio.worker.submit(fitfile.fit_file, examples[k % 3], model, studio.settings, renderer=renderer).result()
-        warm.append(time.perf_counter() - started)
+    warm = warm_fits(studio, examples, samples)
     events: list[tuple[float, dict]] = []
-
-    def listen(url: str) -> None:
-        with urllib.request.urlopen(url + "api/watch", timeout=600) as stream:
-            for line in stream:
-                if line.startswith(b"data: "):
-                    events.append((time.perf_counter(), json.loads(line[6:])))
-
-    def job_done(url: str, job: str) -> dict:
-        while True:
-            with urllib.request.urlopen(f"{url}api/jobs/{job}", timeout=60) as reply:
-                answer = json.loads(reply.read())
-            if answer["state"] not in ("queued", "running"):
-                return answer
-            time.sleep(0.02)
-
     with running(studio, watched) as url:
-        threading.Thread(target=listen, args=(url,), daemon=True).start()
+        threading.Thread(target=listen, args=(url, events), daemon=True).start()
         time.sleep(0.5)
-        latency = []
-        for k in range(samples):
-            seen = len(events)
-            started = time.perf_counter()
-            with open(watched, "wb") as file:  # as an editor saves: the file rewritten in place
-                file.write(contents[(k + 1) % len(contents)])
-            while len(events) == seen:
-                time.sleep(0.005)
-            job_done(url, events[-1][1]["job"])
-            latency.append(time.perf_counter() - started)
-        rng = np.random.default_rng(0)
-        round_trips = []
-        for _ in range(previews):
-            body = json.dumps({"values": params.from_unit(rng.uniform(size=params.COUNT)).tolist()}).encode()
-            started = time.perf_counter()
-            request = urllib.request.Request(url + "api/preview", body, {"Content-Type": "application/json"})
-            with urllib.request.urlopen(request, timeout=60) as reply:
-                reply.read()
-            round_trips.append(time.perf_counter() - started)
+        latency = saved_latency(url, watched, contents, events, samples)
+        round_trips = preview_round_trips(url, previews)
         log(f"{fits} fits through the page")
-        memory = {}
-        for k in range(1, fits + 1):
-            with open(watched, "wb") as file:
-                file.write(contents[k % len(contents)])
-            seen = len(events)
-            while len(events) == seen:
-                time.sleep(0.005)
-            job_done(url, events[-1][1]["job"])
-            if k in (samples, fits):
-                memory[k] = resident_mib()
+        memory = memory_over_fits(url, watched, contents, events, (samples, fits))
     studio.close()
     return "\n".join(
         [
@@ -111,6 +65,92 @@ def serve_speed(
             f"({100 * (memory[fits] / memory[samples] - 1):+.1f}%) |",
         ]
     )
+
+
+def warm_fits(studio, examples: list[str], samples: int) -> list[float]:
+    """Returns the seconds of `samples` warm fits through the library on the studio's worker, the CLI's path."""
+    from matfit.fit import fitfile
+
+    model = studio.model
+    warm = []
+    for k in range(samples):
+        started = time.perf_counter()
+        renderer = studio.renderer(model.resolution)
+        studio.worker.submit(fitfile.fit_file, examples[k % 3], model, studio.settings, renderer=renderer).result()
+        warm.append(time.perf_counter() - started)
+    return warm
+
+
+def listen(url: str, events: list[tuple[float, dict]]) -> None:
+    """Appends (arrival time, message) to `events` for every message of the page's event stream, as the page
+    listens."""
+    import urllib.request
+
+    with urllib.request.urlopen(url + "api/watch", timeout=600) as stream:
+        for line in stream:
+            if line.startswith(b"data: "):
+                events.append((time.perf_counter(), json.loads(line[6:])))
+
+
+def job_done(url: str, job: str) -> dict:
+    """Returns a job's answer once it is no longer queued or running, polled as the page polls."""
+    import urllib.request
+
+    while True:
+        with urllib.request.urlopen(f"{url}api/jobs/{job}", timeout=60) as reply:
+            answer = json.loads(reply.read())
+        if answer["state"] not in ("queued", "running"):
+            return answer
+        time.sleep(0.02)
+
+
+def saved_latency(url: str, watched: str, contents: list[bytes], events: list, samples: int) -> list[float]:
+    """Returns the seconds from each of `samples` saves of the watched file to its result read by the client."""
+    latency = []
+    for k in range(samples):
+        seen = len(events)
+        started = time.perf_counter()
+        with open(watched, "wb") as file:  # as an editor saves: the file rewritten in place
+            file.write(contents[(k + 1) % len(contents)])
+        while len(events) == seen:
+            time.sleep(0.005)
+        job_done(url, events[-1][1]["job"])
+        latency.append(time.perf_counter() - started)
+    return latency
+
+
+def preview_round_trips(url: str, previews: int) -> list[float]:
+    """Returns the seconds of `previews` neural previews of random values, each a request and its PNG."""
+    import urllib.request
+
+    rng = np.random.default_rng(0)
+    round_trips = []
+    for _ in range(previews):
+        body = json.dumps({"values": params.from_unit(rng.uniform(size=params.COUNT)).tolist()}).encode()
+        started = time.perf_counter()
+        request = urllib.request.Request(url + "api/preview", body, {"Content-Type": "application/json"})
+        with urllib.request.urlopen(request, timeout=60) as reply:
+            reply.read()
+        round_trips.append(time.perf_counter() - started)
+    return round_trips
+
+
+def memory_over_fits(
+    url: str, watched: str, contents: list[bytes], events: list, readings: tuple[int, int]
+) -> dict[int, float]:
+    """Returns this process's resident MiB after each count of `readings` fits of the watched file (the last count
+    is how many are made)."""
+    memory = {}
+    for k in range(1, readings[-1] + 1):
+        with open(watched, "wb") as file:
+            file.write(contents[k % len(contents)])
+        seen = len(events)
+        while len(events) == seen:
+            time.sleep(0.005)
+        job_done(url, events[-1][1]["job"])
+        if k in readings:
+            memory[k] = resident_mib()
+    return memory
 
 
 def resident_mib() -> float:

@@ -68,14 +68,20 @@ def suite_report(
     main: list[dict], optimisers: list[dict], sequence: str, budgets=BUDGETS, seeds: int = 5, settings: str = ""
 ) -> str:
     """Returns the Markdown report of the edit suite: main table with Mitsuba column, optimisers, sequence, timings."""
-    lines = [
-        "# matfit bench: the paper's tables on the built-in edit suite",
-        "",
-        settings,
-        "",
-        "## 1. Main table (RMSE, 0-255 sRGB)",
-        "",
-    ]
+    lines = ["# matfit bench: the paper's tables on the built-in edit suite", "", settings, ""]
+    lines += main_section(main, budgets, seeds)
+    lines += default_section(main, budgets[-1])
+    lines += optimiser_section(optimisers)
+    lines += ["", "## 3. Sequence: rising black level, per-frame fitting against reinitialisation", "", sequence, ""]
+    lines += timings_section(main, budgets)
+    lines += pictures_section(main)
+    return "\n".join(lines) + "\n"
+
+
+def main_section(main: list[dict], budgets, seeds: int) -> list[str]:
+    """Returns section 1 of the report: per case, random guess, best-of-9, optimiser and hybrid per budget, and the
+    Mitsuba renders of the results at the largest budget."""
+    lines = ["## 1. Main table (RMSE, 0-255 sRGB)", ""]
     header = (
         "| case | random guess | best-of-9 | "
         + " | ".join(f"optimiser {b} | hybrid {b}" for b in budgets)
@@ -97,7 +103,8 @@ def suite_report(
             f"{row[f'mitsuba_hybrid_{budgets[-1]}']:.2f}",
         ]
         lines.append(f"| {row['case']} | " + " | ".join(cells) + " |")
-    lines += [
+    return [
+        *lines,
         "",
         f"Optimiser = Nelder-Mead from a uniformly random start, mean over {seeds} seeds (the random-guess column is "
         "the mean RMSE of those starts).",
@@ -106,16 +113,28 @@ def suite_report(
         f"(best-of-9, optimiser seed 0 and hybrid at {budgets[-1]}) at 256 spp and compare it with the target: "
         "the neural renderer's own error shows there.",
         "",
+    ]
+
+
+def default_section(main: list[dict], budget: int) -> list[str]:
+    """Returns section 1b of the report: matfit's default against its start and the paper's hybrid at `budget`."""
+    return [
         f"## 1b. matfit's default ({search.Settings().method.value}, Mitsuba-verified, {CORRECTIONS} corrections) "
         "against its start and the paper's hybrid",
         "",
         "Mitsuba RMSE of a fresh 256-spp render (seed independent of verification's) against the target.",
         "",
         "| case | neural: default | evaluations | time (s) | kept | Mitsuba: start (best-of-9) | Mitsuba: "
-        f"hybrid {budgets[-1]} | Mitsuba: default | default <= start |",
+        f"hybrid {budget} | Mitsuba: default | default <= start |",
         "|---|---|---|---|---|---|---|---|---|",
-        *default_rows(main, budgets[-1]),
+        *default_rows(main, budget),
         "",
+    ]
+
+
+def optimiser_section(optimisers: list[dict]) -> list[str]:
+    """Returns section 2 of the report: every optimiser from both starts, per case (RMSE, seconds, evaluations)."""
+    lines = [
         "## 2. Optimisers from a random and from the best-of-9 start (RMSE; seconds and evaluations spent in brackets)",
         "",
         f"Budget {1500} objective evaluations each, a value-and-gradient counted as {search.GRADIENT_COST:g}; "
@@ -127,15 +146,12 @@ def suite_report(
     for row in optimisers:
         cells = [f"{row[n]:.2f} ({row[n + ' seconds']:.1f} s, {row[n + ' evaluations']})" for n in names]
         lines.append(f"| {row['case']} | " + " | ".join(cells) + " |")
-    lines += [
-        "",
-        "## 3. Sequence: rising black level, per-frame fitting against reinitialisation",
-        "",
-        sequence,
-        "",
-        "## 4. Timings (seconds per fit, warm, median over cases)",
-        "",
-    ]
+    return lines
+
+
+def timings_section(main: list[dict], budgets) -> list[str]:
+    """Returns section 4 of the report: seconds per warm fit of the optimiser and the hybrid, median over cases."""
+    lines = ["## 4. Timings (seconds per fit, warm, median over cases)", ""]
     lines += ["| method | " + " | ".join(str(b) for b in budgets) + " |", "|---|" + "---|" * len(budgets)]
     for method in ("optimize", "hybrid"):
         lines.append(
@@ -143,7 +159,12 @@ def suite_report(
             + " | ".join(f"{np.median([row[f'{method}_{b}_seconds'] for row in main]):.3f}" for b in budgets)
             + " |"
         )
-    lines += [
+    return lines
+
+
+def pictures_section(main: list[dict]) -> list[str]:
+    """Returns section 5 of the report: the budget plot and a picture per case (written beside the report)."""
+    lines = [
         "",
         "## 5. Pictures",
         "",
@@ -151,13 +172,10 @@ def suite_report(
         "",
         "![RMSE against evaluations](rmse-vs-evaluations.png)",
         "",
-    ]
-    lines += [
         "target | best-of-9 | optimiser | hybrid | Mitsuba renders of the hybrid and of the default result, per case:",
         "",
     ]
-    lines += [f"![{row['case']}](cases/{slug(row['case'])}.png)" for row in main]
-    return "\n".join(lines) + "\n"
+    return lines + [f"![{row['case']}](cases/{slug(row['case'])}.png)" for row in main]
 
 
 def default_rows(main: list[dict], budget: int) -> list[str]:
