@@ -16,40 +16,73 @@ The page (`matfit/static/`, plain HTML/JS, nothing fetched from the internet) ta
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import json
 import os
+
+from starlette.exceptions import HTTPException
+from starlette.requests import Request
+from starlette.responses import FileResponse, JSONResponse, Response
 
 from matfit import documents, params, shipped
 from matfit.app.serve import uploads
 from matfit.app.serve.jobs import FILES, fit_files
 from matfit.app.serve.studio import Studio
-from matfit.app.serve.uploads import MAX_FIT_BYTES, MAX_JSON_BYTES, TOO_LARGE, VALUES_FIX, check_values
-from matfit.app.serve.watch import settled, watched_picture
+from matfit.app.serve.uploads import MAX_FIT_BYTES, MAX_JSON_BYTES, TOO_LARGE, VALUES_FIX, capped, check_values
+from matfit.app.serve.watch import Watcher
 from matfit.errors import MatfitError, ParameterError
 from matfit.render import presets
+
+PAGE_FILES = ("index.html", "app.js", "style.css")  # the files of matfit/static/ the page is made of
 
 
 def create_app(studio: Studio, watch: str | None = None):
     """Returns the Starlette application of a studio (and of the watched file or folder, if any)."""
     from starlette.applications import Starlette
-    from starlette.exceptions import HTTPException
-    from starlette.requests import Request
-    from starlette.responses import FileResponse, JSONResponse, Response, StreamingResponse
     from starlette.routing import Route
 
-    events: list[asyncio.Queue] = []
+    api = Api(studio, watch)
+    watcher = Watcher(studio, watch)
+    routes = [
+        Route("/", api.page),
+        Route("/static/{name}", api.page),
+        Route("/api/parameters", api.parameters),
+        Route("/api/fit", api.start_fit, methods=["POST"]),
+        Route("/api/jobs/{job}", api.job_state),
+        Route("/api/jobs/{job}/cancel", api.cancel, methods=["POST"]),
+        Route("/api/jobs/{job}/files/{name}", api.download),
+        Route("/api/preview", api.preview, methods=["POST"]),
+        Route("/api/render", api.render, methods=["POST"]),
+        Route("/api/params", api.parse_params, methods=["POST"]),
+        Route("/api/watch", watcher.events),
+    ]
+    return Starlette(routes=routes, lifespan=watcher.lifespan)
 
-    def error(message: str, status: int = 400) -> JSONResponse:
-        return JSONResponse({"error": message}, status_code=status)
 
-    async def page(request: Request) -> Response:
+def error(message: str, status: int = 400) -> JSONResponse:
+    """Returns the page's answer to a request it cannot serve: {"error": the one-line message}."""
+    return JSONResponse({"error": message}, status_code=status)
+
+
+def refused(problem: MatfitError) -> JSONResponse:
+    """Returns the answer to a request refused for what it sent: 413 when too large, else 400."""
+    return error(str(problem), 413 if problem.field == TOO_LARGE else 400)
+
+
+class Api:
+    """The handlers of the page's requests, over one studio (and the watched file or folder, if any)."""
+
+    def __init__(self, studio: Studio, watch: str | None):
+        self.studio = studio
+        self.watch = watch
+
+    async def page(self, request: Request) -> Response:
+        """GET / and /static/{name}: the page's files."""
         name = request.path_params.get("name", "index.html")
-        if name not in ("index.html", "app.js", "style.css"):
+        if name not in PAGE_FILES:
             return error(f"no page {name!r}: open /", 404)
         return FileResponse(str(shipped.STATIC / name))
 
-    async def parameters(request: Request) -> Response:
+    async def parameters(self, request: Request) -> Response:
+        """GET /api/parameters: the 19 parameters, the presets, the model's resolution and the watched path."""
         return JSONResponse(
             {
                 "parameters": [
@@ -64,51 +97,21 @@ def create_app(studio: Studio, watch: str | None = None):
                     for p in params.PARAMETERS
                 ],
                 "presets": {name: presets.preset(name).tolist() for name in presets.PRESETS},
-                "resolution": studio.model.resolution,
-                "watch": watch,
+                "resolution": self.studio.model.resolution,
+                "watch": self.watch,
             }
         )
 
-    def capped(request: Request, cap: int, fix: str) -> Request:
-        """Returns the request with its body counted as it arrives: an error (answered 413) once it passes `cap`
-        bytes, or at once when its Content-Length says it will. Nothing beyond the cap is read."""
-
-        def too_large() -> MatfitError:
-            return MatfitError(
-                f"the request body is more than {cap / 2**20:g} MB, the most it may be: {fix}", TOO_LARGE
-            )
-
-        length = request.headers.get("content-length", "")
-        if length.isdigit() and int(length) > cap:
-            raise too_large()
-        received = 0
-
-        async def receive():
-            nonlocal received
-            message = await request.receive()
-            if message["type"] == "http.request":
-                received += len(message.get("body", b""))
-                if received > cap:
-                    raise too_large()
-            return message
-
-        return Request(request.scope, receive)
-
-    async def read_upload(form, key: str, kind: str) -> str | None:
-        upload = form.get(key)
-        if upload is None or isinstance(upload, str):
-            return None
-        data = await upload.read(uploads.MAX_UPLOAD_BYTES + 1)
-        return await asyncio.to_thread(studio.upload_path, data, upload.filename, kind)  # it decodes the picture
-
-    async def start_fit(request: Request) -> Response:
+    async def start_fit(self, request: Request) -> Response:
+        """POST /api/fit: queues a fit of the uploaded picture (and mask, and initial values); 202 and its job."""
+        folder = self.studio.folder
         try:
             request = capped(request, MAX_FIT_BYTES, "upload a smaller picture")
             async with request.form(max_files=3, max_part_size=MAX_JSON_BYTES) as form:
-                target = await read_upload(form, "image", "picture")
+                target = await uploads.read_upload(form, "image", "picture", folder)
                 if target is None:
                     return error("no picture in the upload: choose or drop an image file")
-                mask = await read_upload(form, "mask", "mask")
+                mask = await uploads.read_upload(form, "mask", "mask", folder)
                 init = form.get("init")
                 init_values = None
                 if isinstance(init, str) and init:
@@ -118,25 +121,28 @@ def create_app(studio: Studio, watch: str | None = None):
             return refused(problem)
         except (ValueError, HTTPException) as problem:  # a malformed form: Starlette raises HTTPException
             return error(f"the upload could not be read ({getattr(problem, 'detail', problem)}): choose the file again")
-        job = studio.submit_fit(target, os.path.basename(label), mask, init_values)
+        job = self.studio.submit_fit(target, os.path.basename(label), mask, init_values)
         return JSONResponse({"job": job.id}, status_code=202)
 
-    async def job_state(request: Request) -> Response:
+    async def job_state(self, request: Request) -> Response:
+        """GET /api/jobs/{job}: the job's answer, with its HTTP status."""
         try:
-            job = studio.job(request.path_params["job"])
+            job = self.studio.job(request.path_params["job"])
         except KeyError:
             return error(f"no job {request.path_params['job']!r}: fit a picture first", 404)
         return JSONResponse(job.answer(), status_code=job.status)
 
-    async def cancel(request: Request) -> Response:
+    async def cancel(self, request: Request) -> Response:
+        """POST /api/jobs/{job}/cancel: marks the job cancelled; its answer."""
         try:
-            return JSONResponse(studio.cancel(request.path_params["job"]).answer())
+            return JSONResponse(self.studio.cancel(request.path_params["job"]).answer())
         except KeyError:
             return error(f"no job {request.path_params['job']!r}", 404)
 
-    async def download(request: Request) -> Response:
+    async def download(self, request: Request) -> Response:
+        """GET /api/jobs/{job}/files/{name}: a file the CLI writes for the same fit, as an attachment."""
         name = request.path_params["name"]
-        job = studio.jobs.get(request.path_params["job"])
+        job = self.studio.jobs.get(request.path_params["job"])
         if job is None or job.outcome is None:
             return error("that fit has no result (yet): wait for it to finish", 404)
         if name not in FILES:
@@ -145,39 +151,29 @@ def create_app(studio: Studio, watch: str | None = None):
         disposition = {"Content-Disposition": f'attachment; filename="{name}"'}
         return Response(content, media_type=FILES[name], headers=disposition)
 
-    async def json_body(request: Request) -> dict:
-        """Returns the request's JSON object, read up to MAX_JSON_BYTES; MatfitError (400, or 413 when too large)."""
-        body = bytearray()
-        async for chunk in capped(request, MAX_JSON_BYTES, VALUES_FIX).stream():
-            body += chunk
-        document = documents.parse(bytes(body), "the request", VALUES_FIX, ParameterError)
-        if not isinstance(document, dict):
-            raise ParameterError(f'the request must be a JSON object with "values": {VALUES_FIX}')
-        return document
-
-    def refused(problem: MatfitError) -> JSONResponse:
-        return error(str(problem), 413 if problem.field == TOO_LARGE else 400)
-
-    async def preview(request: Request) -> Response:
+    async def preview(self, request: Request) -> Response:
+        """POST /api/preview: the decoder's picture of the values, as PNG."""
         try:
-            values = check_values((await json_body(request)).get("values"))
+            values = check_values((await uploads.json_body(request)).get("values"))
         except MatfitError as problem:
             return refused(problem)
-        return Response(await asyncio.to_thread(studio.preview, values), media_type="image/png")
+        return Response(await asyncio.to_thread(self.studio.preview, values), media_type="image/png")
 
-    async def render(request: Request) -> Response:
+    async def render(self, request: Request) -> Response:
+        """POST /api/render: queues a Mitsuba render of the values at a size and spp; 202 and its job."""
         try:
-            body = await json_body(request)
+            body = await uploads.json_body(request)
             values = check_values(body.get("values"))
             size, spp = body.get("size", 256), body.get("spp", 64)
             if not all(isinstance(v, int) and not isinstance(v, bool) for v in (size, spp)):
                 raise ParameterError(f"size {size!r} and spp {spp!r} must be whole numbers")
-            job = studio.submit_render(values, size, spp)
+            job = self.studio.submit_render(values, size, spp)
         except MatfitError as problem:
             return refused(problem)
         return JSONResponse({"job": job.id}, status_code=202)
 
-    async def parse_params(request: Request) -> Response:
+    async def parse_params(self, request: Request) -> Response:
+        """POST /api/params: the 19 values of an uploaded params.json, checked as `matfit render` checks them."""
         try:
             request = capped(request, MAX_JSON_BYTES, "choose a params.json that matfit wrote")
             async with request.form(max_files=1, max_part_size=MAX_JSON_BYTES) as form:
@@ -193,67 +189,3 @@ def create_app(studio: Studio, watch: str | None = None):
         except MatfitError as problem:
             return refused(problem)
         return JSONResponse({"values": values.tolist()})
-
-    async def watch_events(request: Request) -> Response:
-        queue: asyncio.Queue = asyncio.Queue()
-        events.append(queue)
-
-        async def stream():
-            try:
-                yield "retry: 500\n\n"
-                while not await request.is_disconnected():
-                    try:
-                        message = await asyncio.wait_for(queue.get(), 0.5)
-                    except TimeoutError:
-                        yield ": keep-alive\n\n"
-                        continue
-                    yield f"data: {json.dumps(message)}\n\n"
-            finally:
-                events.remove(queue)
-
-        return StreamingResponse(stream(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"})
-
-    def announce(message: dict) -> None:
-        for queue in list(events):
-            queue.put_nowait(message)
-
-    async def follow() -> None:
-        from watchfiles import awatch
-
-        folder = watch if os.path.isdir(watch) else os.path.dirname(os.path.abspath(watch))
-        async for changes in awatch(folder, debounce=50, step=20, stop_event=stopping):
-            picture = watched_picture(watch, {path for _, path in changes})
-            if picture is None:
-                continue
-            problem = await settled(picture)
-            job = studio.watched_change(picture) if problem is None else studio.failed(*problem)
-            announce({"job": job.id, "file": os.path.basename(picture)})
-
-    stopping = asyncio.Event()
-
-    @contextlib.asynccontextmanager
-    async def lifespan(app):
-        task = asyncio.create_task(follow()) if watch is not None else None
-        try:
-            yield
-        finally:
-            stopping.set()
-            if task is not None:
-                task.cancel()
-                with contextlib.suppress(asyncio.CancelledError, Exception):
-                    await task
-
-    routes = [
-        Route("/", page),
-        Route("/static/{name}", page),
-        Route("/api/parameters", parameters),
-        Route("/api/fit", start_fit, methods=["POST"]),
-        Route("/api/jobs/{job}", job_state),
-        Route("/api/jobs/{job}/cancel", cancel, methods=["POST"]),
-        Route("/api/jobs/{job}/files/{name}", download),
-        Route("/api/preview", preview, methods=["POST"]),
-        Route("/api/render", render, methods=["POST"]),
-        Route("/api/params", parse_params, methods=["POST"]),
-        Route("/api/watch", watch_events),
-    ]
-    return Starlette(routes=routes, lifespan=lifespan)

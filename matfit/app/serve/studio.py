@@ -19,11 +19,9 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from matfit import files, images, interrupt, params
-from matfit.app.serve import uploads
 from matfit.app.serve.jobs import Job, fit_result, png_bytes, png_data_url
-from matfit.app.serve.uploads import IMAGE_EXTENSIONS, TOO_LARGE
 from matfit.app.serve.watch import GONE, gone
-from matfit.errors import ImageError, MatfitError, ParameterError
+from matfit.errors import MatfitError, ParameterError
 from matfit.fit import fitfile, search, verify
 from matfit.model import models
 
@@ -86,45 +84,6 @@ class Studio:
         search.fit(self.model, grey, self.settings)
         self.renderer(self.model.resolution)
         self.preview(params.DEFAULTS)
-
-    def upload_path(self, data: bytes, filename: str | None, kind: str) -> str:
-        """Returns the path of a private temporary copy of an uploaded picture; only the name's extension is kept."""
-        if len(data) > uploads.MAX_UPLOAD_BYTES:
-            raise ImageError(
-                f"the {kind} is {len(data) / 1e6:.0f} MB, more than {uploads.MAX_UPLOAD_BYTES / 1e6:.0f} MB: "
-                "scale it down",
-                field=TOO_LARGE,
-            )
-        if not data:
-            raise ImageError(f"the {kind} is empty: choose the picture again")
-        extension = os.path.splitext(filename or "")[1].lower()
-        if extension not in IMAGE_EXTENSIONS:
-            raise ImageError(
-                f"the {kind} {filename!r} is not a picture matfit reads: upload a PNG, JPEG, TIFF or EXR "
-                f"({', '.join(IMAGE_EXTENSIONS)})"
-            )
-        handle, path = tempfile.mkstemp(suffix=extension, dir=self.folder)
-        interrupt.register(path)  # removed even when Ctrl-C ends the process without its teardown
-        with os.fdopen(handle, "wb") as file:
-            file.write(data)
-        self.check_picture(path, kind)
-        return path
-
-    @staticmethod
-    def check_picture(path: str, kind: str) -> None:
-        """Raises ImageError for a picture the CLI's reader refuses (damaged, truncated), or one with too many pixels
-        (before its pixels are decoded), before queueing."""
-        try:
-            width, height, _, _ = images.header(path)
-            if width * height > uploads.MAX_UPLOAD_PIXELS:
-                raise ImageError(
-                    f"the {kind} is {width}x{height}, more than {uploads.MAX_UPLOAD_PIXELS / 1e6:.0f} Mpixel: "
-                    "scale it down",
-                    field=TOO_LARGE,
-                )
-            images.load(path, uploads.MAX_UPLOAD_PIXELS)
-        except ImageError as error:
-            raise ImageError(str(error).replace(path, f"the uploaded {kind}"), field=error.field) from None
 
     def submit_fit(
         self,

@@ -1,4 +1,5 @@
-"""The watched file or folder: which saved picture to refit, and when it is complete enough to read.
+"""The watched file or folder: which saved picture to refit, when it is complete enough to read, and the pages told
+of each fit it starts (`Watcher`, the event stream of GET /api/watch).
 
 A watched file that changes while its fit runs supersedes it; a file still being written
 (unreadable, or growing) is retried, not reported. A watched file deleted before or while it is
@@ -8,6 +9,8 @@ fitted ends its job as an error answered 410.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import json
 import os
 import time
 
@@ -67,3 +70,70 @@ def check_watch(watch: str | None) -> None:
         raise ImageError(f"watch {watch} is not a picture or a folder: give the file your editor saves, e.g. edit.png")
     if not os.path.isdir(os.path.dirname(os.path.abspath(watch))):
         raise ImageError(f"watch {watch}: its folder does not exist: give the file your editor saves")
+
+
+class Watcher:
+    """The watched file or folder of a studio (None: no watch), followed while the server runs; each save queues a
+    fit and tells every page listening on the event stream its job."""
+
+    def __init__(self, studio, watch: str | None):
+        self.studio = studio
+        self.watch = watch
+        self.queues: list[asyncio.Queue] = []  # one per page listening
+        self.stopping = asyncio.Event()
+
+    async def events(self, request):
+        """Returns the server-sent events of GET /api/watch: a job id each time the watched file is saved."""
+        from starlette.responses import StreamingResponse
+
+        queue: asyncio.Queue = asyncio.Queue()
+        self.queues.append(queue)
+        return StreamingResponse(
+            self.stream(request, queue), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}
+        )
+
+    async def stream(self, request, queue: asyncio.Queue):
+        """Yields one page's events until it disconnects: its messages, a keep-alive every half second."""
+        try:
+            yield "retry: 500\n\n"
+            while not await request.is_disconnected():
+                try:
+                    message = await asyncio.wait_for(queue.get(), 0.5)
+                except TimeoutError:
+                    yield ": keep-alive\n\n"
+                    continue
+                yield f"data: {json.dumps(message)}\n\n"
+        finally:
+            self.queues.remove(queue)
+
+    def announce(self, message: dict) -> None:
+        """Sends a message to every page listening."""
+        for queue in list(self.queues):
+            queue.put_nowait(message)
+
+    async def follow(self) -> None:
+        """Queues a fit of each saved picture once it has settled (or a failed job), and announces its job."""
+        from watchfiles import awatch
+
+        watch = self.watch
+        folder = watch if os.path.isdir(watch) else os.path.dirname(os.path.abspath(watch))
+        async for changes in awatch(folder, debounce=50, step=20, stop_event=self.stopping):
+            picture = watched_picture(watch, {path for _, path in changes})
+            if picture is None:
+                continue
+            problem = await settled(picture)
+            job = self.studio.watched_change(picture) if problem is None else self.studio.failed(*problem)
+            self.announce({"job": job.id, "file": os.path.basename(picture)})
+
+    @contextlib.asynccontextmanager
+    async def lifespan(self, app):
+        """Follows the watched file (if any) while the server runs."""
+        task = asyncio.create_task(self.follow()) if self.watch is not None else None
+        try:
+            yield
+        finally:
+            self.stopping.set()
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await task
