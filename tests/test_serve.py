@@ -1,6 +1,6 @@
 """`matfit serve`: the JSON API through a real server, then the page in a real browser (headless Chromium).
 
-The server runs in a thread (`running`) with a tiny random model; the browser tests skip with
+The server runs in a thread (`server.running`) with a tiny random model; the browser tests skip with
 the reason where Debian's Chromium or Playwright is not installed (CI installs both).
 """
 
