@@ -69,7 +69,7 @@ def test_verification_with_corrections_keeps_the_lowest_estimate_of_the_start_th
     target = images.srgb_encode(renderer.render(presets.preset("red-plastic"), seed=5))
     result = search.fit(model, target, search.Settings(method="lbfgsb", starts=2, iterations=10))
     renderer.asked = []
-    checked = verify.verify(renderer, result, target, corrections=2, model=model)
+    checked = verify.correct_then_verify(renderer, result, target, model=model, corrections=2)
     assert checked.corrections == 2 and set(checked.decoded) == {"corrected-1", "corrected-2"}
     assert len(verify.candidates(result)) == 3  # the other end is not among them
     assert set(checked.figures) == set(checked.batches) == {"start", "end-1", "corrected-2"}
@@ -109,9 +109,9 @@ def test_verification_with_corrections_keeps_the_lowest_estimate_of_the_start_th
     )
     np.testing.assert_allclose(again, rounds_from, atol=1e-4)
     with pytest.raises(FitError, match="corrections -1 must be >= 0"):
-        verify.verify(renderer, result, target, corrections=-1, model=model)
-    with pytest.raises(ValueError, match="needs the fit's model"):
-        verify.verify(renderer, result, target, corrections=1)
+        verify.correct_then_verify(renderer, result, target, model=model, corrections=-1)
+    with pytest.raises(ValueError, match="at least one round of correction"):
+        verify.correct_then_verify(renderer, result, target, model=model, corrections=0)
 
 
 def test_a_round_reuses_the_fits_compiled_step(model):
@@ -135,7 +135,7 @@ def test_the_rounds_start_from_the_better_estimate_and_a_worse_last_round_is_not
     pool = verify.candidates(result, verify.CORRECTED_CANDIDATES)
     offsets = {"start": start_offset, "end-1": end_offset}
     scripted = Noisy(target, {name: (params.from_unit(pool[name]), offsets[name], 0.02) for name in pool})
-    checked = verify.verify(scripted, result, target, corrections=2, model=model)
+    checked = verify.correct_then_verify(scripted, result, target, model=model, corrections=2)
     # the rounds' points are 0.3 off: the better of the start and the best end is kept, as it was where they started
     assert checked.chosen == origin and checked.figures["corrected-2"] == pytest.approx(255 * 0.3, rel=1e-3)
     assert checked.figures[origin] == pytest.approx(255 * offsets[origin], rel=0.05)

@@ -41,7 +41,7 @@ def test_a_fooled_decoder_never_makes_the_answer_physically_worse_than_the_start
         extra=to_unit(presets.preset("jade"))[None],
     )
     assert result.chosen == "extra-1" or result.start_rmse <= result.candidate_rmse["extra-1"]
-    checked = verify.verify(renderer32, result, target)
+    checked = verify.verify_candidates(renderer32, result, target)
     assert checked.rmse <= checked.start_rmse and checked.rmse == checked.figures[checked.chosen]
     assert checked.figures["start"] == checked.start_rmse and checked.chosen == min(
         checked.figures, key=checked.figures.get
@@ -136,7 +136,7 @@ def scripted(model, materials_of):
     result = search.fit(model, target, search.Settings(method="lbfgsb", starts=2, iterations=5))
     pool = verify.candidates(result, 2)
     renderer = Noisy(target, {name: (search.params.from_unit(pool[name]), *materials_of[name]) for name in pool})
-    return verify.verify(renderer, result, target, count=2), renderer
+    return verify.verify_candidates(renderer, result, target, count=2), renderer
 
 
 def test_the_truly_closer_candidate_is_kept_though_its_noise_makes_each_render_look_worse(model):
@@ -167,7 +167,7 @@ def test_a_lead_within_the_noise_renders_more_batches_and_a_tie_keeps_the_start(
 def test_verification_is_bit_identical_from_run_to_run(model):
     target = np.full((R, R, 3), 0.4, np.float32)
     result = search.fit(model, target, search.Settings(method="lbfgsb", starts=2, iterations=5))
-    runs = [verify.verify(Renderer(R, 8, threads=1), result, target, count=2, spp=8) for _ in range(2)]
+    runs = [verify.verify_candidates(Renderer(R, 8, threads=1), result, target, count=2, spp=8) for _ in range(2)]
     assert runs[0].figures == runs[1].figures and runs[0].margins == runs[1].margins
     np.testing.assert_array_equal(runs[0].rendered, runs[1].rendered)
 

@@ -2,8 +2,9 @@
 
 This is what `matfit fit` does, as a library function: `run(target, model, settings, outputs)`
 reads and checks the inputs, fits (`search.fit`), lets Mitsuba choose among the fit's final
-candidates (`verify.verify`, on by default), and writes params.json, the report, the render and
-the exports under temporary names, renaming them into place only once all of them were written.
+candidates (`verify.verify_candidates`, or `verify.correct_then_verify` after rounds of correction; on
+by default), and writes params.json, the report, the render and the exports under temporary names,
+renaming them into place only once all of them were written.
 """
 
 from __future__ import annotations
@@ -150,7 +151,7 @@ def run(
     `init`: a params.json of the source material, whose parameters join best-of-n's candidates;
     `renderer`: an `engine.Process` to verify with (`fit_file`), or None; `variant`: the Mitsuba variant of the
     renderer made when none is given (None: `engine.choose_variant`'s).
-    `verified`: let Mitsuba choose among the fit's final candidates (`verify.verify`), after
+    `verified`: let Mitsuba choose among the fit's final candidates (`verify`), after
     `corrections` rounds of correction (`correct.py`; None: `methods.CORRECTIONS` when verified,
     else none) from the best of them; `refine_steps`:
     then that many steps through Mitsuba's differentiable renderer (`refine.refine`). Every input
@@ -255,9 +256,13 @@ def fit_file(
     if renderer is not None:
         outcome.variant = renderer.variant
     if verified:
-        outcome.verified = verify.verify(
-            background or renderer, result, target_srgb, weights, corrections=corrections, model=model
-        )
+        renderer_used = background or renderer
+        if corrections:
+            outcome.verified = verify.correct_then_verify(
+                renderer_used, result, target_srgb, model=model, corrections=corrections, weights=weights
+            )
+        else:
+            outcome.verified = verify.verify_candidates(renderer_used, result, target_srgb, weights=weights)
         outcome.unit, outcome.rendered = outcome.verified.unit, outcome.verified.rendered
     elif renderer is not None and not refine_steps:
         outcome.rendered = images.srgb_encode(renderer.render(result.values, seed=verify.SEED))

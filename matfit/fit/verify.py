@@ -85,67 +85,108 @@ def candidates(result: search.Result, count: int = CANDIDATES) -> dict[str, np.n
     return chosen
 
 
-def verify(
+def verify_candidates(
     renderer,
     result: search.Result,
     target: np.ndarray,
+    *,
     weights: np.ndarray | None = None,
-    count: int | None = None,
+    count: int = CANDIDATES,
     spp: int = SPP,
-    corrections: int = 0,
-    model: models.Model | None = None,
 ) -> Verified:
     """Returns the candidate whose noise-free Mitsuba render is estimated closest to the sRGB `target` (weighted like
-    the fit, if a mask is given), by the rule of the module docstring.
+    the fit, if a mask is given), by the rule of the module docstring: the verification stage without correction.
 
     `renderer` renders at the target's resolution; every batch has `spp` samples.
-    `count`: how many of the fit's candidates (`candidates`) to render; by default CANDIDATES, or
-    CORRECTED_CANDIDATES with `corrections`.
-    `corrections`: rounds of `correct.step` from the better of the fit's candidates ("corrected-1",
-    ...; they need the fit's `model`); the last one's point joins the candidates.
+    `count`: how many of the fit's candidates (`candidates`) to render.
+    """
+    started = time.perf_counter()
+    pool = candidates(result, count)
+    return judge(renderer, pool, list(pool), {}, target, as_weights(target, weights), spp, started)
+
+
+def correct_then_verify(
+    renderer,
+    result: search.Result,
+    target: np.ndarray,
+    *,
+    model: models.Model,
+    corrections: int,
+    weights: np.ndarray | None = None,
+    count: int = CORRECTED_CANDIDATES,
+    spp: int = SPP,
+) -> Verified:
+    """Returns, as `verify_candidates`, the candidate kept among the fit's `count` candidates and the last of
+    `corrections` rounds of `correct.step` ("corrected-1", ...) from the better of them (`where_rounds_start`).
+
+    `model`: the fit's, whose decoder the rounds fit with.
     """
     check_corrections(corrections)
-    if corrections and model is None:
-        raise ValueError("correction needs the fit's model")
+    if not corrections:
+        raise ValueError("correct_then_verify runs at least one round of correction: use verify_candidates for none")
     started = time.perf_counter()
-    weights = np.ones(target.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
-    count = (CORRECTED_CANDIDATES if corrections else CANDIDATES) if count is None else count
+    weights = as_weights(target, weights)
     pool = candidates(result, count)
+    contenders, batches = list(pool), {}
+    last, corrected = correction_rounds(renderer, model, result, pool, batches, target, weights, corrections, spp)
+    verified = judge(renderer, pool, [*contenders, last], batches, target, weights, spp, started)
+    verified.decoded, verified.corrections = corrected, corrections
+    return verified
 
-    def rendered(name: str, seed: int) -> np.ndarray:
-        return images.srgb_encode(renderer.render(params.from_unit(pool[name]), seed=seed, spp=spp))
 
-    batches: dict[str, list[np.ndarray]] = {}
+def as_weights(target: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+    """Returns the fit's per-pixel weights as float32 (R, R): ones where no mask is given."""
+    return np.ones(target.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
 
-    def render_more(names, count: int) -> None:
-        for name in names:  # every request first, so that a render process works through them while this one waits
-            for j in range(len(batches.get(name, ())), count):
-                renderer.prefetch(params.from_unit(pool[name]), BATCH_SEED + j, spp)
-        for name in names:
-            done = batches.setdefault(name, [])
-            done.extend(rendered(name, BATCH_SEED + j) for j in range(len(done), count))
 
+def render_candidate(renderer, unit: np.ndarray, seed: int, spp: int) -> np.ndarray:
+    """Returns Mitsuba's sRGB render of a candidate (unit cube) with `seed` and `spp` samples."""
+    return images.srgb_encode(renderer.render(params.from_unit(unit), seed=seed, spp=spp))
+
+
+def render_batches(renderer, pool, batches: dict[str, list[np.ndarray]], names, count: int, spp: int) -> None:
+    """Adds to `batches` the batches (batch j with BATCH_SEED + j) that the candidates `names` of `pool` lack of
+    `count` each."""
+    for name in names:  # every request first, so that a render process works through them while this one waits
+        for j in range(len(batches.get(name, ())), count):
+            renderer.prefetch(params.from_unit(pool[name]), BATCH_SEED + j, spp)
+    for name in names:
+        done = batches.setdefault(name, [])
+        done.extend(render_candidate(renderer, pool[name], BATCH_SEED + j, spp) for j in range(len(done), count))
+
+
+def correction_rounds(
+    renderer, model, result, pool, batches, target, weights, corrections: int, spp: int
+) -> tuple[str, dict[str, np.ndarray]]:
+    """Returns (the name of the last round's point, phi of each round's point by name) after adding each round's
+    point to `pool`: `corrections` rounds of `correct.step`, each from the last one's point (`correct.py`)."""
+    name, image = where_rounds_start(renderer, pool, batches, target, weights, spp)
+    unit = pool[name]
+    decoded = result.decoded(unit)
+    decoded = model.decode(unit)[0] if decoded is None else decoded
     corrected = {}
-    contenders = list(pool)
-    if corrections:
-        name, image = where_rounds_start(pool, batches, rendered, target, weights)
-        unit = pool[name]
-        decoded = result.decoded(unit)
-        decoded = model.decode(unit)[0] if decoded is None else decoded
-        for k in range(corrections):  # each round from the last one's point: `correct.py`
-            unit, decoded = correct.step(model, target, weights, unit, image, decoded)
-            name = f"corrected-{k + 1}"
-            pool[name], corrected[name] = unit, decoded
-            if k + 1 < corrections:  # the next round's residual, from a render with this round's own seed
-                image = rendered(name, SEED + k + 1)
-        contenders.append(name)
-    render_more(contenders, BATCHES)
+    for k in range(corrections):
+        unit, decoded = correct.step(model, target, weights, unit, image, decoded)
+        name = f"corrected-{k + 1}"
+        pool[name], corrected[name] = unit, decoded
+        if k + 1 < corrections:  # the next round's residual, from a render with this round's own seed
+            image = render_candidate(renderer, unit, SEED + k + 1, spp)
+    return name, corrected
+
+
+def judge(renderer, pool, contenders: list[str], batches, target, weights, spp: int, started: float) -> Verified:
+    """Returns the contender kept by the noise-aware rule of the module docstring: BATCHES batches of each, then one
+    more of the leader and of every contender within LEAD standard errors of it, up to MAX_BATCHES.
+
+    `batches`: what was rendered already, by name (added to); `started`: when verification began (for `seconds`).
+    """
+    render_batches(renderer, pool, batches, contenders, BATCHES, spp)
     while True:
         chosen, estimates, margins = decide({name: batches[name] for name in contenders}, target, weights)
         undecided = [name for name, margin in margins.items() if margin < LEAD]
         if not undecided or len(batches[chosen]) >= MAX_BATCHES:
             break
-        render_more([chosen, *undecided], len(batches[chosen]) + 1)
+        render_batches(renderer, pool, batches, [chosen, *undecided], len(batches[chosen]) + 1, spp)
     figures = {name: 255.0 * float(np.sqrt(max(value, 0.0))) for name, value in estimates.items()}
     return Verified(
         pool[chosen],
@@ -157,13 +198,11 @@ def verify(
         figures["start"],
         {name: len(batches[name]) for name in contenders},
         margins,
-        corrected,
-        pool,
-        corrections,
+        points=pool,
     )
 
 
-def where_rounds_start(pool, batches, rendered, target, weights) -> tuple[str, np.ndarray]:
+def where_rounds_start(renderer, pool, batches, target, weights, spp: int = SPP) -> tuple[str, np.ndarray]:
     """Returns (where the rounds of correction start: the start or the best end, its render with SEED for the first
     round's residual).
 
@@ -174,13 +213,13 @@ def where_rounds_start(pool, batches, rendered, target, weights) -> tuple[str, n
     where they start.
     """
     start = batches.setdefault("start", [])
-    start[:1] = start[:1] or [rendered("start", BATCH_SEED)]
+    start[:1] = start[:1] or [render_candidate(renderer, pool["start"], BATCH_SEED, spp)]
     figure = float(images.rmse(start[0], target, weights))
     if "end-1" in pool:
-        image = rendered("end-1", SEED)
+        image = render_candidate(renderer, pool["end-1"], SEED, spp)
         if float(images.rmse(image, target, weights)) < figure:
             return "end-1", image
-    return "start", rendered("start", SEED)
+    return "start", render_candidate(renderer, pool["start"], SEED, spp)
 
 
 def squared_error(renders: list[np.ndarray], target: np.ndarray, weights: np.ndarray) -> tuple[float, np.ndarray]:
@@ -231,9 +270,9 @@ def decide(
 
 
 def prefetch_start(renderer, start: np.ndarray, corrections: int = 0, spp: int = SPP) -> None:
-    """Starts, on an `engine.Background` or `engine.Process`, the renders `verify` will make of the fit's start (unit
-    cube): its first BATCHES batches (`corrections` changes nothing: the start is judged by the same batches)."""
-    values = params.from_unit(np.asarray(start, np.float64))  # as `candidates` and `rendered` make them
+    """Starts, on an `engine.Background` or `engine.Process`, the renders verification will make of the fit's start
+    (unit cube): its first BATCHES batches (`corrections` changes nothing: the start is judged by the same batches)."""
+    values = params.from_unit(np.asarray(start, np.float64))  # as `candidates` and `render_candidate` make them
     for j in range(BATCHES):
         renderer.prefetch(values, BATCH_SEED + j, spp)
 

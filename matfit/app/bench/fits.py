@@ -91,7 +91,7 @@ def verification_table(renderer, results: list[search.Result], targets: Targets,
         }
         judged.append(judge)
         for spp in spps:
-            checked = verify.verify(renderer, result, target, spp=spp)
+            checked = verify.verify_candidates(renderer, result, target, spp=spp)
             kept[spp].append(checked.chosen)
             seconds[spp].append(checked.seconds)
     lines = [
@@ -174,10 +174,11 @@ def fit_comparison(model: models.Model, count: int, evaluations: int, log=print)
         reference: [result.unit for result in table[reference]["results"]],
         "default, not verified": [result.unit for result in default],
         "default, verified, not corrected": [
-            verify.verify(renderer, result, target).unit for result, target in zip(default, targets.images, strict=True)
+            verify.verify_candidates(renderer, result, target).unit
+            for result, target in zip(default, targets.images, strict=True)
         ],
         f"default, verified, {CORRECTIONS} corrections (what `matfit fit` answers)": [
-            verify.verify(renderer, result, target, corrections=CORRECTIONS, model=model).unit
+            verify.correct_then_verify(renderer, result, target, model=model, corrections=CORRECTIONS).unit
             for result, target in zip(default, targets.images, strict=True)
         ],
     }

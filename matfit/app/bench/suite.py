@@ -70,7 +70,7 @@ def default_fit(model: models.Model, renderer, target: np.ndarray) -> dict:
     search.fit(model, target, settings)  # compile outside the timing
     started = time.perf_counter()
     result = search.fit(model, target, settings)
-    checked = verify.verify(renderer, result, target, corrections=CORRECTIONS, model=model)
+    checked = verify.correct_then_verify(renderer, result, target, model=model, corrections=CORRECTIONS)
     return {
         "default": float(images.rmse(model.decode(checked.unit)[0], target)),
         "default_seconds": time.perf_counter() - started,
