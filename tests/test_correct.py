@@ -41,7 +41,7 @@ def test_one_round_removes_an_error_the_decoder_makes_everywhere(model):
     target = decoded(model, truth) + error
     weights = np.ones((R, R), np.float32)
     uncorrected = search.fit(
-        model, target, search.Settings(method="lbfgsb", starts=2, iterations=60), extra=truth[None]
+        model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=60), extra=truth[None]
     )
     x = uncorrected.unit
     before = float(images.rmse(decoded(model, x) + error, target))
@@ -67,7 +67,7 @@ def test_verification_with_corrections_keeps_the_lowest_estimate_of_the_start_th
     renderer = Recording(R, 8)
     renderer.asked = []
     target = images.srgb_encode(renderer.render(presets.preset("red-plastic"), seed=5))
-    result = search.fit(model, target, search.Settings(method="lbfgsb", starts=2, iterations=10))
+    result = search.fit(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=10))
     renderer.asked = []
     checked = verify.correct_then_verify(renderer, result, target, model=model, corrections=2)
     assert checked.corrections == 2 and set(checked.decoded) == {"corrected-1", "corrected-2"}
@@ -121,7 +121,9 @@ def test_a_round_reuses_the_fits_compiled_step(model):
     x = true_point(5).astype(np.float64)
     correct.step(model, target, weights, x, decoded(model, x) + bias(), decoded(model, x), iterations=5)
     compiled = gradient.step._cache_size()
-    point, _ = correct.step(model, 0.9 * target, weights, 0.9 * x, decoded(model, x), decoded(model, 0.9 * x), 5)
+    point, _ = correct.step(
+        model, 0.9 * target, weights, 0.9 * x, decoded(model, x), decoded(model, 0.9 * x), iterations=5
+    )
     assert gradient.step._cache_size() == compiled
     assert not np.allclose(point, 0.9 * x)  # it moved: the second round ran
 
@@ -131,8 +133,8 @@ def test_the_rounds_start_from_the_better_estimate_and_a_worse_last_round_is_not
     model, start_offset, end_offset, origin
 ):
     target = np.full((R, R, 3), 0.4, np.float32)
-    result = search.fit(model, target, search.Settings(method="lbfgsb", starts=2, iterations=5))
-    pool = verify.candidates(result, verify.CORRECTED_CANDIDATES)
+    result = search.fit(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
+    pool = verify.candidates(result, count=verify.CORRECTED_CANDIDATES)
     offsets = {"start": start_offset, "end-1": end_offset}
     scripted = Noisy(target, {name: (params.from_unit(pool[name]), offsets[name], 0.02) for name in pool})
     checked = verify.correct_then_verify(scripted, result, target, model=model, corrections=2)

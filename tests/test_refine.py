@@ -53,7 +53,7 @@ def test_the_drjit_loss_is_images_rmse_with_and_without_a_mask(llvm):
 
 def test_refinement_from_a_perturbed_point_lowers_the_mitsuba_loss(renderer, reachable):
     target, start = reachable
-    result = refine.refine(start, target, 3, renderer=renderer, spp=4, rate=0.05)
+    result = refine.refine(start, target, steps=3, renderer=renderer, spp=4, rate=0.05)
     assert result.accepted and result.steps == 3 and len(result.losses) == 3 and result.losses[-1] < result.losses[0]
     assert result.rmse_after < result.rmse_before and result.rmse == result.rmse_after
     # the base colour moved towards the truth (red up, green and blue down)
@@ -68,7 +68,7 @@ def test_refinement_from_a_perturbed_point_lowers_the_mitsuba_loss(renderer, rea
 def test_a_refinement_that_does_not_improve_returns_the_input_unchanged(renderer, reachable):
     target, truth = renderer.render(params.from_unit(reachable[1]), seed=12, spp=256), reachable[1]
     target = images.srgb_encode(target)  # the start is the truth, and steps of 1 throw the material into the corners
-    result = refine.refine(truth, target, 3, renderer=renderer, spp=4, rate=1.0)
+    result = refine.refine(truth, target, steps=3, renderer=renderer, spp=4, rate=1.0)
     assert result.losses[0] < min(result.losses[1:])
     assert not result.accepted and result.rmse == result.rmse_before and len(result.losses) == 3
     np.testing.assert_array_equal(result.unit, truth)
@@ -76,7 +76,7 @@ def test_a_refinement_that_does_not_improve_returns_the_input_unchanged(renderer
         renderer.render(params.from_unit(truth), seed=refine.ACCEPT_SEED, spp=refine.ACCEPT_SPP)
     )
     np.testing.assert_allclose(result.rendered, expected, atol=1e-5)
-    nothing = refine.refine(truth, target, 0, renderer=renderer)
+    nothing = refine.refine(truth, target, steps=0, renderer=renderer)
     assert not nothing.accepted and nothing.losses == [] and nothing.rmse_before == nothing.rmse_after
     np.testing.assert_array_equal(nothing.unit, truth)
 

@@ -45,20 +45,20 @@ def frames(tmp_path, model):
 
 def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, model, frames, monkeypatch):
     settings = search.Settings(method="hybrid", evaluations=40)
-    whole = sequence.fit_sequence(model, frames, str(tmp_path / "whole"), settings)
+    whole = sequence.fit_sequence(model, frames, out=str(tmp_path / "whole"), settings=settings)
     assert len(whole) == 4
     seen = []
     original = search.fit
 
-    def spy(model_, target, settings_, weights=None, extra=None):
-        result = original(model_, target, settings_, weights, extra)
+    def spy(model_, target, *, settings, extra=None):
+        result = original(model_, target, settings=settings, extra=extra)
         seen.append((extra, result.candidate_rmse))
         return result
 
     with monkeypatch.context() as patch:
         patch.setattr(search, "fit", spy)
-        partial = sequence.fit_sequence(model, frames[:2], str(tmp_path / "parts"), settings)
-        resumed = sequence.fit_sequence(model, frames, str(tmp_path / "parts"), settings)
+        partial = sequence.fit_sequence(model, frames[:2], out=str(tmp_path / "parts"), settings=settings)
+        resumed = sequence.fit_sequence(model, frames, out=str(tmp_path / "parts"), settings=settings)
     assert seen[0][0] is None and "extra-1" not in seen[0][1]
     np.testing.assert_array_equal(seen[1][0][0], partial[0].unit)  # the previous optimum is a candidate
     assert "extra-1" in seen[1][1]
@@ -73,7 +73,7 @@ def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, mod
 
 def test_no_reinit_never_offers_the_previous_frame(tmp_path, model, frames):
     results = sequence.fit_sequence(
-        model, frames, str(tmp_path), search.Settings(method="hybrid", evaluations=30), reinit=False
+        model, frames, out=str(tmp_path), settings=search.Settings(method="hybrid", evaluations=30), reinit=False
     )
     assert all(frame.start != sequence.PREVIOUS for frame in results)
 
@@ -84,13 +84,17 @@ def test_mixed_sizes_and_other_settings_are_refused(tmp_path, model, frames):
         sequence.fit_sequence(
             model,
             sequence.list_frames(str(tmp_path / "frames")),
-            str(tmp_path / "out"),
-            search.Settings(method="hybrid", evaluations=30),
+            out=str(tmp_path / "out"),
+            settings=search.Settings(method="hybrid", evaluations=30),
         )
     assert not (tmp_path / "out").exists()  # refused before fitting anything
-    sequence.fit_sequence(model, frames[:1], str(tmp_path / "out"), search.Settings(method="hybrid", evaluations=30))
+    sequence.fit_sequence(
+        model, frames[:1], out=str(tmp_path / "out"), settings=search.Settings(method="hybrid", evaluations=30)
+    )
     with pytest.raises(SequenceError, match="other settings"):
-        sequence.fit_sequence(model, frames, str(tmp_path / "out"), search.Settings(method="hybrid", evaluations=31))
+        sequence.fit_sequence(
+            model, frames, out=str(tmp_path / "out"), settings=search.Settings(method="hybrid", evaluations=31)
+        )
 
 
 def test_summary_table_sums():
@@ -102,15 +106,15 @@ def test_summary_table_sums():
 
 def test_a_changed_frame_and_the_frames_after_it_are_fitted_again(tmp_path, model, frames):
     settings = search.Settings(method="hybrid", evaluations=40)
-    first = sequence.fit_sequence(model, frames, str(tmp_path / "out"), settings)
-    again = sequence.fit_sequence(model, frames, str(tmp_path / "out"), settings)
+    first = sequence.fit_sequence(model, frames, out=str(tmp_path / "out"), settings=settings)
+    again = sequence.fit_sequence(model, frames, out=str(tmp_path / "out"), settings=settings)
     assert [frame.note for frame in again] == [None] * 4 and all(frame.image is None for frame in again)  # all reused
     changed = images.srgb_decode(np.clip(decode(model, true_point(12)), 0, 1))
     images.write(frames[2], changed)  # the artist edits frame 2 again
-    resumed = sequence.fit_sequence(model, frames, str(tmp_path / "out"), settings)
+    resumed = sequence.fit_sequence(model, frames, out=str(tmp_path / "out"), settings=settings)
     assert [frame.image is not None for frame in resumed] == [False, False, True, True]
     assert "the picture is not the one" in resumed[2].note and "previous frame's result changed" in resumed[3].note
-    whole = sequence.fit_sequence(model, frames, str(tmp_path / "whole"), settings)
+    whole = sequence.fit_sequence(model, frames, out=str(tmp_path / "whole"), settings=settings)
     for a, b in zip(whole, resumed, strict=True):
         np.testing.assert_allclose(a.unit, b.unit, atol=1e-6)
     assert np.abs(resumed[2].unit - first[2].unit).max() > 1e-3  # the new result is the new picture's
@@ -121,27 +125,29 @@ def test_a_changed_frame_and_the_frames_after_it_are_fitted_again(tmp_path, mode
 
 def test_another_folder_with_the_same_names_is_fitted_again(tmp_path, model, frames):
     settings = search.Settings(method="hybrid", evaluations=30)
-    sequence.fit_sequence(model, frames[:2], str(tmp_path / "out"), settings)
+    sequence.fit_sequence(model, frames[:2], out=str(tmp_path / "out"), settings=settings)
     other = tmp_path / "other"
     other.mkdir()
     for k, name in enumerate(("f0.png", "f1.png")):
         images.write(str(other / name), images.srgb_decode(np.clip(decode(model, true_point(20 + k)), 0, 1)))
-    results = sequence.fit_sequence(model, sequence.list_frames(str(other)), str(tmp_path / "out"), settings)
+    results = sequence.fit_sequence(
+        model, sequence.list_frames(str(other)), out=str(tmp_path / "out"), settings=settings
+    )
     assert all(frame.image is not None and frame.note for frame in results)
 
 
 def test_another_model_is_refused_and_a_failed_first_frame_leaves_no_folder(tmp_path, model, frames, monkeypatch):
     settings = search.Settings(method="hybrid", evaluations=30)
-    sequence.fit_sequence(model, frames[:1], str(tmp_path / "out"), settings)
+    sequence.fit_sequence(model, frames[:1], out=str(tmp_path / "out"), settings=settings)
     with pytest.raises(SequenceError, match="another model"):
-        sequence.fit_sequence(random_model(seed=1), frames[:1], str(tmp_path / "out"), settings)
+        sequence.fit_sequence(random_model(seed=1), frames[:1], out=str(tmp_path / "out"), settings=settings)
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(search, "fit", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        sequence.fit_sequence(model, frames, str(tmp_path / "new"), settings)
+        sequence.fit_sequence(model, frames, out=str(tmp_path / "new"), settings=settings)
     assert not (tmp_path / "new").exists()
 
 
@@ -157,9 +163,9 @@ def test_two_frames_with_one_result_name_are_refused_before_any_fit(tmp_path, mo
     monkeypatch.setattr(search, "fit", None)  # a fit would fail: the refusal comes first
     settings = search.Settings(method="hybrid", evaluations=30)
     with pytest.raises(SequenceError, match=r"frames .*f1\.(jpg|png) and .*f1\.(png|jpg) would both write .* f1\.json"):
-        sequence.run(model, str(folder), str(tmp_path / "out"), settings)
+        sequence.run(model, str(folder), out=str(tmp_path / "out"), settings=settings)
     with pytest.raises(SequenceError, match="would both write"):
-        sequence.fit_sequence(model, sequence.list_frames(str(folder)), str(tmp_path / "out"), settings)
+        sequence.fit_sequence(model, sequence.list_frames(str(folder)), out=str(tmp_path / "out"), settings=settings)
     assert not (tmp_path / "out").exists()
 
 
@@ -169,22 +175,24 @@ def test_outputs_that_are_frames_or_a_read_only_folder_are_refused(tmp_path, mod
     settings = search.Settings(method="hybrid", evaluations=30)
     images.write(str(folder / "preview.png"), images.srgb_decode(np.clip(decode(model, true_point(5)), 0, 1)))
     with pytest.raises(OutputError, match=r"preview .*preview\.png is the frame .*choose another out folder"):
-        sequence.run(model, str(folder), str(folder), settings)  # the results beside the frames
+        sequence.run(model, str(folder), out=str(folder), settings=settings)  # the results beside the frames
     with pytest.raises(OutputError, match=r"out /proc/seq cannot be written: /proc is read-only"):
-        sequence.run(model, str(folder), "/proc/seq", settings)
+        sequence.run(model, str(folder), out="/proc/seq", settings=settings)
 
 
 def test_a_render_is_made_again_whenever_its_frame_was_fitted_again(tmp_path, model, frames):
     """Frame 2 edited, the run interrupted once its result and frame 3's were rewritten: a resumed run renders both."""
     settings, out = search.Settings(method="hybrid", evaluations=40), tmp_path / "out"
-    sequence.run(model, str(tmp_path / "frames"), str(out), settings, render=(16, 2))
+    sequence.run(model, str(tmp_path / "frames"), out=str(out), settings=settings, render=(16, 2))
     renders = [out / f"f{k}-render.png" for k in range(4)]
     before = [(path.stat().st_ino, path.read_bytes()) for path in renders]
     document = json.loads((out / "f2.json").read_text())
     assert document["sequence"]["render"] == {"size": 16, "spp": 2, "sha256": files.sha256(str(renders[2]))}
     images.write(frames[2], images.srgb_decode(np.clip(decode(model, true_point(12)), 0, 1)))
-    sequence.fit_sequence(model, frames, str(out), settings)  # what a run stopped before its renders leaves
-    resumed = sequence.run(model, str(tmp_path / "frames"), str(out), settings, render=(16, 2))
+    sequence.fit_sequence(
+        model, frames, out=str(out), settings=settings
+    )  # what a run stopped before its renders leaves
+    resumed = sequence.run(model, str(tmp_path / "frames"), out=str(out), settings=settings, render=(16, 2))
     assert all(frame.image is None for frame in resumed)  # every result read back: nothing fitted in this run
     after = [(path.stat().st_ino, path.read_bytes()) for path in renders]
     assert after[:2] == before[:2]  # frames 0 and 1 kept their results, and their renders
@@ -192,5 +200,7 @@ def test_a_render_is_made_again_whenever_its_frame_was_fitted_again(tmp_path, mo
     for k in (2, 3):
         recorded = json.loads((out / f"f{k}.json").read_text())["sequence"]["render"]["sha256"]
         assert recorded == files.sha256(str(renders[k]))
-    sequence.run(model, str(tmp_path / "frames"), str(out), settings, render=(20, 2))  # other render settings
+    sequence.run(
+        model, str(tmp_path / "frames"), out=str(out), settings=settings, render=(20, 2)
+    )  # other render settings
     assert all(images.read(str(path)).shape == (20, 20, 3) for path in renders)

@@ -19,7 +19,7 @@ import typer
 
 from matfit import documents, params
 from matfit.app import console, options
-from matfit.fit.methods import MAX_ITERATIONS, MAX_POLISH, MAX_STARTS, Box, Method, Settings
+from matfit.fit.methods import Box, Method, Settings
 from matfit.model import dataset
 from matfit.render import presets
 
@@ -189,30 +189,18 @@ def fit_command(
     seed: Annotated[int, options.seed("Seed of the random start of --method optimize.")] = 0,
     mask: options.Mask = None,
     box: options.BoxOption = Box.clip,
-    polish_steps: Annotated[
-        int, typer.Option("--polish", min=0, max=MAX_POLISH, help="Projected-Adam steps after Nelder-Mead.")
-    ] = 0,
-    report: Annotated[
-        Path | None, typer.Option(help="Comparison picture: target | guess | fit | Mitsuba render | difference.")
-    ] = None,
-    render: Annotated[Path | None, typer.Option(help="Render the fitted material with Mitsuba to this image.")] = None,
+    polish_steps: options.Polish = 0,
+    report: options.Report = None,
+    render: options.RenderOutput = None,
     size: options.Size = 512,
     spp: options.Spp = 256,
-    mitsuba_xml: Annotated[Path | None, typer.Option(help="Write the BSDF and medium as Mitsuba 3 XML.")] = None,
-    blender: Annotated[Path | None, typer.Option(help="Write a Blender 4.x script that builds the material.")] = None,
+    mitsuba_xml: options.MitsubaXml = None,
+    blender: options.BlenderScript = None,
     init: options.Init = None,
-    starts: Annotated[
-        int, typer.Option(min=1, max=MAX_STARTS, help="L-BFGS-B starts (the best best-of-n candidates).")
-    ] = Settings.starts,
-    iterations: Annotated[
-        int,
-        typer.Option(min=1, max=MAX_ITERATIONS, help="L-BFGS-B steps of the best start (a value and gradient each)."),
-    ] = Settings.iterations,
-    narrow_after: Annotated[
-        int,
-        typer.Option(min=1, max=MAX_ITERATIONS, help="L-BFGS-B steps of every start; then the best goes on alone."),
-    ] = Settings.narrow_after,
-    verify: Annotated[bool, typer.Option(help="Let Mitsuba choose among the final candidates.")] = True,
+    starts: options.Starts = Settings.starts,
+    iterations: options.Iterations = Settings.iterations,
+    narrow_after: options.NarrowAfter = Settings.narrow_after,
+    verify: options.Verify = True,
     refine: options.Refine = 0,
     corrections: options.Corrections = None,
     variant: options.Variant = None,
@@ -224,9 +212,10 @@ def fit_command(
     # Verification's Mitsuba starts in a child process now, on the other core, while this one imports JAX.
     with render_module.Process(variant) if verify and not refine else contextlib.nullcontext() as renderer:
         from matfit.fit import fitfile
+        from matfit.fit.request import Outputs, Request
 
         text = options.text
-        outputs = fitfile.Outputs(str(output), text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
+        outputs = Outputs(str(output), text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
         settings = Settings(
             method,
             evaluations,
@@ -236,20 +225,19 @@ def fit_command(
             iterations=iterations,
             narrow_after=narrow_after,
         )
-        outcome = fitfile.run(
+        request = Request(
             str(target),
-            str(model_path),
-            settings,
-            outputs,
             text(mask),
-            seed,
             text(init),
-            verify,
-            refine,
-            corrections,
-            renderer,
-            variant,
+            seed=seed,
+            settings=settings,
+            verified=verify,
+            corrections=corrections,
+            refine_steps=refine,
+            variant=variant,
+            outputs=outputs,
         )
+        outcome = fitfile.run(request, str(model_path), renderer=renderer)
     echo_lines(outcome.notices)
     log(outcome.summary(str(output)))
 
@@ -281,7 +269,14 @@ def sequence(
     with Progress("fitting frames") as progress:
         counter = progress.counter("frames/s")
         results = sequence_module.run(
-            str(model_path), str(frames), str(out), settings, reinit, rendered, counter, options.text(init)
+            str(model_path),
+            str(frames),
+            out=str(out),
+            settings=settings,
+            reinit=reinit,
+            render=rendered,
+            progress=counter,
+            init=options.text(init),
         )
     echo_lines(f"{os.path.basename(frame.path)}: {frame.note}" for frame in results if frame.note)
     typer.echo(sequence_module.summary_table(results))

@@ -1,4 +1,5 @@
-"""The command line's shared options: each option that several commands take, declared once for Typer.
+"""The command line's options: each option that several commands take, declared once for Typer, and the long list
+of `matfit fit`'s own.
 
 Plain data for `cli`: importing it loads neither JAX nor Mitsuba, so `matfit params` stays fast.
 """
@@ -11,7 +12,16 @@ from typing import Annotated, Literal
 import typer
 
 from matfit import params, shipped
-from matfit.fit.methods import CORRECTIONS, MAX_EVALUATIONS, MIN_EVALUATIONS, Box, Method
+from matfit.fit.methods import (
+    CORRECTIONS,
+    MAX_EVALUATIONS,
+    MAX_ITERATIONS,
+    MAX_POLISH,
+    MAX_STARTS,
+    MIN_EVALUATIONS,
+    Box,
+    Method,
+)
 from matfit.model import dataset
 from matfit.render.engine import VARIANTS
 
@@ -122,3 +132,22 @@ BoxOption = Annotated[
     Box, typer.Option("--box", help="Keeping inside the parameter box: clip (clip + penalty) or barrier (the paper's).")
 ]
 Fits = Annotated[int, typer.Option(min=10, max=100_000, help="Fits through the page before memory is read again.")]
+
+# The options of `matfit fit` alone, declared here so that the command reads as what it does.
+Polish = Annotated[int, typer.Option("--polish", min=0, max=MAX_POLISH, help="Projected-Adam steps after Nelder-Mead.")]
+Report = Annotated[
+    Path | None, typer.Option(help="Comparison picture: target | guess | fit | Mitsuba render | difference.")
+]
+RenderOutput = Annotated[Path | None, typer.Option(help="Render the fitted material with Mitsuba to this image.")]
+MitsubaXml = Annotated[Path | None, typer.Option(help="Write the BSDF and medium as Mitsuba 3 XML.")]
+BlenderScript = Annotated[Path | None, typer.Option(help="Write a Blender 4.x script that builds the material.")]
+Starts = Annotated[int, typer.Option(min=1, max=MAX_STARTS, help="L-BFGS-B starts (the best best-of-n candidates).")]
+Iterations = Annotated[
+    int,
+    typer.Option(min=1, max=MAX_ITERATIONS, help="L-BFGS-B steps of the best start (a value and gradient each)."),
+]
+NarrowAfter = Annotated[
+    int,
+    typer.Option(min=1, max=MAX_ITERATIONS, help="L-BFGS-B steps of every start; then the best goes on alone."),
+]
+Verify = Annotated[bool, typer.Option(help="Let Mitsuba choose among the final candidates.")]

@@ -45,6 +45,7 @@ def step(
     unit: np.ndarray,
     rendered: np.ndarray,
     decoded: np.ndarray,
+    *,
     iterations: int = ITERATIONS,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns one round of correction from `unit`: (the new point (19,), phi of it (R, R, 3)).

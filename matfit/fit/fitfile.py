@@ -1,6 +1,6 @@
 """Fitting an image file end to end: read the target and mask, fit, verify in Mitsuba, write every output together.
 
-This is what `matfit fit` does, as a library function: `run(target, model, settings, outputs)`
+This is what `matfit fit` does, as a library function: `run(request, model)` (a `request.Request`)
 reads and checks the inputs, fits (`search.fit`), lets Mitsuba choose among the fit's final
 candidates (`verify.verify_candidates`, or `verify.correct_then_verify` after rounds of correction; on
 by default), and writes params.json, the report, the render and the exports under temporary names,
@@ -9,6 +9,7 @@ renaming them into place only once all of them were written.
 
 from __future__ import annotations
 
+import functools
 import os
 import time
 from dataclasses import dataclass, field
@@ -16,9 +17,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from matfit import documents, files, images, params, shipped
-from matfit.errors import FitError, ImageError, OutputError
+from matfit.errors import FitError
 from matfit.fit import refine, search, verify
-from matfit.fit.methods import CORRECTIONS
+from matfit.fit.request import Outputs, Request
 from matfit.model import models
 from matfit.render import engine as render
 
@@ -34,44 +35,6 @@ def display_path(path: str) -> str:
     if os.path.commonpath([absolute, PROJECT]) == PROJECT:
         return os.path.relpath(absolute, PROJECT)
     return path
-
-
-@dataclass(frozen=True)
-class Outputs:
-    """The files a fit writes: params.json always, the others when named."""
-
-    params: str
-    report: str | None = None
-    render: str | None = None
-    render_size: int = 512
-    render_spp: int = 256
-    mitsuba_xml: str | None = None
-    blender: str | None = None
-
-    def check(self, inputs: dict[str, str | None] | None = None) -> None:
-        """Raises OutputError, before any work is done, for a path of the wrong kind, one that cannot be written,
-        one named twice, or one that is an input (`inputs`: {"target": path, ...}) that writing would overwrite."""
-        if not self.params.lower().endswith(".json"):
-            raise OutputError(f"output {self.params} must end in .json", field="output")
-        for path in (self.report, self.render):
-            if path is not None:
-                images.check_extension(path)
-        for path, suffix, name in ((self.mitsuba_xml, ".xml", "mitsuba_xml"), (self.blender, ".py", "blender")):
-            if path is not None and not path.lower().endswith(suffix):
-                raise OutputError(f"{name.replace('_', ' ')} {path} must end in {suffix}", field=name)
-        named = {
-            "output": self.params,
-            "report": self.report,
-            "render": self.render,
-            "mitsuba_xml": self.mitsuba_xml,
-            "blender": self.blender,
-        }
-        files.check_outputs(named, inputs)
-
-    @property
-    def needs_render(self) -> bool:
-        """Returns whether an output shows the Mitsuba render of the result."""
-        return self.report is not None or self.render is not None
 
 
 @dataclass
@@ -122,7 +85,9 @@ def load_model(path: str) -> models.Model:
     return models.load_model(path)
 
 
-def read_target(path: str, resolution: int, mask: str | None = None) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
+def read_target(
+    path: str, resolution: int, *, mask: str | None = None
+) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
     """Returns (sRGB target at the model's resolution, mask weights or None, notices) from image files."""
     loaded = images.load(path)
     weights = None
@@ -132,151 +97,121 @@ def read_target(path: str, resolution: int, mask: str | None = None) -> tuple[np
     return target, weights, [*loaded.notices, *notices]
 
 
-def run(
-    target: str,
-    model: models.Model | str,
-    settings: search.Settings,
-    outputs: Outputs,
-    mask: str | None = None,
-    seed: int = 0,
-    init: str | None = None,
-    verified: bool = True,
-    refine_steps: int = 0,
-    corrections: int | None = None,
-    renderer: render.Process | None = None,
-    variant: str | None = None,
-) -> Outcome:
-    """Fits the image file `target` with a model (or a model directory) and writes `outputs`; returns what was found.
+def run(request: Request, model: models.Model | str, *, renderer: render.Process | None = None) -> Outcome:
+    """Fits the picture of `request` with a model (or a model directory) and writes its outputs; returns what was found.
 
-    `init`: a params.json of the source material, whose parameters join best-of-n's candidates;
-    `renderer`: an `engine.Process` to verify with (`fit_file`), or None; `variant`: the Mitsuba variant of the
-    renderer made when none is given (None: `engine.choose_variant`'s).
-    `verified`: let Mitsuba choose among the fit's final candidates (`verify`), after
-    `corrections` rounds of correction (`correct.py`; None: `methods.CORRECTIONS` when verified,
-    else none) from the best of them; `refine_steps`:
-    then that many steps through Mitsuba's differentiable renderer (`refine.refine`). Every input
-    is read and every output path checked before the fit; the outputs are written together at the
-    end (`files.together`), so a failure leaves none of them.
+    `renderer`: an `engine.Process` to verify with, started early by the caller (`fit_file`), or None. Every
+    input is read and every output path checked before the fit (`Request.check`); the outputs are written
+    together at the end (`files.together`), so a failure leaves none of them.
     """
     started = time.perf_counter()
-    outputs.check({"target": target, "mask": mask, "init": init})
-    init_values = params.read_file(init) if init is not None else None
-    outcome, renderer = fit_file(
-        target,
-        model,
-        settings,
-        mask,
-        seed,
-        init_values,
-        verified,
-        refine_steps,
-        outputs.needs_render,
-        renderer,
-        source=init,
-        corrections=corrections,
-        variant=variant,
-    )
+    outputs = request.outputs
+    if outputs is None:
+        raise ValueError("run writes the request's outputs: name them (Outputs), or call fit_file")
+    request.check()
+    outcome, renderer = _fit_checked(request, model, renderer)
     with files.together() as batch:
-        write_outputs(outcome, outputs, batch, renderer)
+        write_outputs(outcome, outputs, batch, renderer=renderer)
         outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
         files.write_text(batch.path(outputs.params), params_text(outcome))
     return outcome
 
 
-def fit_file(
-    target: str,
-    model: models.Model | str,
-    settings: search.Settings,
-    mask: str | None = None,
-    seed: int = 0,
-    init_values: np.ndarray | None = None,
-    verified: bool = True,
-    refine_steps: int = 0,
-    needs_render: bool = False,
-    renderer=None,
-    source: str | None = None,
-    corrections: int | None = None,
-    variant: str | None = None,
-) -> tuple[Outcome, object]:
-    """Returns (what a fit of the image file `target` found, with its params.json document; the renderer used).
+def fit_file(request: Request, model: models.Model | str, *, renderer=None) -> tuple[Outcome, object]:
+    """Returns (what a fit of the picture of `request` found, with its params.json document; the renderer used).
 
     Writes nothing: `run` writes the CLI's files, `serve` offers the same ones for download.
-    `init_values`: the source material's physical parameters (joining best-of-n's candidates), read
-    from the file `source` (recorded in the document); `renderer`: a loaded `engine.Renderer` at the
-    model's resolution to reuse, an `engine.Process` (started early by the caller; it loads the scene
-    here, and cannot refine), or None (an `engine.Background` with `variant` is made when verification,
-    refinement or a render output needs one). Refinement differentiates with the renderer's variant.
+    `renderer`: a loaded `engine.Renderer` at the model's resolution to reuse, an `engine.Process`
+    (started early by the caller; it loads the scene here, and cannot refine), or None (an
+    `engine.Background` with the request's variant is made when verification, refinement or a render
+    output needs one). Refinement differentiates with the renderer's variant.
     """
-    settings.check()
-    if refine_steps < 0:
-        raise FitError(f"refine steps {refine_steps} must be >= 0: use 0 to skip refinement", field="refine")
-    if refine_steps and variant == render.SCALAR_VARIANT:
-        raise FitError(
-            f"refinement differentiates with {render.CUDA_VARIANT} or {render.LLVM_VARIANT}, not "
-            f"{render.SCALAR_VARIANT}: leave --variant out or leave refinement off",
-            field="variant",
-        )
-    corrections = (CORRECTIONS if verified else 0) if corrections is None else corrections
-    verify.check_corrections(corrections)  # before the fit: no work for a bad count
-    if corrections and not verified:
-        raise FitError(
-            f"{corrections} correction rounds need verification's renders: drop --no-verify or add --corrections 0",
-            field="corrections",
-        )
-    for path, name in ((target, "target"), (mask, "mask")):
-        if path is not None and not os.path.isfile(path):
-            raise ImageError(f"{name} {path} is not a file: give the picture's path", field=name)
-    extra = params.to_unit(init_values)[None] if init_values is not None else None
+    request.check()
+    return _fit_checked(request, model, renderer)
+
+
+def _fit_checked(request: Request, model: models.Model | str, renderer) -> tuple[Outcome, object]:
+    """Returns `fit_file`'s answer to a checked request: the search, then Mitsuba's stages, then the document."""
+    init_values = request.initial_values()
     model_path = model if isinstance(model, str) else model.path
     model = load_model(model) if isinstance(model, str) else model
-    target_srgb, weights, notices = read_target(target, model.resolution, mask)
-    background = on_start = None
-    if isinstance(renderer, render.Process):
-        if refine_steps:
-            raise ValueError("refinement renders through Mitsuba in this process: give a Renderer, or none")
-        background, renderer = renderer, None
-        background.load(model.resolution, verify.SPP)
-    elif renderer is None and (verified or refine_steps or needs_render):
-        background = render.Background(model.resolution, verify.SPP, variant)  # loads while the fit runs
-    if background is not None and verified:
-
-        def on_start(start: np.ndarray) -> None:
-            verify.prefetch_start(background, start, corrections)
-
-    result = search.fit(model, target_srgb, settings, weights, extra=extra, seed=seed, on_start=on_start)
-    if not np.isfinite(result.rmse):  # the decoder's images hold NaN: no figure and no answer can be trusted
-        raise FitError(
-            f"the model {model_path} decodes images that are not finite (neural RMSE {result.rmse}): "
-            "its weights are damaged; train it again or use another --model"
-        )
-    outcome = Outcome(result, target_srgb, result.unit, result.image, result.rmse, notices=notices)
+    target, weights, notices = read_target(request.target, model.resolution, mask=request.mask)
+    background, renderer = start_renderer(request, model.resolution, renderer)
+    result = search_stage(request, model, target, weights, init_values, background)
+    outcome = Outcome(result, target, result.unit, result.image, result.rmse, notices=notices)
     if background is not None:
         renderer = background.renderer()
         notices.extend([renderer.notice] if renderer.notice else [])
     if renderer is not None:
         outcome.variant = renderer.variant
-    if verified:
-        renderer_used = background or renderer
-        if corrections:
-            outcome.verified = verify.correct_then_verify(
-                renderer_used, result, target_srgb, model=model, corrections=corrections, weights=weights
-            )
-        else:
-            outcome.verified = verify.verify_candidates(renderer_used, result, target_srgb, weights=weights)
+    mitsuba_stages(outcome, request, model, weights, verifier=background or renderer, renderer=renderer)
+    outcome.document = document(outcome, request, model_path)
+    return outcome, renderer
+
+
+def start_renderer(request: Request, resolution: int, renderer) -> tuple[object, object]:
+    """Returns (a renderer that loads while the fit runs, or None; the loaded renderer given, or None).
+
+    An `engine.Process` given is loaded here and returned first; with none given, an `engine.Background`
+    is made when verification, refinement or a render output needs one.
+    """
+    if isinstance(renderer, render.Process):
+        if request.refine_steps:
+            raise ValueError("refinement renders through Mitsuba in this process: give a Renderer, or none")
+        renderer.load(resolution, verify.SPP)
+        return renderer, None
+    if renderer is None and (request.verified or request.refine_steps or request.needs_render):
+        return render.Background(resolution, verify.SPP, request.variant), None
+    return None, renderer
+
+
+def search_stage(request: Request, model, target, weights, init_values, background) -> search.Result:
+    """Returns the search's result (best-of-n, then the request's method); verification's renders of its start
+    begin on `background` meanwhile. Raises FitError for a model whose decoded images are not finite."""
+    extra = params.to_unit(init_values)[None] if init_values is not None else None
+    on_start = None
+    if background is not None and request.verified:
+        on_start = functools.partial(verify.prefetch_start, background, corrections=request.rounds)
+    result = search.fit(
+        model, target, settings=request.settings, weights=weights, extra=extra, seed=request.seed, on_start=on_start
+    )
+    if not np.isfinite(result.rmse):  # the decoder's images hold NaN: no figure and no answer can be trusted
+        raise FitError(
+            f"the model {model.path} decodes images that are not finite (neural RMSE {result.rmse}): "
+            "its weights are damaged; train it again or use another --model"
+        )
+    return result
+
+
+def mitsuba_stages(outcome: Outcome, request: Request, model, weights, *, verifier, renderer) -> None:
+    """Sets the answer of `outcome` after Mitsuba's stages: verification (after the rounds of correction), then
+    refinement; with neither, the render of the fit's answer when a renderer was made."""
+    result, target = outcome.result, outcome.target
+    if request.verified:
+        outcome.verified = verification_stage(request, model, result, target, weights, verifier)
         outcome.unit, outcome.rendered = outcome.verified.unit, outcome.verified.rendered
-    elif renderer is not None and not refine_steps:
+    elif renderer is not None and not request.refine_steps:
         outcome.rendered = images.srgb_encode(renderer.render(result.values, seed=verify.SEED))
-    if refine_steps:
-        outcome.refined = refine.refine(outcome.unit, target_srgb, refine_steps, weights, renderer)
+    if request.refine_steps:
+        outcome.refined = refine.refine(
+            outcome.unit, target, steps=request.refine_steps, weights=weights, renderer=renderer
+        )
         outcome.unit, outcome.rendered = outcome.refined.unit, outcome.refined.rendered
-    if verified or refine_steps:
+    if request.verified or request.refine_steps:
         decoded = result.decoded(outcome.unit)  # verification keeps a point the fit decoded (or a round decoded)
         if decoded is None and outcome.verified is not None:
             decoded = outcome.verified.decoded.get(outcome.verified.chosen)
         outcome.image = model.decode(outcome.unit)[0] if decoded is None else decoded
-        outcome.neural_rmse = float(images.rmse(outcome.image, target_srgb, weights))
-    outcome.document = document(outcome, settings, model_path, target, mask, source)
-    return outcome, renderer
+        outcome.neural_rmse = float(images.rmse(outcome.image, target, weights))
+
+
+def verification_stage(request: Request, model, result, target, weights, renderer) -> verify.Verified:
+    """Returns the candidate Mitsuba keeps: among the fit's, or after the request's rounds of correction."""
+    if request.rounds:
+        return verify.correct_then_verify(
+            renderer, result, target, model=model, corrections=request.rounds, weights=weights
+        )
+    return verify.verify_candidates(renderer, result, target, weights=weights)
 
 
 def params_text(outcome: Outcome) -> str:
@@ -284,9 +219,7 @@ def params_text(outcome: Outcome) -> str:
     return documents.dumps(outcome.document)
 
 
-def document(
-    outcome: Outcome, settings: search.Settings, model_path: str, target: str, mask: str | None, init: str | None
-) -> dict:
+def document(outcome: Outcome, request: Request, model_path: str) -> dict:
     """Returns the params.json document of a fit: the 19 values with units, and how they were found."""
     result, checked = outcome.result, outcome.verified
     mitsuba = {}
@@ -319,19 +252,19 @@ def document(
         }
     return params.params_document(
         outcome.values,
-        method=settings.method.value,
+        method=request.settings.method.value,
         evaluations=result.evaluations,
         neural_rmse=round(outcome.neural_rmse, 3),
         start=result.chosen,
         start_rmse=round(result.start_rmse, 3),
         **mitsuba,
-        box=settings.box.value,
-        polish_steps=settings.polish_steps,
+        box=request.settings.box.value,
+        polish_steps=request.settings.polish_steps,
         model=display_path(model_path),
-        target=target,
-        target_sha256=files.sha256(target),
-        mask=mask,
-        init=init,
+        target=request.target,
+        target_sha256=files.sha256(request.target),
+        mask=request.mask,
+        init=request.init,
         mitsuba_variant=outcome.variant,
         fit_seconds=round(result.seconds, 3),
         wall_time_s=0.0,
@@ -353,7 +286,7 @@ def report_picture(outcome: Outcome) -> np.ndarray:
     return report.compose(panels)
 
 
-def write_outputs(outcome: Outcome, outputs: Outputs, batch: files.Batch, renderer=None) -> None:
+def write_outputs(outcome: Outcome, outputs: Outputs, batch: files.Batch, *, renderer=None) -> None:
     """Writes the report, the large render and the exports of a fit into `batch` (params.json is the caller's)."""
     values = outcome.values
     if outputs.report is not None:

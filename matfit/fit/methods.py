@@ -101,3 +101,9 @@ class Settings:
                 "keeps every start to the end)",
                 field="narrow_after",
             )
+
+
+def check_corrections(corrections: int) -> None:
+    """Raises FitError unless `corrections` (rounds of correction) is a count."""
+    if corrections < 0:
+        raise FitError(f"corrections {corrections} must be >= 0: use 0 to skip correction", field="corrections")

@@ -186,6 +186,7 @@ def check(unit: np.ndarray, target: np.ndarray, steps: int, weights: np.ndarray 
 def refine(
     unit: np.ndarray,
     target: np.ndarray,
+    *,
     steps: int,
     weights: np.ndarray | None = None,
     renderer: engine.Renderer | None = None,

@@ -275,6 +275,7 @@ def candidate_names(model: models.Model, extra_count: int, media_count: int = 0)
 def fit(
     model: models.Model,
     target: np.ndarray,
+    *,
     settings: Settings | None = None,
     weights: np.ndarray | None = None,
     extra: np.ndarray | None = None,

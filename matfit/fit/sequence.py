@@ -199,6 +199,7 @@ def load_frame(path: str, resolution: int) -> np.ndarray:
 def fit_sequence(
     model: models.Model,
     frames: list[str],
+    *,
     out: str,
     settings: search.Settings,
     reinit: bool = True,
@@ -240,7 +241,7 @@ def _fit_frames(model, frames, out, settings, reinit, progress, init) -> list[Fr
             results.append(frame)
         else:
             extra = np.asarray(previous, np.float32)[None] if previous is not None else None
-            result = search.fit(model, target, settings, extra=extra)
+            result = search.fit(model, target, settings=settings, extra=extra)
             start = (INIT if index == 0 else PREVIOUS) if result.chosen == "extra-1" else result.chosen
             frame = Frame(
                 path,
@@ -311,6 +312,7 @@ def preview(model: models.Model, results: list[Frame], columns: int = 12, tile: 
 def run(
     model: models.Model | str,
     frames_path: str,
+    *,
     out: str,
     settings: search.Settings,
     reinit: bool = True,
@@ -345,7 +347,7 @@ def run(
         if progress is not None:
             progress(done, total, done / max(time.perf_counter() - started, 1e-9))
 
-    results = fit_sequence(model, frames, out, settings, reinit, report, start)
+    results = fit_sequence(model, frames, out=out, settings=settings, reinit=reinit, progress=report, init=start)
     if render is not None:
         render_frames(results, out, *render)
     files.write_text(os.path.join(out, SUMMARY_FILE), summary_table(results))

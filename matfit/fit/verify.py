@@ -40,8 +40,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from matfit import images, params
-from matfit.errors import FitError
 from matfit.fit import correct, search
+from matfit.fit.methods import check_corrections
 from matfit.model import models
 
 CANDIDATES = 5  # without correction: the start and up to four end points, every end of the default 4-start fit
@@ -73,7 +73,7 @@ class Verified:
     corrections: int = 0  # rounds of correction run
 
 
-def candidates(result: search.Result, count: int = CANDIDATES) -> dict[str, np.ndarray]:
+def candidates(result: search.Result, *, count: int = CANDIDATES) -> dict[str, np.ndarray]:
     """Returns the candidates to render, by name: the start, then the fit's distinct end points, best neural first."""
     chosen = {"start": np.asarray(result.start, np.float64)}
     ends = result.ends if result.ends is not None else result.unit[None]
@@ -101,7 +101,7 @@ def verify_candidates(
     `count`: how many of the fit's candidates (`candidates`) to render.
     """
     started = time.perf_counter()
-    pool = candidates(result, count)
+    pool = candidates(result, count=count)
     return judge(renderer, pool, list(pool), {}, target, as_weights(target, weights), spp, started)
 
 
@@ -126,7 +126,7 @@ def correct_then_verify(
         raise ValueError("correct_then_verify runs at least one round of correction: use verify_candidates for none")
     started = time.perf_counter()
     weights = as_weights(target, weights)
-    pool = candidates(result, count)
+    pool = candidates(result, count=count)
     contenders, batches = list(pool), {}
     last, corrected = correction_rounds(renderer, model, result, pool, batches, target, weights, corrections, spp)
     verified = judge(renderer, pool, [*contenders, last], batches, target, weights, spp, started)
@@ -243,7 +243,7 @@ def squared_error(renders: list[np.ndarray], target: np.ndarray, weights: np.nda
 
 
 def decide(
-    batches: dict[str, list[np.ndarray]], target: np.ndarray, weights: np.ndarray, count: int | None = None
+    batches: dict[str, list[np.ndarray]], target: np.ndarray, weights: np.ndarray, *, count: int | None = None
 ) -> tuple[str, dict[str, float], dict[str, float]]:
     """Returns (the leader: the lowest estimate of `squared_error`, the start first so that a tie keeps it; every
     candidate's estimate; every other candidate's margin behind the leader in standard errors).
@@ -269,15 +269,9 @@ def decide(
     return leader, estimates, margins
 
 
-def prefetch_start(renderer, start: np.ndarray, corrections: int = 0, spp: int = SPP) -> None:
+def prefetch_start(renderer, start: np.ndarray, *, corrections: int = 0, spp: int = SPP) -> None:
     """Starts, on an `engine.Background` or `engine.Process`, the renders verification will make of the fit's start
     (unit cube): its first BATCHES batches (`corrections` changes nothing: the start is judged by the same batches)."""
     values = params.from_unit(np.asarray(start, np.float64))  # as `candidates` and `render_candidate` make them
     for j in range(BATCHES):
         renderer.prefetch(values, BATCH_SEED + j, spp)
-
-
-def check_corrections(corrections: int) -> None:
-    """Raises FitError unless `corrections` (rounds of correction) is a count."""
-    if corrections < 0:
-        raise FitError(f"corrections {corrections} must be >= 0: use 0 to skip correction", field="corrections")

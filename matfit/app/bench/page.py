@@ -70,13 +70,15 @@ def serve_speed(
 def warm_fits(studio, examples: list[str], samples: int) -> list[float]:
     """Returns the seconds of `samples` warm fits through the library on the studio's worker, the CLI's path."""
     from matfit.fit import fitfile
+    from matfit.fit.request import Request
 
     model = studio.model
     warm = []
     for k in range(samples):
         started = time.perf_counter()
         renderer = studio.renderer(model.resolution)
-        studio.worker.submit(fitfile.fit_file, examples[k % 3], model, studio.settings, renderer=renderer).result()
+        request = Request(examples[k % 3], settings=studio.settings)
+        studio.worker.submit(fitfile.fit_file, request, model, renderer=renderer).result()
         warm.append(time.perf_counter() - started)
     return warm
 

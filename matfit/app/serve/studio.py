@@ -23,6 +23,7 @@ from matfit.app.serve.jobs import Job, fit_result, png_bytes, png_data_url
 from matfit.app.serve.watch import GONE, gone
 from matfit.errors import MatfitError, ParameterError
 from matfit.fit import fitfile, search, verify
+from matfit.fit.request import Request
 from matfit.model import models
 
 MAX_RENDER_SIZE = 1024
@@ -81,7 +82,7 @@ class Studio:
     def warm_up(self) -> None:
         """Compiles the fit and loads the renderer before the first page asks (a fit of a grey picture)."""
         grey = np.full((self.model.resolution, self.model.resolution, 3), 0.5, np.float32)
-        search.fit(self.model, grey, self.settings)
+        search.fit(self.model, grey, settings=self.settings)
         self.renderer(self.model.resolution)
         self.preview(params.DEFAULTS)
 
@@ -108,15 +109,14 @@ class Studio:
         picture = None
         try:
             picture = self.snapshot(target) if watched else target  # the editor may save or delete it meanwhile
-            outcome, _ = fitfile.fit_file(
+            request = Request(
                 picture,
-                self.model,
-                self.settings,
                 mask,
+                "uploaded params.json" if init is not None else None,
                 init_values=init,
-                renderer=self.renderer(self.model.resolution),
-                source="uploaded params.json" if init is not None else None,
+                settings=self.settings,
             )
+            outcome, _ = fitfile.fit_file(request, self.model, renderer=self.renderer(self.model.resolution))
             if watched and not os.path.exists(target):
                 raise gone(target, "while it was fitted")
             outcome.document.update(target=label, target_sha256=files.sha256(picture), model=self.model_label)
