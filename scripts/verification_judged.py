@@ -73,7 +73,7 @@ def cases() -> list[tuple[str, np.ndarray, int]]:
 def run_case(model, renderer, old, target: np.ndarray, judge_seed: int) -> dict:
     """Returns one case's figures: each rule's kept answer, its seconds, and the judge's RMSE of it."""
     started = time.perf_counter()
-    result = search.fit(model, target, settings=search.Settings())
+    result = search.neural_search(model, target, settings=search.Settings())
     fitted = time.perf_counter() - started
     row = {"fit_seconds": fitted}
     answers = {}

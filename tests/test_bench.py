@@ -47,7 +47,7 @@ def test_optimiser_comparison_runs_every_optimiser_from_both_starts(model):
         for start in ("random", "best-of-9"):
             assert row[f"{optimiser} ({start}) evaluations"] > 0
             assert 0.0 <= row[f"{optimiser} ({start})"] < 255.0 and 0.0 < row[f"{optimiser} ({start}) seconds"] < 60.0
-    best_of_n = search.fit(model, target, settings=search.Settings(method="nn")).rmse
+    best_of_n = search.neural_search(model, target, settings=search.Settings(method="nn")).rmse
     assert row["L-BFGS-B (best-of-9)"] <= best_of_n + 1e-4 and row["L-BFGS-B, ours (best-of-9)"] <= best_of_n + 1e-4
     assert row["Nelder-Mead (best-of-9) evaluations"] == 30
 

@@ -40,12 +40,12 @@ def test_one_round_removes_an_error_the_decoder_makes_everywhere(model):
     truth, error = true_point(3), bias()
     target = decoded(model, truth) + error
     weights = np.ones((R, R), np.float32)
-    uncorrected = search.fit(
+    uncorrected = search.neural_search(
         model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=60), extra=truth[None]
     )
     x = uncorrected.unit
     before = float(images.rmse(decoded(model, x) + error, target))
-    point, drawn = correct.step(model, target, weights, x, decoded(model, x) + error, decoded(model, x))
+    point, drawn = correct.correction_round(model, target, weights, x, decoded(model, x) + error, decoded(model, x))
     after = float(images.rmse(drawn + error, target))
     assert before > 2.0  # the uncorrected answer carries part of the error (measured 2.89)
     assert after < 0.1 * before  # one round of the default 15 steps removes most of it (measured 0.166)
@@ -67,7 +67,7 @@ def test_verification_with_corrections_keeps_the_lowest_estimate_of_the_start_th
     renderer = Recording(R, 8)
     renderer.asked = []
     target = images.srgb_encode(renderer.render(presets.preset("red-plastic"), seed=5))
-    result = search.fit(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=10))
+    result = search.neural_search(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=10))
     renderer.asked = []
     checked = verify.correct_then_verify(renderer, result, target, model=model, corrections=2)
     assert checked.corrections == 2 and set(checked.decoded) == {"corrected-1", "corrected-2"}
@@ -99,7 +99,7 @@ def test_verification_with_corrections_keeps_the_lowest_estimate_of_the_start_th
     assert renders_of("corrected-1") == [verify.SEED + 1]
     assert renders_of("corrected-2")[: len(batches["corrected-2"])] == batches["corrected-2"]
     rounds_from = checked.points["corrected-1"]  # one round of correction from the origin gives the first point
-    again, _ = correct.step(
+    again, _ = correct.correction_round(
         model,
         target,
         np.ones((R, R), np.float32),
@@ -119,9 +119,9 @@ def test_a_round_reuses_the_fits_compiled_step(model):
 
     target, weights = decoded(model, true_point(4)) + bias(), np.ones((R, R), np.float32)
     x = true_point(5).astype(np.float64)
-    correct.step(model, target, weights, x, decoded(model, x) + bias(), decoded(model, x), iterations=5)
+    correct.correction_round(model, target, weights, x, decoded(model, x) + bias(), decoded(model, x), iterations=5)
     compiled = gradient.step._cache_size()
-    point, _ = correct.step(
+    point, _ = correct.correction_round(
         model, 0.9 * target, weights, 0.9 * x, decoded(model, x), decoded(model, 0.9 * x), iterations=5
     )
     assert gradient.step._cache_size() == compiled
@@ -133,7 +133,7 @@ def test_the_rounds_start_from_the_better_estimate_and_a_worse_last_round_is_not
     model, start_offset, end_offset, origin
 ):
     target = np.full((R, R, 3), 0.4, np.float32)
-    result = search.fit(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
+    result = search.neural_search(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
     pool = verify.candidates(result, count=verify.CORRECTED_CANDIDATES)
     offsets = {"start": start_offset, "end-1": end_offset}
     scripted = Noisy(target, {name: (params.from_unit(pool[name]), offsets[name], 0.02) for name in pool})

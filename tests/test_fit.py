@@ -18,7 +18,7 @@ def model():
 def test_best_of_n_picks_the_closest_candidate(model):
     truth = true_point(1)
     extra = np.stack([true_point(2), truth, true_point(3)])
-    result = search.fit(model, decode(model, truth), settings=Settings(method="nn"), extra=extra)
+    result = search.neural_search(model, decode(model, truth), settings=Settings(method="nn"), extra=extra)
     assert result.chosen == "extra-2"
     np.testing.assert_allclose(result.start_image, decode(model, truth), atol=1e-5)
     assert result.rmse == pytest.approx(0.0, abs=1e-3)
@@ -30,7 +30,7 @@ def test_best_of_n_picks_the_closest_candidate(model):
 def test_hybrid_improves_on_its_start_and_stays_in_the_box(model):
     target = decode(model, true_point(4))
     for box in ("clip", "barrier"):
-        result = search.fit(model, target, settings=Settings(method="hybrid", evaluations=400, box=box))
+        result = search.neural_search(model, target, settings=Settings(method="hybrid", evaluations=400, box=box))
         assert result.evaluations == 400
         assert result.rmse < 0.8 * result.start_rmse
         assert result.unit.min() >= 0.0 and result.unit.max() <= 1.0
@@ -68,28 +68,28 @@ def test_a_mask_ignores_what_it_blacks_out(model):
     spoiled[: R // 2] = 1.0 - spoiled[: R // 2]
     weights = np.ones((R, R), np.float32)
     weights[: R // 2] = 0.0
-    masked = search.fit(model, spoiled, settings=Settings(method="hybrid", evaluations=300), weights=weights)
-    plain = search.fit(model, spoiled, settings=Settings(method="hybrid", evaluations=300))
+    masked = search.neural_search(model, spoiled, settings=Settings(method="hybrid", evaluations=300), weights=weights)
+    plain = search.neural_search(model, spoiled, settings=Settings(method="hybrid", evaluations=300))
     assert masked.rmse < plain.rmse
 
 
 def test_one_compilation_serves_every_target(model):
     settings = Settings(method="hybrid", evaluations=60)
-    search.fit(model, decode(model, true_point(6)), settings=settings)
-    before = search._fit._cache_size()
+    search.neural_search(model, decode(model, true_point(6)), settings=settings)
+    before = search._best_of_n._cache_size()
     for seed in (7, 8, 9):
-        search.fit(model, decode(model, true_point(seed)), settings=settings)
-    assert search._fit._cache_size() == before
+        search.neural_search(model, decode(model, true_point(seed)), settings=settings)
+    assert search._best_of_n._cache_size() == before
 
 
 def test_optimize_starts_from_a_seeded_random_point(model):
     target = decode(model, true_point(10))
     settings = Settings(method="optimize", evaluations=100)
-    a = search.fit(model, target, settings=settings, seed=1)
-    before = search._fit._cache_size()
-    b = search.fit(model, target, settings=settings, seed=1)
-    c = search.fit(model, target, settings=settings, seed=2)
-    assert search._fit._cache_size() == before  # the seed is data: no new compilation
+    a = search.neural_search(model, target, settings=settings, seed=1)
+    before = search._best_of_n._cache_size()
+    b = search.neural_search(model, target, settings=settings, seed=1)
+    c = search.neural_search(model, target, settings=settings, seed=2)
+    assert search._best_of_n._cache_size() == before  # the seed is data: no new compilation
     np.testing.assert_array_equal(a.unit, b.unit)
     assert not np.array_equal(a.unit, c.unit)
 
@@ -105,15 +105,15 @@ def test_optimize_starts_from_a_seeded_random_point(model):
 )
 def test_bad_settings(model, settings, message, field):
     with pytest.raises(FitError, match=message) as raised:
-        search.fit(model, np.zeros((R, R, 3), np.float32), settings=Settings(**settings))
+        search.neural_search(model, np.zeros((R, R, 3), np.float32), settings=Settings(**settings))
     assert raised.value.field == field
 
 
 def test_wrong_target_shape_and_bad_mask(model):
     with pytest.raises(FitError, match=r"needs \(32, 32, 3\)"):
-        search.fit(model, np.zeros((8, 8, 3), np.float32))
+        search.neural_search(model, np.zeros((8, 8, 3), np.float32))
     with pytest.raises(FitError, match="mask must be"):
-        search.fit(model, np.zeros((R, R, 3), np.float32), weights=np.zeros((R, R)))
+        search.neural_search(model, np.zeros((R, R, 3), np.float32), weights=np.zeros((R, R)))
     with pytest.raises(FitError, match="make the mask the same size"):
         search.prepare_mask(np.ones((10, 12, 3), np.float32), (12, 12), R, "m.png")
 
@@ -131,8 +131,8 @@ def test_gradient_methods_reach_a_reachable_target_and_count_their_budget(model,
     truth = true_point(11)
     target = decode(model, truth)
     settings = Settings(method=method, evaluations=60, starts=2, iterations=60, narrow_after=20)
-    best_of_n = search.fit(model, target, settings=Settings(method="nn"))
-    result = search.fit(model, target, settings=settings)
+    best_of_n = search.neural_search(model, target, settings=Settings(method="nn"))
+    result = search.neural_search(model, target, settings=settings)
     assert result.rmse <= best_of_n.rmse and result.rmse == pytest.approx(result.end_rmse[0])
     assert np.all(np.diff(result.end_rmse) >= 0)  # end points best first
     assert len(result.ends) == (3 if method == "hybrid-lbfgsb" else 2)
@@ -142,15 +142,15 @@ def test_gradient_methods_reach_a_reachable_target_and_count_their_budget(model,
     )  # value-and-gradient evaluations, all starts
     assert result.evaluations - simplex_part == pytest.approx(search.GRADIENT_COST * spent, abs=0.5)  # rounded to whole
     assert len(result.ends) <= spent <= 20 * len(result.ends) + 40  # every start 20 steps at most, the best 40 more
-    compiled = [search._fit, search._finish, gradient.step]
+    compiled = [search._best_of_n, search._polish_and_sort, gradient.step]
     before = [function._cache_size() for function in compiled]
-    search.fit(model, decode(model, true_point(12)), settings=settings)
+    search.neural_search(model, decode(model, true_point(12)), settings=settings)
     assert [function._cache_size() for function in compiled] == before
 
 
 def test_optimize_reports_its_random_start(model):
     target = decode(model, true_point(13))
-    result = search.fit(model, target, settings=Settings(method="optimize", evaluations=40), seed=3)
+    result = search.neural_search(model, target, settings=Settings(method="optimize", evaluations=40), seed=3)
     expected = np.random.default_rng(3).uniform(0.0, 1.0, params.COUNT).astype(np.float32)
     assert result.chosen == "random"
     np.testing.assert_array_equal(result.start, expected)
@@ -166,16 +166,20 @@ def test_gradient_methods_add_the_media_grid_to_best_of_n(model):
         np.testing.assert_allclose(physical[:, params.INDEX[name]], 1.0)
     assert sorted(set(np.round(physical[:, params.INDEX["density"]], 6))) == [0.5, 1.0, 2.0, 4.0]
     target = decode(model, grid[17])
-    result = search.fit(model, target, settings=Settings(method="lbfgsb", starts=1, iterations=1, narrow_after=1))
+    result = search.neural_search(
+        model, target, settings=Settings(method="lbfgsb", starts=1, iterations=1, narrow_after=1)
+    )
     assert result.chosen == "media-18" and result.start_rmse == pytest.approx(0.0, abs=1e-3)
     assert len(result.candidate_rmse) == len(model.encoders) + 48
-    paper = search.fit(model, target, settings=Settings(method="nn"))
+    paper = search.neural_search(model, target, settings=Settings(method="nn"))
     assert set(paper.candidate_rmse) == {"encoder-3", "encoder-8"}
 
 
 def test_the_fit_hands_back_the_images_of_its_start_and_end_points(model):
     target = decode(model, true_point(5))
-    result = search.fit(model, target, settings=Settings(method="lbfgsb", starts=2, iterations=3, narrow_after=2))
+    result = search.neural_search(
+        model, target, settings=Settings(method="lbfgsb", starts=2, iterations=3, narrow_after=2)
+    )
     assert result.end_images.shape == (len(result.ends), R, R, 3)
     for end, image in zip(result.ends, result.end_images, strict=True):
         np.testing.assert_allclose(result.decoded(end), decode(model, end), atol=1e-5)
@@ -192,13 +196,13 @@ def test_on_start_hears_best_of_n_winner_and_never_a_random_start(model):
     def on_start(start):
         heard.append(np.array(start))
 
-    result = search.fit(
+    result = search.neural_search(
         model, target, settings=Settings(method="lbfgsb", starts=2, iterations=3, narrow_after=2), on_start=on_start
     )
     assert len(heard) == 1
     # the very bytes verification renders the start from (`verify.candidates`): a prefetched render is found
     assert np.asarray(heard[0], np.float64).tobytes() == np.asarray(result.start, np.float64).tobytes()
-    search.fit(model, target, settings=Settings(method="optimize", evaluations=40), on_start=on_start)
+    search.neural_search(model, target, settings=Settings(method="optimize", evaluations=40), on_start=on_start)
     assert len(heard) == 1  # optimize starts from a random point, not from best-of-n's winner
 
 

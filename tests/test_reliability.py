@@ -69,7 +69,7 @@ model = models.load_model(sys.argv[1])
 target = images.srgb_encode(images.read(sys.argv[1] + "/target.png"))
 print("fitting", flush=True)
 try:
-    fit.fit(model, target, settings=fit.Settings(method="hybrid", evaluations=1_000_000))
+    fit.neural_search(model, target, settings=fit.Settings(method="hybrid", evaluations=1_000_000))
 except KeyboardInterrupt:  # XLA's compiler checks for signals itself; the command line then leaves like this
     interrupt.exit_now()
 """

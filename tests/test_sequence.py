@@ -48,7 +48,7 @@ def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, mod
     whole = sequence.fit_sequence(model, frames, out=str(tmp_path / "whole"), settings=settings)
     assert len(whole) == 4
     seen = []
-    original = search.fit
+    original = search.neural_search
 
     def spy(model_, target, *, settings, extra=None):
         result = original(model_, target, settings=settings, extra=extra)
@@ -56,7 +56,7 @@ def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, mod
         return result
 
     with monkeypatch.context() as patch:
-        patch.setattr(search, "fit", spy)
+        patch.setattr(search, "neural_search", spy)
         partial = sequence.fit_sequence(model, frames[:2], out=str(tmp_path / "parts"), settings=settings)
         resumed = sequence.fit_sequence(model, frames, out=str(tmp_path / "parts"), settings=settings)
     assert seen[0][0] is None and "extra-1" not in seen[0][1]
@@ -145,7 +145,7 @@ def test_another_model_is_refused_and_a_failed_first_frame_leaves_no_folder(tmp_
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(search, "fit", interrupted)
+    monkeypatch.setattr(search, "neural_search", interrupted)
     with pytest.raises(KeyboardInterrupt):
         sequence.fit_sequence(model, frames, out=str(tmp_path / "new"), settings=settings)
     assert not (tmp_path / "new").exists()
@@ -160,7 +160,7 @@ def test_a_finished_frame_nested_too_deeply_is_one_line_naming_it(tmp_path):
 def test_two_frames_with_one_result_name_are_refused_before_any_fit(tmp_path, model, frames, monkeypatch):
     folder = tmp_path / "frames"
     images.write(str(folder / "f1.jpg"), images.srgb_decode(np.clip(decode(model, true_point(5)), 0, 1)))
-    monkeypatch.setattr(search, "fit", None)  # a fit would fail: the refusal comes first
+    monkeypatch.setattr(search, "neural_search", None)  # a fit would fail: the refusal comes first
     settings = search.Settings(method="hybrid", evaluations=30)
     with pytest.raises(SequenceError, match=r"frames .*f1\.(jpg|png) and .*f1\.(png|jpg) would both write .* f1\.json"):
         sequence.run(model, str(folder), out=str(tmp_path / "out"), settings=settings)
@@ -171,7 +171,7 @@ def test_two_frames_with_one_result_name_are_refused_before_any_fit(tmp_path, mo
 
 def test_outputs_that_are_frames_or_a_read_only_folder_are_refused(tmp_path, model, frames, monkeypatch):
     folder = tmp_path / "frames"
-    monkeypatch.setattr(search, "fit", None)
+    monkeypatch.setattr(search, "neural_search", None)
     settings = search.Settings(method="hybrid", evaluations=30)
     images.write(str(folder / "preview.png"), images.srgb_decode(np.clip(decode(model, true_point(5)), 0, 1)))
     with pytest.raises(OutputError, match=r"preview .*preview\.png is the frame .*choose another out folder"):

@@ -124,7 +124,7 @@ def test_a_fit_through_the_api_is_the_fit_the_library_makes(url, studio):
     result = done["result"]
     assert set(result["pictures"]) == {"target", "start", "neural", "mitsuba", "difference"}
     assert all(picture.startswith("data:image/png;base64,") for picture in result["pictures"].values())
-    expected = search.fit(studio.model, studio_target(studio), settings=studio.settings)
+    expected = search.neural_search(studio.model, studio_target(studio), settings=studio.settings)
     assert result["start"] == expected.chosen and result["start_rmse"] == pytest.approx(expected.start_rmse, abs=1e-3)
     assert result["mitsuba_rmse"] <= result["start_rmse"] + 50  # a figure, not a placeholder
     document = json.loads(request(f"{url}api/jobs/{answer['job']}/files/params.json")[1])

@@ -21,7 +21,7 @@ def renderer32():
 
 def test_candidates_start_first_then_distinct_ends(model):
     target = model.decode(np.full((1, 19), 0.3))[0]
-    result = search.fit(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
+    result = search.neural_search(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
     pool = verify.candidates(result)
     names = list(pool)
     assert names[0] == "start" and 2 <= len(names) <= verify.CANDIDATES
@@ -34,7 +34,7 @@ def test_candidates_start_first_then_distinct_ends(model):
 def test_a_fooled_decoder_never_makes_the_answer_physically_worse_than_the_start(model, renderer32):
     # A random decoder knows nothing of the scene: its optimum for a jade render is physically arbitrary.
     target = images.srgb_encode(renderer32.render(presets.preset("jade"), seed=5))
-    result = search.fit(
+    result = search.neural_search(
         model,
         target,
         settings=search.Settings(method="lbfgsb", starts=3, iterations=30),
@@ -68,7 +68,7 @@ def test_the_verification_table_judges_every_spp_by_one_independent_render(model
         units, np.stack([images.srgb_encode(renderer32.render(search.params.from_unit(u))) for u in units])
     )
     results = [
-        search.fit(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
+        search.neural_search(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
         for target in targets.images
     ]
     table = fits.verification_table(renderer32, results, targets, spps=(4, 8))
@@ -134,7 +134,7 @@ def test_the_estimate_leaves_out_the_renders_noise_which_a_renders_rmse_counts()
 
 def scripted(model, materials_of):
     target = np.full((R, R, 3), 0.4, np.float32)
-    result = search.fit(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
+    result = search.neural_search(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
     pool = verify.candidates(result, count=2)
     renderer = Noisy(target, {name: (search.params.from_unit(pool[name]), *materials_of[name]) for name in pool})
     return verify.verify_candidates(renderer, result, target, count=2), renderer
@@ -167,7 +167,7 @@ def test_a_lead_within_the_noise_renders_more_batches_and_a_tie_keeps_the_start(
 
 def test_verification_is_bit_identical_from_run_to_run(model):
     target = np.full((R, R, 3), 0.4, np.float32)
-    result = search.fit(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
+    result = search.neural_search(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
     runs = [verify.verify_candidates(Renderer(R, 8, threads=1), result, target, count=2, spp=8) for _ in range(2)]
     assert runs[0].figures == runs[1].figures and runs[0].margins == runs[1].margins
     np.testing.assert_array_equal(runs[0].rendered, runs[1].rendered)

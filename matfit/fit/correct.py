@@ -38,7 +38,7 @@ def corrected_target(target: np.ndarray, rendered: np.ndarray, decoded: np.ndarr
     return np.asarray(target, np.float32) - error
 
 
-def step(
+def correction_round(
     model: models.Model,
     target: np.ndarray,
     weights: np.ndarray,

@@ -1,7 +1,7 @@
 """Fitting an image file end to end: read the target and mask, fit, verify in Mitsuba, write every output together.
 
 This is what `matfit fit` does, as a library function: `run(request, model)` (a `request.Request`)
-reads and checks the inputs, fits (`search.fit`), lets Mitsuba choose among the fit's final
+reads and checks the inputs, fits (`search.neural_search`), lets Mitsuba choose among the fit's final
 candidates (`verify.verify_candidates`, or `verify.correct_then_verify` after rounds of correction; on
 by default), and writes params.json, the report, the render and the exports under temporary names,
 renaming them into place only once all of them were written.
@@ -172,7 +172,7 @@ def search_stage(request: Request, model, target, weights, init_values, backgrou
     on_start = None
     if background is not None and request.verified:
         on_start = functools.partial(verify.prefetch_start, background, corrections=request.rounds)
-    result = search.fit(
+    result = search.neural_search(
         model, target, settings=request.settings, weights=weights, extra=extra, seed=request.seed, on_start=on_start
     )
     if not np.isfinite(result.rmse):  # the decoder's images hold NaN: no figure and no answer can be trusted

@@ -1,7 +1,7 @@
 """The fitting methods and their settings: plain data without JAX, so the command line offers them at start-up.
 
 `Settings` holds what is compiled into a fit (the method, the budget, the box handling); what
-varies per call (the target, the mask, the random start's seed) is passed to `search.fit` as data,
+varies per call (the target, the mask, the random start's seed) is passed to `search.neural_search` as data,
 so one compilation serves every target and seed.
 """
 

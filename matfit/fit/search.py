@@ -21,9 +21,9 @@ PENALTY x (distance outside); `barrier` is the paper's finite barrier (E + BARRI
 Both keep the result inside the box, which is clipped at the end in any case.
 
 Everything per call (weights, target, mask, candidates, random start) travels as arguments of
-compiled functions, compiled once per model and settings and reused for every target: `_fit`
+compiled functions, compiled once per model and settings and reused for every target: `_best_of_n`
 (best-of-n, Nelder-Mead), the gradient stage's step (a host loop, see `gradient.py` for why) and
-`_finish` (the optional polish, the end points sorted).
+`_polish_and_sort` (the optional neural polish, the end points sorted).
 """
 
 from __future__ import annotations
@@ -45,7 +45,17 @@ from matfit.fit import gradient
 from matfit.fit.methods import Box, Method, Settings
 from matfit.model import models
 
-__all__ = ["Box", "FitError", "Method", "Result", "Settings", "fit", "objective", "prepare_mask", "prepare_target"]
+__all__ = [
+    "Box",
+    "FitError",
+    "Method",
+    "Result",
+    "Settings",
+    "neural_search",
+    "objective",
+    "prepare_mask",
+    "prepare_target",
+]
 
 PENALTY = 100.0
 BARRIER = 1e4
@@ -102,7 +112,7 @@ def objective(x: jax.Array, args: tuple) -> jax.Array:
     return error + PENALTY * outside
 
 
-def polish(decoder, variables, target, weights, x: jax.Array, steps: int, rate: float) -> jax.Array:
+def neural_polish(decoder, variables, target, weights, x: jax.Array, steps: int, rate: float) -> jax.Array:
     """Returns the best point of `steps` projected Adam steps on E from x (x itself if none is better)."""
     import optax  # only for the opt-in polish: every cold start would pay for its import
 
@@ -133,7 +143,7 @@ def decoded_rmse(y: jax.Array, args: tuple) -> jax.Array:
 
 
 @programs.jit(static_argnames=("decoder", "encoders", "settings"))
-def _fit(
+def _best_of_n(
     decoder,
     encoders,
     settings: Settings,
@@ -153,7 +163,7 @@ def _fit(
     candidate_images = decoder.apply(decoder_variables, candidates)
     candidate_errors = images.rmse(candidate_images, target, weights)
     chosen = jnp.argmin(candidate_errors)
-    # The fit's end points (sorted by `_finish`): what Mitsuba verification chooses among.
+    # The fit's end points (sorted by `_polish_and_sort`): what Mitsuba verification chooses among.
     ends = candidates[chosen][None]
     evaluations = jnp.array(0, jnp.float32)
     if settings.method.uses_simplex:
@@ -203,12 +213,12 @@ def gradient_objective(decoder) -> DecodedObjective:
 
 
 @programs.jit(static_argnames=("decoder", "settings"))
-def _finish(decoder, settings: Settings, decoder_variables, target, weights, ends):
+def _polish_and_sort(decoder, settings: Settings, decoder_variables, target, weights, ends):
     """Returns the end points sorted by neural RMSE (after the optional polish), and their images."""
     end_images = decoder.apply(decoder_variables, ends)
     end_errors = images.rmse(end_images, target, weights)
     if settings.polish_steps:
-        polished = polish(
+        polished = neural_polish(
             decoder,
             decoder_variables,
             target,
@@ -272,7 +282,7 @@ def candidate_names(model: models.Model, extra_count: int, media_count: int = 0)
     )
 
 
-def fit(
+def neural_search(
     model: models.Model,
     target: np.ndarray,
     *,
@@ -282,7 +292,7 @@ def fit(
     seed: int = 0,
     on_start: Callable[[np.ndarray], None] | None = None,
 ) -> Result:
-    """Returns the parameters whose decoded image best matches `target`.
+    """Returns the parameters whose decoded image best matches `target`: best-of-n, then the method's optimiser.
 
     target: sRGB (R, R, 3) in [0, 1] at the model's resolution (`prepare_target`); weights: (R, R)
     per-pixel weights (a mask) or None; extra: unit-cube candidates (k, 19) joining best-of-n (the
@@ -292,6 +302,29 @@ def fit(
     """
     settings = settings or Settings()
     settings.check()
+    target, weights, extra, media = checked_inputs(model, settings, target, weights, extra)
+    start = np.random.default_rng(seed).uniform(0.0, 1.0, params.COUNT).astype(np.float32)
+    encoder_target = models.encoder_input(images.srgb_decode(target))
+    started = time.perf_counter()
+    out = best_of_n_stage(model, settings, target, encoder_target, weights, np.concatenate([extra, media]), start)
+    ends = out["ends"]
+    if on_start is not None and settings.method != Method.optimize:  # optimize starts at random
+        on_start(np.asarray(out["candidates"][int(out["chosen"])]))
+    if settings.method.uses_gradient:
+        ends, spent = gradient_stage(model, settings, target, weights, ends)
+        out["evaluations"] = out["evaluations"] + GRADIENT_COST * spent
+    decoder, variables = model.decoder.module, model.decoder.variables
+    out |= jax.device_get(_polish_and_sort(decoder, settings, variables, target, weights, ends))
+    seconds = time.perf_counter() - started
+    names = candidate_names(model, len(extra), len(media))
+    return search_result(model, settings, out, names, start, target, weights, seconds)
+
+
+def checked_inputs(
+    model: models.Model, settings: Settings, target, weights, extra
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Returns (target, weights, extra candidates, the media grid or none) as float32 arrays, or raises FitError
+    naming what is wrong with them."""
     side = model.resolution
     target = np.asarray(target, np.float32)
     if target.shape != (side, side, 3):
@@ -309,12 +342,14 @@ def fit(
     media = media_candidates() if settings.method.uses_gradient else np.zeros((0, params.COUNT), np.float32)
     if not model.encoders and not len(extra) + len(media) and settings.method != Method.optimize:
         raise FitError("best-of-n needs at least one encoder or extra candidate: use a model with encoders")
-    start = np.random.default_rng(seed).uniform(0.0, 1.0, params.COUNT).astype(np.float32)
-    encoder_target = models.encoder_input(images.srgb_decode(target))
-    started = time.perf_counter()
-    decoder = model.decoder.module
-    out = _fit(
-        decoder,
+    return target, weights, extra, media
+
+
+def best_of_n_stage(model: models.Model, settings: Settings, target, encoder_target, weights, extra, start) -> dict:
+    """Returns the compiled first stage's outputs as host arrays (`_best_of_n`): best-of-n over the encoders' guesses
+    and `extra`, then Nelder-Mead for the simplex methods, and the gradient stage's starts."""
+    out = _best_of_n(
+        model.decoder.module,
         tuple(network.module for network in model.encoders.values()),
         settings,
         model.decoder.variables,
@@ -322,22 +357,26 @@ def fit(
         target,
         encoder_target,
         weights,
-        np.concatenate([extra, media]),
+        extra,
         start,
     )
-    out = jax.device_get(out)  # host arrays between the compiled stages: no JAX operation outside them
-    ends = out["ends"]
-    if on_start is not None and settings.method != Method.optimize:  # optimize starts at random
-        on_start(np.asarray(out["candidates"][int(out["chosen"])]))
-    if settings.method.uses_gradient:
-        data = (model.decoder.variables, target, weights)
-        ends, _, spent = gradient.minimise(
-            gradient_objective(decoder), ends, data, settings.iterations, narrow_after=settings.narrow_after
-        )
-        out["evaluations"] = out["evaluations"] + GRADIENT_COST * spent
-    out |= jax.device_get(_finish(decoder, settings, model.decoder.variables, target, weights, ends))
-    seconds = time.perf_counter() - started
-    names = candidate_names(model, len(extra), len(media))
+    return jax.device_get(out)  # host arrays between the compiled stages: no JAX operation outside them
+
+
+def gradient_stage(model: models.Model, settings: Settings, target, weights, starts) -> tuple[np.ndarray, float]:
+    """Returns (the end points of projected L-BFGS from `starts` (`gradient.minimise`), the value-and-gradients
+    spent)."""
+    data = (model.decoder.variables, target, weights)
+    ends, _, spent = gradient.minimise(
+        gradient_objective(model.decoder.module), starts, data, settings.iterations, narrow_after=settings.narrow_after
+    )
+    return ends, spent
+
+
+def search_result(
+    model: models.Model, settings: Settings, out: dict, names: list[str], start, target, weights, seconds: float
+) -> Result:
+    """Returns the `Result` of the compiled stages' outputs `out`; for `optimize`, its start is the random `start`."""
     unit = np.asarray(out["unit"], np.float64)
     chosen = int(out["chosen"])
     start_rmse, start_point, start_image, chosen_name = (

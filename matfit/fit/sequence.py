@@ -241,7 +241,7 @@ def _fit_frames(model, frames, out, settings, reinit, progress, init) -> list[Fr
             results.append(frame)
         else:
             extra = np.asarray(previous, np.float32)[None] if previous is not None else None
-            result = search.fit(model, target, settings=settings, extra=extra)
+            result = search.neural_search(model, target, settings=settings, extra=extra)
             start = (INIT if index == 0 else PREVIOUS) if result.chosen == "extra-1" else result.chosen
             frame = Frame(
                 path,

@@ -117,7 +117,8 @@ def correct_then_verify(
     spp: int = SPP,
 ) -> Verified:
     """Returns, as `verify_candidates`, the candidate kept among the fit's `count` candidates and the last of
-    `corrections` rounds of `correct.step` ("corrected-1", ...) from the better of them (`where_rounds_start`).
+    `corrections` rounds of `correct.correction_round` ("corrected-1", ...) from the better of them
+    (`where_rounds_start`): the correction stage, then the verification stage.
 
     `model`: the fit's, whose decoder the rounds fit with.
     """
@@ -159,14 +160,15 @@ def correction_rounds(
     renderer, model, result, pool, batches, target, weights, corrections: int, spp: int
 ) -> tuple[str, dict[str, np.ndarray]]:
     """Returns (the name of the last round's point, phi of each round's point by name) after adding each round's
-    point to `pool`: `corrections` rounds of `correct.step`, each from the last one's point (`correct.py`)."""
+    point to `pool`: `corrections` rounds of `correct.correction_round`, each from the last one's point
+    (`correct.py`)."""
     name, image = where_rounds_start(renderer, pool, batches, target, weights, spp)
     unit = pool[name]
     decoded = result.decoded(unit)
     decoded = model.decode(unit)[0] if decoded is None else decoded
     corrected = {}
     for k in range(corrections):
-        unit, decoded = correct.step(model, target, weights, unit, image, decoded)
+        unit, decoded = correct.correction_round(model, target, weights, unit, image, decoded)
         name = f"corrected-{k + 1}"
         pool[name], corrected[name] = unit, decoded
         if k + 1 < corrections:  # the next round's residual, from a render with this round's own seed

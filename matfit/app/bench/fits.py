@@ -53,11 +53,11 @@ def compare(
     """Fits every target with every configuration; returns per configuration the results' figures."""
     table = {}
     for label, settings in configurations.items():
-        search.fit(model, targets.images[0], settings=settings)  # compile outside the timing
+        search.neural_search(model, targets.images[0], settings=settings)  # compile outside the timing
         errors, seconds, results = [], [], []
         for k, target in enumerate(targets.images):
             started = time.perf_counter()
-            result = search.fit(model, target, settings=settings)
+            result = search.neural_search(model, target, settings=settings)
             seconds.append(time.perf_counter() - started)
             errors.append(result.rmse)
             results.append(result)

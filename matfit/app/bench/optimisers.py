@@ -40,7 +40,7 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
     bounded, penalised = value_and_gradients(args)
     calls = max(1, int(evaluations // search.GRADIENT_COST))
     solvers = scipy_solvers(bounded, penalised, calls)
-    best = search.fit(model, target, settings=search.Settings(method=search.Method.nn))
+    best = search.neural_search(model, target, settings=search.Settings(method=search.Method.nn))
     starts = {
         "random": np.random.default_rng(0).uniform(0.0, 1.0, params.COUNT).astype(np.float32),
         "best-of-9": best.start,
@@ -136,7 +136,7 @@ def nelder_mead(
 ) -> dict:
     """Returns the figures of matfit's Nelder-Mead (`method`: from a random start, or the hybrid's best-of-9)."""
     started = time.perf_counter()
-    result = search.fit(model, target, settings=search.Settings(method=method, evaluations=evaluations))
+    result = search.neural_search(model, target, settings=search.Settings(method=method, evaluations=evaluations))
     return figures(name, result.unit, time.perf_counter() - started, result.evaluations, args)
 
 

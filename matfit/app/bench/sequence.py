@@ -40,7 +40,7 @@ def sequence_table(
         for reinit in (False, True):
             errors, previous = [], None
             for frame in frames:
-                result = search.fit(model, frame, settings=settings, extra=previous if reinit else None)
+                result = search.neural_search(model, frame, settings=settings, extra=previous if reinit else None)
                 errors.append(result.rmse)
                 previous = result.unit[None]
             runs[(budget, reinit)] = np.array(errors)

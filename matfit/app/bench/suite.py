@@ -67,9 +67,9 @@ def default_fit(model: models.Model, renderer, target: np.ndarray) -> dict:
     """Returns matfit's default fit of a target (`search.Settings()`, Mitsuba-verified and corrected, as `matfit fit`):
     neural figures, time, values."""
     settings = search.Settings()
-    search.fit(model, target, settings=settings)  # compile outside the timing
+    search.neural_search(model, target, settings=settings)  # compile outside the timing
     started = time.perf_counter()
-    result = search.fit(model, target, settings=settings)
+    result = search.neural_search(model, target, settings=settings)
     checked = verify.correct_then_verify(renderer, result, target, model=model, corrections=CORRECTIONS)
     return {
         "default": float(images.rmse(model.decode(checked.unit)[0], target)),
@@ -87,16 +87,16 @@ def main_table(model: models.Model, cases, budgets=BUDGETS, seeds: int = 5, rend
     rows = []
     for name, description, target in cases:
         row = {"case": name, "description": description, "random": random_guess_rmse(model, target, seeds)}
-        row["best_of_n"] = search.fit(model, target, settings=search.Settings(method=search.Method.nn)).rmse
+        row["best_of_n"] = search.neural_search(model, target, settings=search.Settings(method=search.Method.nn)).rmse
         if renderer is not None:
             row.update(default_fit(model, renderer, target))
         for budget in budgets:
             for method in (search.Method.optimize, search.Method.hybrid):  # compile outside the timing
-                search.fit(model, target, settings=search.Settings(method=method, evaluations=budget))
+                search.neural_search(model, target, settings=search.Settings(method=method, evaluations=budget))
             settings = search.Settings(method=search.Method.optimize, evaluations=budget)
-            optimised = [search.fit(model, target, settings=settings, seed=seed) for seed in range(seeds)]
+            optimised = [search.neural_search(model, target, settings=settings, seed=seed) for seed in range(seeds)]
             started = time.perf_counter()
-            hybrid = search.fit(
+            hybrid = search.neural_search(
                 model, target, settings=search.Settings(method=search.Method.hybrid, evaluations=budget)
             )
             row[f"optimize_{budget}"] = float(np.mean([r.rmse for r in optimised]))

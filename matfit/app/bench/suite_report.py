@@ -26,7 +26,7 @@ def case_picture(
     and stores in `row` the RMSE of Mitsuba renders of the best-of-9, optimiser (seed 0), hybrid and default results."""
     from matfit.fit import report
 
-    best = search.fit(model, target, settings=search.Settings(method=search.Method.nn))
+    best = search.neural_search(model, target, settings=search.Settings(method=search.Method.nn))
 
     def decode(values):
         return model.decode(params.to_unit(np.asarray(values)))[0]

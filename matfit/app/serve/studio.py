@@ -82,7 +82,7 @@ class Studio:
     def warm_up(self) -> None:
         """Compiles the fit and loads the renderer before the first page asks (a fit of a grey picture)."""
         grey = np.full((self.model.resolution, self.model.resolution, 3), 0.5, np.float32)
-        search.fit(self.model, grey, settings=self.settings)
+        search.neural_search(self.model, grey, settings=self.settings)
         self.renderer(self.model.resolution)
         self.preview(params.DEFAULTS)
 
