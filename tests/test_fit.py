@@ -220,3 +220,36 @@ def test_a_model_that_decodes_nan_is_refused_and_no_params_json_is_written(model
     with pytest.raises(FitError, match=r"decodes images that are not finite \(neural RMSE nan\).*train it again"):
         fitfile.run(request, broken)
     assert not (tmp_path / "params.json").exists()  # was written with "neural_rmse": NaN, which is not JSON
+
+
+def test_a_request_is_refused_before_any_work_with_the_one_line_error(tmp_path):
+    from matfit.errors import ImageError, OutputError
+    from matfit.fit import fitfile
+    from matfit.fit.methods import CORRECTIONS
+    from matfit.fit.request import Outputs, Request
+
+    missing_model = str(tmp_path / "no-model")  # loading it would fail: each refusal must come before
+    picture = str(tmp_path / "edit.png")
+    images.write(picture, np.full((R, R, 3), 0.3, np.float32))
+    written = Outputs(str(tmp_path / "params.json"))
+    refusals = [
+        (
+            Request(picture, outputs=Outputs(str(tmp_path / "params.txt"))),
+            OutputError,
+            r"params\.txt must end in \.json",
+        ),
+        (Request(str(tmp_path / "gone.png"), outputs=written), ImageError, r"target .*gone\.png is not a file"),
+        (Request(picture, mask=str(tmp_path / "no-mask.png"), outputs=written), ImageError, "mask .* is not a file"),
+        (Request(picture, verified=False, corrections=2, outputs=written), FitError, "2 correction rounds need"),
+        (Request(picture, corrections=-1, outputs=written), FitError, "corrections -1 must be >= 0"),
+        (Request(picture, refine_steps=-1, outputs=written), FitError, "refine steps -1 must be >= 0"),
+        (Request(picture, settings=Settings(starts=0), outputs=written), FitError, "starts 0 is out of range"),
+    ]
+    for request, error, message in refusals:
+        with pytest.raises(error, match=message):
+            fitfile.run(request, missing_model)
+    assert not (tmp_path / "params.json").exists()
+    with pytest.raises(ValueError, match="writes the request's outputs"):
+        fitfile.run(Request(picture), missing_model)
+    assert Request(picture).rounds == CORRECTIONS and Request(picture, verified=False).rounds == 0
+    assert Request(picture, corrections=1).rounds == 1
