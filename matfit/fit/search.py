@@ -273,7 +273,7 @@ class Result:
         return None
 
 
-def candidate_names(model: models.Model, extra_count: int, media_count: int = 0) -> list[str]:
+def candidate_names(model: models.Model, extra_count: int, *, media_count: int = 0) -> list[str]:
     """Returns the names of the best-of-n candidates in order: encoders, extra candidates, then the media grid."""
     return (
         [f"encoder-{arch}" for arch in model.encoders]
@@ -316,7 +316,7 @@ def neural_search(
     decoder, variables = model.decoder.module, model.decoder.variables
     out |= jax.device_get(_polish_and_sort(decoder, settings, variables, target, weights, ends))
     seconds = time.perf_counter() - started
-    names = candidate_names(model, len(extra), len(media))
+    names = candidate_names(model, len(extra), media_count=len(media))
     return search_result(model, settings, out, names, start, target, weights, seconds)
 
 

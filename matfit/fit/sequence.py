@@ -104,7 +104,7 @@ def check_frame_names(frames: list[str]) -> None:
         seen[name] = path
 
 
-def check_outputs(frames: list[str], out: str, rendered: bool, init: str | None = None) -> None:
+def check_outputs(frames: list[str], out: str, *, rendered: bool, init: str | None = None) -> None:
     """Raises SequenceError or OutputError, before any fit, unless every file of a run into `out` can be written.
 
     No two frames may share a result name, the folder must take files, and no output (a result, a
@@ -162,7 +162,7 @@ def read_finished(path: str, expected: dict) -> tuple[Frame, dict] | None:
     return frame, {"frame_sha256": stored.get("frame_sha256"), "previous": stored.get("previous")}
 
 
-def stale(finished: tuple[Frame, dict] | None, computed_from: dict, first: bool = False) -> str | None:
+def stale(finished: tuple[Frame, dict] | None, computed_from: dict, *, first: bool = False) -> str | None:
     """Returns why a finished frame's result must be fitted again (None: it can be reused)."""
     if finished is None:
         return None
@@ -292,7 +292,7 @@ def summary_table(results: list[Frame]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def preview(model: models.Model, results: list[Frame], columns: int = 12, tile: int = 96) -> np.ndarray:
+def preview(model: models.Model, results: list[Frame], *, columns: int = 12, tile: int = 96) -> np.ndarray:
     """Returns an sRGB strip: targets on top, fitted (neural) images below, for up to `columns` frames."""
     from matfit.fit import report
 
@@ -336,7 +336,7 @@ def run(
         raise SequenceError(
             f"output folder {out} cannot be created: {parent} does not exist (create it first)", field="out"
         )
-    check_outputs(frames, out, render is not None, init)
+    check_outputs(frames, out, rendered=render is not None, init=init)
     if isinstance(model, str):
         from matfit.fit import fitfile
 

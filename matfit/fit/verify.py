@@ -102,7 +102,7 @@ def verify_candidates(
     """
     started = time.perf_counter()
     pool = candidates(result, count=count)
-    return judge(renderer, pool, list(pool), {}, target, as_weights(target, weights), spp, started)
+    return judge(renderer, pool, list(pool), {}, target, as_weights(target, weights), spp=spp, started=started)
 
 
 def correct_then_verify(
@@ -129,8 +129,10 @@ def correct_then_verify(
     weights = as_weights(target, weights)
     pool = candidates(result, count=count)
     contenders, batches = list(pool), {}
-    last, corrected = correction_rounds(renderer, model, result, pool, batches, target, weights, corrections, spp)
-    verified = judge(renderer, pool, [*contenders, last], batches, target, weights, spp, started)
+    last, corrected = correction_rounds(
+        renderer, model, result, pool, batches, target, weights, corrections=corrections, spp=spp
+    )
+    verified = judge(renderer, pool, [*contenders, last], batches, target, weights, spp=spp, started=started)
     verified.decoded, verified.corrections = corrected, corrections
     return verified
 
@@ -140,12 +142,12 @@ def as_weights(target: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
     return np.ones(target.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
 
 
-def render_candidate(renderer, unit: np.ndarray, seed: int, spp: int) -> np.ndarray:
+def render_candidate(renderer, unit: np.ndarray, *, seed: int, spp: int) -> np.ndarray:
     """Returns Mitsuba's sRGB render of a candidate (unit cube) with `seed` and `spp` samples."""
     return images.srgb_encode(renderer.render(params.from_unit(unit), seed=seed, spp=spp))
 
 
-def render_batches(renderer, pool, batches: dict[str, list[np.ndarray]], names, count: int, spp: int) -> None:
+def render_batches(renderer, pool, batches: dict[str, list[np.ndarray]], names, *, count: int, spp: int) -> None:
     """Adds to `batches` the batches (batch j with BATCH_SEED + j) that the candidates `names` of `pool` lack of
     `count` each."""
     for name in names:  # every request first, so that a render process works through them while this one waits
@@ -153,16 +155,18 @@ def render_batches(renderer, pool, batches: dict[str, list[np.ndarray]], names, 
             renderer.prefetch(params.from_unit(pool[name]), BATCH_SEED + j, spp)
     for name in names:
         done = batches.setdefault(name, [])
-        done.extend(render_candidate(renderer, pool[name], BATCH_SEED + j, spp) for j in range(len(done), count))
+        done.extend(
+            render_candidate(renderer, pool[name], seed=BATCH_SEED + j, spp=spp) for j in range(len(done), count)
+        )
 
 
 def correction_rounds(
-    renderer, model, result, pool, batches, target, weights, corrections: int, spp: int
+    renderer, model, result, pool, batches, target, weights, *, corrections: int, spp: int
 ) -> tuple[str, dict[str, np.ndarray]]:
     """Returns (the name of the last round's point, phi of each round's point by name) after adding each round's
     point to `pool`: `corrections` rounds of `correct.correction_round`, each from the last one's point
     (`correct.py`)."""
-    name, image = where_rounds_start(renderer, pool, batches, target, weights, spp)
+    name, image = where_rounds_start(renderer, pool, batches, target, weights, spp=spp)
     unit = pool[name]
     decoded = result.decoded(unit)
     decoded = model.decode(unit)[0] if decoded is None else decoded
@@ -172,23 +176,23 @@ def correction_rounds(
         name = f"corrected-{k + 1}"
         pool[name], corrected[name] = unit, decoded
         if k + 1 < corrections:  # the next round's residual, from a render with this round's own seed
-            image = render_candidate(renderer, unit, SEED + k + 1, spp)
+            image = render_candidate(renderer, unit, seed=SEED + k + 1, spp=spp)
     return name, corrected
 
 
-def judge(renderer, pool, contenders: list[str], batches, target, weights, spp: int, started: float) -> Verified:
+def judge(renderer, pool, contenders: list[str], batches, target, weights, *, spp: int, started: float) -> Verified:
     """Returns the contender kept by the noise-aware rule of the module docstring: BATCHES batches of each, then one
     more of the leader and of every contender within LEAD standard errors of it, up to MAX_BATCHES.
 
     `batches`: what was rendered already, by name (added to); `started`: when verification began (for `seconds`).
     """
-    render_batches(renderer, pool, batches, contenders, BATCHES, spp)
+    render_batches(renderer, pool, batches, contenders, count=BATCHES, spp=spp)
     while True:
         chosen, estimates, margins = decide({name: batches[name] for name in contenders}, target, weights)
         undecided = [name for name, margin in margins.items() if margin < LEAD]
         if not undecided or len(batches[chosen]) >= MAX_BATCHES:
             break
-        render_batches(renderer, pool, batches, [chosen, *undecided], len(batches[chosen]) + 1, spp)
+        render_batches(renderer, pool, batches, [chosen, *undecided], count=len(batches[chosen]) + 1, spp=spp)
     figures = {name: 255.0 * float(np.sqrt(max(value, 0.0))) for name, value in estimates.items()}
     return Verified(
         pool[chosen],
@@ -204,7 +208,7 @@ def judge(renderer, pool, contenders: list[str], batches, target, weights, spp: 
     )
 
 
-def where_rounds_start(renderer, pool, batches, target, weights, spp: int = SPP) -> tuple[str, np.ndarray]:
+def where_rounds_start(renderer, pool, batches, target, weights, *, spp: int = SPP) -> tuple[str, np.ndarray]:
     """Returns (where the rounds of correction start: the start or the best end, its render with SEED for the first
     round's residual).
 
@@ -215,13 +219,13 @@ def where_rounds_start(renderer, pool, batches, target, weights, spp: int = SPP)
     where they start.
     """
     start = batches.setdefault("start", [])
-    start[:1] = start[:1] or [render_candidate(renderer, pool["start"], BATCH_SEED, spp)]
+    start[:1] = start[:1] or [render_candidate(renderer, pool["start"], seed=BATCH_SEED, spp=spp)]
     figure = float(images.rmse(start[0], target, weights))
     if "end-1" in pool:
-        image = render_candidate(renderer, pool["end-1"], SEED, spp)
+        image = render_candidate(renderer, pool["end-1"], seed=SEED, spp=spp)
         if float(images.rmse(image, target, weights)) < figure:
             return "end-1", image
-    return "start", render_candidate(renderer, pool["start"], SEED, spp)
+    return "start", render_candidate(renderer, pool["start"], seed=SEED, spp=spp)
 
 
 def squared_error(renders: list[np.ndarray], target: np.ndarray, weights: np.ndarray) -> tuple[float, np.ndarray]:
