@@ -44,6 +44,7 @@ import platform
 import secrets
 import stat
 import struct
+import sys
 import tempfile
 import threading
 from collections.abc import Callable
@@ -377,3 +378,32 @@ def stored() -> list[str]:
     if _directory is None or not os.path.isdir(_directory):
         return []
     return sorted(name for name in os.listdir(_directory) if name.endswith((SUFFIX, ".json")))
+
+
+# The most the program store may hold: the shipped model's default fit stores ~2.4 MB of executables (its four compiled
+# stages and the encoders' conversion); every new matfit, JAX or model writes new entries beside the old, which only
+# pruning removes.
+CACHE_BYTES = {"programs": 64 * 2**20}
+
+
+def enable_compilation_cache() -> None:
+    """Turns on the store of compiled programs (this module) under $XDG_CACHE_HOME/matfit or ~/.cache/matfit.
+
+    A second `matfit fit` then loads its compiled stages instead of tracing and compiling them again. The store
+    does not grow without bound: each process first prunes it to `CACHE_BYTES` (least recently used first).
+    JAX's own persistent compilation cache is not turned on: the store keeps the executables themselves, and an
+    executable that JAX read from its cache does not survive being stored again (it fails at its next load with
+    "Function ... not found"). What earlier matfit versions kept there (`matfit/jax`) is removed. A store that
+    another user could have written (see above) is not used, with a one-line notice on standard error.
+    """
+    root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    stored = os.path.join(root, "matfit", "programs")
+    try:
+        enable(stored)
+    except OSError:
+        return  # no writable cache: trace and compile every time
+    except OutputError as error:  # a store others could have written to is never read: said once, then compiled
+        print(f"notice: compiled programs are not stored or read: {error}", file=sys.stderr)
+        return
+    prune(os.path.join(root, "matfit", "jax"), 0)
+    prune(stored, CACHE_BYTES["programs"])

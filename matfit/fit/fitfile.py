@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from matfit import documents, files, images, params, shipped
+from matfit import documents, files, images, params, programs, shipped
 from matfit.errors import FitError, ImageError, OutputError
 from matfit.fit import refine, search, verify
 from matfit.fit.methods import CORRECTIONS
@@ -117,7 +117,7 @@ class Outcome:
 
 def load_model(path: str) -> models.Model:
     """Returns the model of a directory, with JAX's compilation cache on (a second fit loads its compiled programs)."""
-    models.enable_compilation_cache()
+    programs.enable_compilation_cache()
     return models.load_model(path)
 
 

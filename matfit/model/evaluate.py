@@ -23,7 +23,7 @@ import numpy as np
 
 from matfit import documents, files, images, params
 from matfit.errors import DatasetError
-from matfit.model import models, pipeline
+from matfit.model import architectures, models, pipeline, weight_files
 from matfit.model.dataset import Dataset
 from matfit.render import presets
 
@@ -337,9 +337,9 @@ def weights_megabytes(directory: str) -> float:
     """Returns the size of the weight files in a model directory, in MB (10^6 bytes)."""
     return (
         sum(
-            os.path.getsize(models.weights_path(directory, name))
-            for name in models.NETWORKS
-            if os.path.exists(models.weights_path(directory, name))
+            os.path.getsize(weight_files.weights_path(directory, name))
+            for name in architectures.NETWORKS
+            if os.path.exists(weight_files.weights_path(directory, name))
         )
         / 1e6
     )

@@ -12,7 +12,7 @@ import numpy as np
 
 from matfit import images
 from matfit.errors import DatasetError
-from matfit.model import models
+from matfit.model import architectures, models
 from matfit.model.dataset import Dataset
 
 CHUNK = 1024  # images converted at a time: float32 copies of the whole set would not fit in memory at 128 px
@@ -47,7 +47,7 @@ def linear_targets(data: Dataset) -> np.ndarray:
 
 def encoder_inputs(data: Dataset) -> np.ndarray:
     """Returns every image as the encoders see it (`models.encoder_input`), float16 (count, 32, 32, 3)."""
-    side = models.ENCODER_RESOLUTION
+    side = architectures.ENCODER_RESOLUTION
     if data.resolution % side:
         raise DatasetError(
             f"encoders need images whose side is a multiple of {side} px; {data.path} has {data.resolution}: "
@@ -62,7 +62,7 @@ def training_arrays(name: str, data: Dataset, linear: bool = False) -> tuple[np.
     The decoder's images are sRGB-encoded, or with `linear` linear (`train.linear_residual`).
     """
     unit = data.unit_params()
-    if name == models.DECODER:
+    if name == architectures.DECODER:
         return unit, linear_targets(data) if linear else srgb_targets(data)
     return encoder_inputs(data), unit
 

@@ -39,16 +39,16 @@ from flax import serialization
 
 from matfit import documents, files, images, params
 from matfit.errors import TrainingError
-from matfit.model import dataset, models, pipeline
+from matfit.model import architectures, dataset, layers, models, pipeline, weight_files
+from matfit.model.architectures import NETWORKS
 from matfit.model.dataset import Dataset
-from matfit.model.models import NETWORKS
 
 CHECKPOINT_FORMAT = "matfit-checkpoint"
 # The paper trains the isomorphic encoders 6, 7 and 9 for different numbers of epochs.
 # Sized so that `make model` trains them on a CPU in less time than the decoder (docs/training.md#training).
 DEFAULT_EPOCHS = {
-    models.DECODER: 20,
-    **{name: 10 for name in models.ENCODER_NAMES},
+    architectures.DECODER: 20,
+    **{name: 10 for name in architectures.ENCODER_NAMES},
     "encoder-4": 8,
     "encoder-5": 8,
     "encoder-7": 5,
@@ -183,9 +183,9 @@ def linear_residual(prediction: jax.Array, linear: jax.Array) -> jax.Array:
     the prediction's, not the target's, so that the noise does not bias it either.
     """
     prediction = jax.lax.stop_gradient(prediction)
-    decoded = models.srgb_decode(prediction)
+    decoded = layers.srgb_decode(prediction)
     # The curve's own slope, not its clip's: a prediction at 1 is still pulled down.
-    return jnp.clip(models.srgb_slope(decoded) * (linear - decoded), -RESIDUAL_CLIP, RESIDUAL_CLIP)
+    return jnp.clip(layers.srgb_slope(decoded) * (linear - decoded), -RESIDUAL_CLIP, RESIDUAL_CLIP)
 
 
 def image_loss(prediction: jax.Array, target: jax.Array, loss: str = "srgb") -> jax.Array:
@@ -238,7 +238,7 @@ def validation_metrics(name: str, predictions: np.ndarray, targets: np.ndarray, 
     """
     targets = np.asarray(targets, np.float64)
     error = predictions.astype(np.float64) - targets
-    if name == models.DECODER:
+    if name == architectures.DECODER:
         per_image = images.rmse(predictions.astype(np.float64), targets)
         transmissive = np.asarray(inputs)[:, params.INDEX["spec_trans"]] >= 0.5
         return {
@@ -282,7 +282,7 @@ def save_checkpoint(
     """Writes the whole training state atomically (float32, exact)."""
     document = {
         "format": CHECKPOINT_FORMAT,
-        "version": models.WEIGHTS_VERSION,
+        "version": weight_files.WEIGHTS_VERSION,
         "name": name,
         "architecture": description,
         "parameter_table": params.table_fingerprint(),
@@ -308,7 +308,7 @@ def load_checkpoint(
     start: str | None = None,
 ) -> Checkpoint:
     """Returns the checkpoint at `path` if it belongs to this very run; refuses any other."""
-    document = models.restore_document(path, CHECKPOINT_FORMAT, "checkpoint")
+    document = weight_files.restore_document(path, CHECKPOINT_FORMAT, "checkpoint")
     fix = f"delete {path} to start afresh, or pass the settings it was made with"
     if document.get("name") != name or document.get("architecture") != description:
         raise TrainingError(f"{path} is a checkpoint of another network or architecture: {fix}")
@@ -331,8 +331,8 @@ def load_checkpoint(
         raise TrainingError(f"{path} was trained on other datasets ({different}): {fix}")
     if document.get("start_sha256") != start:
         raise TrainingError(
-            f"{path} started from other weights than {models.weights_path(str(config.start_from), name)} holds now: "
-            f"{fix}"
+            f"{path} started from other weights than "
+            f"{weight_files.weights_path(str(config.start_from), name)} holds now: {fix}"
         )
     try:
         weights = serialization.from_state_dict(template.weights, document["weights"])
@@ -380,7 +380,7 @@ class Run:
     checkpoint_file: str
     weights_file: str
     constants: dict  # untrained variables: the refracting decoder's clear-glass and scattering bases, else none
-    start: models.Network | None = None  # the trained network the run starts from (Config.start_from), else none
+    start: weight_files.Network | None = None  # the trained network the run starts from (Config.start_from), else none
 
     def variables(self, weights: dict) -> dict:
         """Returns the module's whole variables for trained `weights`."""
@@ -402,7 +402,7 @@ def create_run(
     data: Dataset | Sequence[Dataset],
     out: str,
     config: Config,
-    decoder: models.Decoder | None = None,
+    decoder: architectures.Decoder | None = None,
     reporter: Reporter | None = None,
 ) -> Run:
     """Returns the run of network `name` on finished datasets; `decoder` replaces the decoder (a tiny one in tests).
@@ -411,7 +411,7 @@ def create_run(
     """
     datasets = as_datasets(data)
     description, start = check_run(name, datasets, out, config, decoder)
-    weights_file = models.weights_path(out, name)
+    weights_file = weight_files.weights_path(out, name)
     checkpoint_file = checkpoint_path(out, name)
     os.makedirs(os.path.dirname(checkpoint_file), exist_ok=True)
     files.check_writable(weights_file)
@@ -419,13 +419,13 @@ def create_run(
     inputs, targets, training_samples = split(name, datasets, config.validation_fraction, linear)
     steps = training_samples // config.batch_size
     root = jax.random.fold_in(jax.random.key(config.seed), NETWORKS.index(name))
-    module = models.build(description)
+    module = architectures.build(description)
     constants = {}
-    if name == models.DECODER and module.glass_grid:
+    if name == architectures.DECODER and module.glass_grid:
         progress = reporter.rendering if reporter else None
         glass = datasets[0].glass_basis(tuple(module.glass_grid), progress)
         medium = datasets[0].medium_basis(tuple(module.medium_grid), progress) if module.medium_grid else None
-        constants = models.with_bases(module, {}, glass, medium)
+        constants = architectures.with_bases(module, {}, glass, medium)
     return Run(
         name,
         description,
@@ -446,8 +446,8 @@ def create_run(
 
 
 def check_run(
-    name: str, datasets: list[Dataset], out: str, config: Config, decoder: models.Decoder | None = None
-) -> tuple[dict, models.Network | None]:
+    name: str, datasets: list[Dataset], out: str, config: Config, decoder: architectures.Decoder | None = None
+) -> tuple[dict, weight_files.Network | None]:
     """Returns (the architecture record, the starting network or None) of a run, having checked everything that
     can refuse it (datasets, settings, the start's weights) without writing anything."""
     if name not in NETWORKS:
@@ -455,11 +455,11 @@ def check_run(
     for each in datasets:
         pipeline.check_finished(each)
     config.check(sum(each.count for each in datasets))
-    description = models.architecture(name, datasets[0].resolution, decoder)
-    if models.architecture_problem(description) is not None:
+    description = architectures.architecture(name, datasets[0].resolution, decoder)
+    if architectures.architecture_problem(description) is not None:
         raise TrainingError(
             f"{datasets[0].path} holds {datasets[0].resolution} px images; networks are trained on "
-            f"{', '.join(map(str, models.RESOLUTIONS))} px: render a dataset of one of these resolutions",
+            f"{', '.join(map(str, architectures.RESOLUTIONS))} px: render a dataset of one of these resolutions",
             field="dataset",
         )
     return description, starting_network(name, config, out, description)
@@ -467,7 +467,7 @@ def check_run(
 
 def linear_targets(name: str, config: Config) -> bool:
     """Whether network `name` trains on linear renders: the decoder with `Config.loss` "linear"."""
-    return name == models.DECODER and config.loss == "linear"
+    return name == architectures.DECODER and config.loss == "linear"
 
 
 def start_path(name: str, config: Config, out: str) -> str | None:
@@ -479,7 +479,7 @@ def start_path(name: str, config: Config, out: str) -> str | None:
             f"start from {config.start_from} is the model directory being trained: train into another --out",
             field="start_from",
         )
-    path = models.weights_path(config.start_from, name)
+    path = weight_files.weights_path(config.start_from, name)
     if not os.path.exists(path):
         raise TrainingError(
             f"start from {config.start_from} has no {os.path.basename(path)}: train the {name} there first, "
@@ -489,15 +489,17 @@ def start_path(name: str, config: Config, out: str) -> str | None:
     return path
 
 
-def starting_network(name: str, config: Config, out: str, description: dict) -> models.Network | None:
+def starting_network(name: str, config: Config, out: str, description: dict) -> weight_files.Network | None:
     """Returns network `name` of the model directory `config.start_from`, checked to be of this run's architecture."""
     path = start_path(name, config, out)
     if path is None:
         return None
-    network = models.load(path, name=name)
+    network = weight_files.load(path, name=name)
     # Described again from its module: a file written before a field of the architecture existed
     # (the shipped decoder predates `absorption`) holds that field's default implicitly.
-    described = models.architecture(name, network.resolution, network.module if name == models.DECODER else None)
+    described = architectures.architecture(
+        name, network.resolution, network.module if name == architectures.DECODER else None
+    )
     # A layer that starts as (nearly) the identity may be added to trained weights: it starts fresh.
     grown = {field: description[field] for field in GROWABLE if description.get(field) and not described.get(field)}
     if {**described, **grown} != description:
@@ -526,7 +528,7 @@ def start_identity(run: Run) -> str | None:
 def create_train_state(run: Run) -> Checkpoint:
     """Returns the state to continue from: the run's checkpoint if there is one, else the starting network's
     weights (`Config.start_from`) or fresh ones, with a fresh optimiser."""
-    weights = models.initialise(run.module, run.root, models.input_shape(run.description))["params"]
+    weights = architectures.initialise(run.module, run.root, architectures.input_shape(run.description))["params"]
     if run.start is not None:
         weights = grafted(weights, run.start.variables["params"])
     state = Checkpoint(0, weights, run.tx.init(weights))
@@ -593,12 +595,12 @@ def finish(run: Run, state: Checkpoint) -> dict:
         "config": asdict(run.config),
         "start_sha256": start_identity(run),
         "weights_dtype": "float16",
-        "parameter_count": models.parameter_count({"params": shipped}),
+        "parameter_count": architectures.parameter_count({"params": shipped}),
         **validate(run, shipped),
         "history": state.history,
     }
-    network = models.Network(run.name, run.description, run.module, run.variables(shipped), {"metrics": metrics})
-    models.save(run.weights_file, network)
+    network = weight_files.Network(run.name, run.description, run.module, run.variables(shipped), {"metrics": metrics})
+    weight_files.save(run.weights_file, network)
     files.write_text(os.path.splitext(run.weights_file)[0] + ".json", documents.dumps(metrics))
     return metrics
 
@@ -609,7 +611,7 @@ def train_network(
     out: str,
     config: Config,
     reporter: Reporter | None = None,
-    decoder: models.Decoder | None = None,
+    decoder: architectures.Decoder | None = None,
 ) -> dict:
     """Trains (or resumes, or finds finished) network `name` and returns its final metrics.
 
@@ -620,8 +622,8 @@ def train_network(
     run = create_run(name, data, out, config, decoder, reporter)
     state = create_train_state(run)
     if state.epoch == config.epochs and os.path.exists(run.weights_file):
-        return models.load(run.weights_file).info["metrics"]
-    train_step = make_train_step(run.module, run.tx, name != models.DECODER, config.loss)
+        return weight_files.load(run.weights_file).info["metrics"]
+    train_step = make_train_step(run.module, run.tx, name != architectures.DECODER, config.loss)
     while state.epoch < config.epochs:
         state = train_epoch(run, train_step, state, reporter)
         save_checkpoint(run.checkpoint_file, name, run.description, config, run.identity, state, start_identity(run))
@@ -639,13 +641,13 @@ def train_networks(
 ):
     """Trains the named networks one after another into model directory `out`; yields (name, metrics) for each.
 
-    With `coarse_absorption` the decoder has the coarse absorption layer (`models.trained_decoder`).
+    With `coarse_absorption` the decoder has the coarse absorption layer (`architectures.trained_decoder`).
     """
     if os.path.exists(out) and not os.path.isdir(out):
         raise files.OutputError(f"model directory {out} is a file: give a directory for the model", field="out")
     files.check_folder(out)  # read-only, or under a file: refused with the fix, as `fit` does
     datasets = as_datasets(data)
-    decoder = models.trained_decoder(datasets[0].resolution, coarse_absorption)
+    decoder = architectures.trained_decoder(datasets[0].resolution, coarse_absorption)
     for name in names:  # everything checked before the model directory is made: a refusal leaves no folder
         check_run(name, datasets, out, config.for_network(name), decoder)
     os.makedirs(out, exist_ok=True)
@@ -668,7 +670,7 @@ def parse_arch(text: str) -> list[str]:
     for part in text.split(","):
         part = part.strip().lower()
         if part == "decoder":
-            names.append(models.DECODER)
+            names.append(architectures.DECODER)
         elif part == "all":
             names.extend(NETWORKS)
         elif ".." in part:
@@ -690,7 +692,7 @@ def _arch_number(text: str) -> int:
         raise TrainingError(
             f"arch {text!r} is not an architecture: use decoder, 1 to 9, 1..9 or all", field="arch"
         ) from None
-    if arch not in models.ENCODERS:
+    if arch not in architectures.ENCODERS:
         raise TrainingError(
             f"arch {arch} does not exist: the paper's encoders are 1 to 9 (or use decoder)", field="arch"
         )
