@@ -219,10 +219,11 @@ def fit_command(
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
     from matfit.render import engine as render_module
+    from matfit.render.process import Process
 
     render_module.check_request(variant)
     # Verification's Mitsuba starts in a child process now, on the other core, while this one imports JAX.
-    with render_module.Process(variant) if verify and not refine else contextlib.nullcontext() as renderer:
+    with Process(variant) if verify and not refine else contextlib.nullcontext() as renderer:
         from matfit.fit import fitfile
 
         text = options.text

@@ -20,6 +20,7 @@ from matfit.fit import refine, search, verify
 from matfit.fit.methods import CORRECTIONS
 from matfit.model import models
 from matfit.render import engine as render
+from matfit.render.process import Background, Process
 
 # The folder holding the package: the clone, or site-packages when installed (the shipped model reads
 # matfit/data/model either way; a user's own paths lie outside it and stay as given).
@@ -142,13 +143,13 @@ def run(
     verified: bool = True,
     refine_steps: int = 0,
     corrections: int | None = None,
-    renderer: render.Process | None = None,
+    renderer: Process | None = None,
     variant: str | None = None,
 ) -> Outcome:
     """Fits the image file `target` with a model (or a model directory) and writes `outputs`; returns what was found.
 
     `init`: a params.json of the source material, whose parameters join best-of-n's candidates;
-    `renderer`: an `engine.Process` to verify with (`fit_file`), or None; `variant`: the Mitsuba variant of the
+    `renderer`: a `process.Process` to verify with (`fit_file`), or None; `variant`: the Mitsuba variant of the
     renderer made when none is given (None: `engine.choose_variant`'s).
     `verified`: let Mitsuba choose among the fit's final candidates (`verify.verify`), after
     `corrections` rounds of correction (`correct.py`; None: `methods.CORRECTIONS` when verified,
@@ -202,8 +203,8 @@ def fit_file(
     Writes nothing: `run` writes the CLI's files, `serve` offers the same ones for download.
     `init_values`: the source material's physical parameters (joining best-of-n's candidates), read
     from the file `source` (recorded in the document); `renderer`: a loaded `engine.Renderer` at the
-    model's resolution to reuse, an `engine.Process` (started early by the caller; it loads the scene
-    here, and cannot refine), or None (an `engine.Background` with `variant` is made when verification,
+    model's resolution to reuse, a `process.Process` (started early by the caller; it loads the scene
+    here, and cannot refine), or None (a `process.Background` with `variant` is made when verification,
     refinement or a render output needs one). Refinement differentiates with the renderer's variant.
     """
     settings.check()
@@ -230,13 +231,13 @@ def fit_file(
     model = load_model(model) if isinstance(model, str) else model
     target_srgb, weights, notices = read_target(target, model.resolution, mask)
     background = on_start = None
-    if isinstance(renderer, render.Process):
+    if isinstance(renderer, Process):
         if refine_steps:
             raise ValueError("refinement renders through Mitsuba in this process: give a Renderer, or none")
         background, renderer = renderer, None
         background.load(model.resolution, verify.SPP)
     elif renderer is None and (verified or refine_steps or needs_render):
-        background = render.Background(model.resolution, verify.SPP, variant)  # loads while the fit runs
+        background = Background(model.resolution, verify.SPP, variant)  # loads while the fit runs
     if background is not None and verified:
 
         def on_start(start: np.ndarray) -> None:

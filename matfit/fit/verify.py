@@ -231,7 +231,7 @@ def decide(
 
 
 def prefetch_start(renderer, start: np.ndarray, corrections: int = 0, spp: int = SPP) -> None:
-    """Starts, on an `engine.Background` or `engine.Process`, the renders `verify` will make of the fit's start (unit
+    """Starts, on a `process.Background` or `process.Process`, the renders `verify` will make of the fit's start (unit
     cube): its first BATCHES batches (`corrections` changes nothing: the start is judged by the same batches)."""
     values = params.from_unit(np.asarray(start, np.float64))  # as `candidates` and `rendered` make them
     for j in range(BATCHES):

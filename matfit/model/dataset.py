@@ -40,7 +40,7 @@ import numpy as np
 from matfit import documents, files, interrupt, params, shipped
 from matfit.errors import DatasetError, RenderError
 from matfit.render import engine as render
-from matfit.render import scene
+from matfit.render import process, scene
 
 FORMAT = "matfit-dataset"
 FORMAT_VERSION = 1
@@ -545,8 +545,8 @@ class _Worker:
         indices, values, seeds = task
         try:
             header = {"indices": [int(i) for i in indices], "seeds": [int(s) for s in seeds]}
-            render.write_message(self.requests, header, np.asarray(values, np.float64))
-            reply, images = render.read_message(self.replies)
+            process.write_message(self.requests, header, np.asarray(values, np.float64))
+            reply, images = process.read_message(self.replies)
         except (OSError, EOFError, ValueError):
             raise DatasetError(
                 f"a rendering process ended unexpectedly (exit code {self.process.poll()}): "
@@ -631,20 +631,20 @@ def _answer_chunks(requests: int, replies: int, resolution: int, spp: int, varia
         try:
             init_worker(resolution, spp, variant, new_session=False)
         except Exception as error:  # RenderError, or Mitsuba failing to start: the parent reports it in one line
-            render.write_message(outgoing, {"error": f"a rendering process could not start: {error}"})
+            process.write_message(outgoing, {"error": f"a rendering process could not start: {error}"})
             return
         while True:
             try:
-                header, values = render.read_message(incoming)
+                header, values = process.read_message(incoming)
             except (EOFError, OSError, ValueError):  # the parent closed its end, or ended
                 return
             task = (np.array(header["indices"], np.int64), values, np.array(header["seeds"], np.int64))
             try:
                 _, images = render_chunk(task)
             except Exception as error:
-                render.write_message(outgoing, {"error": f"Mitsuba failed: {type(error).__name__}: {error}"})
+                process.write_message(outgoing, {"error": f"Mitsuba failed: {type(error).__name__}: {error}"})
                 continue
-            render.write_message(outgoing, {"done": True}, images)
+            process.write_message(outgoing, {"done": True}, images)
 
 
 def render_scene_image(dataset: Dataset, settings: Settings) -> None:
