@@ -129,7 +129,7 @@ def install() -> None:
 def raise_on_signal() -> None:
     """Makes Ctrl-C and `kill` raise KeyboardInterrupt in the main thread again: for work that stops its children.
 
-    A dataset's rendering processes are stopped by the parent's KeyboardInterrupt (`dataset._in_worker_processes`
+    A dataset's rendering processes are stopped by the parent's KeyboardInterrupt (`dataset_workers.in_worker_processes`
     kills them once the results that are in are stored).
     """
     if threading.current_thread() is threading.main_thread():

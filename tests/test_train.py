@@ -12,7 +12,7 @@ import pytest
 
 from matfit import images, params
 from matfit.errors import DatasetError, WeightsError
-from matfit.model import architectures, dataset, models, pipeline, train, weight_files
+from matfit.model import architectures, dataset, dataset_writing, models, pipeline, train, weight_files
 from matfit.model.train import Config, TrainingError
 
 TINY_DECODER = architectures.Decoder(resolution=32, hidden=32, base_channels=16, stage_channels=(16, 8, 8))
@@ -63,8 +63,8 @@ def test_several_datasets_train_together_and_each_holds_out_its_own_last_samples
 
 
 def test_datasets_of_two_resolutions_are_refused(tmp_path, data, renderer):
-    small = dataset.prepare(str(tmp_path / "small"), dataset.Settings(16, 1, 5, renderer.variant), 4, {})
-    dataset.render_missing(small, 0)
+    small = dataset_writing.prepare(str(tmp_path / "small"), dataset.Settings(16, 1, 5, renderer.variant), 4, {})
+    dataset_writing.render_missing(small, 0)
     with pytest.raises(TrainingError, match=r"16 px images, .* 32 px: train on datasets of one resolution"):
         train.create_run("decoder", [data, dataset.open_dataset(str(tmp_path / "small"))], str(tmp_path), Config(1))
     with pytest.raises(TrainingError, match="no dataset to train on: give at least one --dataset"):
@@ -257,7 +257,7 @@ def test_bad_settings_are_refused(tmp_path, data):
 
 def test_unfinished_dataset_is_refused(tmp_path, renderer):
     path = str(tmp_path / "partial")
-    dataset.prepare(path, dataset.Settings(32, 1, 0, renderer.variant), 4, {})
+    dataset_writing.prepare(path, dataset.Settings(32, 1, 0, renderer.variant), 4, {})
     with pytest.raises(DatasetError, match="0/4 samples rendered"):
         train.train_network("decoder", dataset.open_dataset(path), str(tmp_path), Config(epochs=1, batch_size=1))
 
@@ -491,7 +491,7 @@ def test_a_refused_train_leaves_no_folder(tmp_path, data, renderer):
     from matfit.app.cli import app
 
     partial = str(tmp_path / "partial")
-    dataset.prepare(partial, dataset.Settings(32, 1, 0, renderer.variant), 4, {})
+    dataset_writing.prepare(partial, dataset.Settings(32, 1, 0, renderer.variant), 4, {})
     base = tmp_path / "base"  # an encoder 8 trained on 64 px images: it cannot start a run on 32 px ones
     base.mkdir()
     encoder = architectures.encoder(8)

@@ -20,7 +20,7 @@ import typer
 from matfit import documents, params
 from matfit.app import console, options
 from matfit.fit.methods import MAX_ITERATIONS, MAX_POLISH, MAX_STARTS, Box, Method, Settings
-from matfit.model import dataset
+from matfit.model import dataset, dataset_workers, dataset_writing
 from matfit.render import presets
 
 app = typer.Typer(
@@ -156,7 +156,8 @@ def render_dataset(
     workers: Annotated[
         int | None,
         typer.Option(
-            help=f"Rendering processes, one thread each (default: one per core; {dataset.GPU_WORKERS} on a GPU).",
+            help=f"Rendering processes, one thread each (default: one per core; {dataset_workers.GPU_WORKERS} on a "
+            "GPU).",
             show_default=False,
         ),
     ] = None,
@@ -172,7 +173,7 @@ def render_dataset(
 
     with Progress(f"rendering {out}") as progress:
         counter = progress.counter()
-        data, rendered, notices = dataset.render_dataset(
+        data, rendered, notices = dataset_writing.render_dataset(
             str(out), count, resolution, spp, seed, workers, variant, counter, ray_address=ray, sampler=sampler
         )
     echo_lines(notices)
