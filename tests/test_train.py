@@ -11,9 +11,20 @@ import numpy as np
 import pytest
 
 from matfit import images, params
-from matfit.errors import DatasetError, WeightsError
-from matfit.model import architectures, dataset, dataset_writing, models, pipeline, train, weight_files
-from matfit.model.train import Config, TrainingError
+from matfit.errors import DatasetError, TrainingError, WeightsError
+from matfit.model import (
+    architectures,
+    checkpoints,
+    dataset,
+    dataset_writing,
+    losses,
+    models,
+    pipeline,
+    train,
+    train_config,
+    weight_files,
+)
+from matfit.model.train_config import Config
 
 TINY_DECODER = architectures.Decoder(resolution=32, hidden=32, base_channels=16, stage_channels=(16, 8, 8))
 
@@ -37,9 +48,9 @@ def weights_equal(a, b):
 
 
 def test_split_holds_out_the_last_samples():
-    assert train.validation_count(48, 0.05) == 2
-    assert train.validation_count(10, 0.05) == 1
-    assert train.validation_count(22000, 0.05) == 1100
+    assert train_config.validation_count(48, 0.05) == 2
+    assert train_config.validation_count(10, 0.05) == 1
+    assert train_config.validation_count(22000, 0.05) == 1100
 
 
 def test_several_datasets_train_together_and_each_holds_out_its_own_last_samples(tmp_path, data):
@@ -239,7 +250,7 @@ def test_checkpoint_of_other_settings_or_damaged_is_refused(tmp_path, data):
         train.train_network("encoder-8", data, out, Config(epochs=2, batch_size=8), StopAfterOneEpoch())
     with pytest.raises(TrainingError, match=r"other settings \(batch_size 8 \(now 16\)\)"):
         train.train_network("encoder-8", data, out, Config(epochs=2, batch_size=16))
-    checkpoint = train.checkpoint_path(out, "encoder-8")
+    checkpoint = checkpoints.checkpoint_path(out, "encoder-8")
     with open(checkpoint, "r+b") as file:
         file.truncate(200)
     with pytest.raises(WeightsError, match="not a readable checkpoint"):
@@ -263,17 +274,17 @@ def test_unfinished_dataset_is_refused(tmp_path, renderer):
 
 
 def test_arch_parsing():
-    assert train.parse_arch("decoder") == ["decoder"]
-    assert train.parse_arch("4") == ["encoder-4"]
-    assert train.parse_arch("1..9") == [f"encoder-{i}" for i in range(1, 10)]
-    assert train.parse_arch("all")[0] == "decoder" and len(train.parse_arch("all")) == 10
+    assert train_config.parse_arch("decoder") == ["decoder"]
+    assert train_config.parse_arch("4") == ["encoder-4"]
+    assert train_config.parse_arch("1..9") == [f"encoder-{i}" for i in range(1, 10)]
+    assert train_config.parse_arch("all")[0] == "decoder" and len(train_config.parse_arch("all")) == 10
     for bad, message in (
         ("0", "arch 0 does not exist"),
         ("10", "arch 10 does not exist"),
         ("x", "not an architecture"),
     ):
         with pytest.raises(TrainingError, match=message):
-            train.parse_arch(bad)
+            train_config.parse_arch(bad)
 
 
 def test_encoder_input_box_filters_then_encodes():
@@ -379,7 +390,7 @@ def test_the_linear_loss_learns_the_encoding_of_the_mean_render_where_the_srgb_l
 
     def optimum(loss: str) -> float:
         target = jnp.asarray(linear if loss == "linear" else images.srgb_encode(linear))
-        slope = jax.grad(lambda p: train.image_loss(jnp.full(target.shape, p), target, loss))
+        slope = jax.grad(lambda p: losses.image_loss(jnp.full(target.shape, p), target, loss))
         low, high = 0.0, 1.0
         for _ in range(30):  # the loss is convex in p: bisect on the sign of its slope
             low, high = ((low + high) / 2, high) if slope((low + high) / 2) < 0 else (low, (low + high) / 2)
@@ -392,7 +403,7 @@ def test_the_linear_loss_learns_the_encoding_of_the_mean_render_where_the_srgb_l
 
 def test_the_linear_residual_is_clipped_to_one_full_scale():
     prediction = jnp.array([0.5, 0.5, 0.0, 1.0])
-    residual = train.linear_residual(prediction, jnp.array([8.0, 0.0, 0.5, 1.0]))
+    residual = losses.linear_residual(prediction, jnp.array([8.0, 0.0, 0.5, 1.0]))
     # 0.5 encodes 0.2140 linear, where the curve rises 1.0804 per linear unit: -0.2140 x 1.0804
     np.testing.assert_allclose(residual, [1.0, -0.2312, 1.0, 0.0], atol=2e-4)
 

@@ -335,9 +335,10 @@ def train(
     """Train the decoder and/or the encoders; run the same command again to resume after an interruption."""
     from matfit.app.progress import TrainingProgress
     from matfit.model import train as train_module
+    from matfit.model import train_config
 
-    names = train_module.parse_arch(arch)
-    config = train_module.Config(
+    names = train_config.parse_arch(arch)
+    config = train_config.Config(
         epochs, batch_size, learning_rate, seed=seed, start_from=options.text(start_from), loss=loss
     )
     data = [dataset.open_dataset(str(path)) for path in dataset_paths]

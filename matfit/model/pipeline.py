@@ -59,7 +59,7 @@ def encoder_inputs(data: Dataset) -> np.ndarray:
 def training_arrays(name: str, data: Dataset, linear: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Returns (inputs, targets) of network `name` for every sample: (x, image) for the decoder, else (image, x).
 
-    The decoder's images are sRGB-encoded, or with `linear` linear (`train.linear_residual`).
+    The decoder's images are sRGB-encoded, or with `linear` linear (`losses.linear_residual`).
     """
     unit = data.unit_params()
     if name == architectures.DECODER:
