@@ -292,6 +292,27 @@ def running(pid: int) -> bool:
         return False
 
 
+def test_a_child_that_cannot_start_leaves_no_pipe_open(monkeypatch):
+    # Both the fit's render process and a dataset's workers start through `start_child`: a failed start closes all
+    # four pipe ends, so a caller that retries does not run out of file descriptors.
+    before = sorted(os.listdir("/proc/self/fd"))
+    monkeypatch.setattr(sys, "executable", "/nonexistent/python")
+    with pytest.raises(FileNotFoundError):
+        process.Process()
+    with pytest.raises(FileNotFoundError):
+        process.start_child("matfit.model.dataset_workers", "serve_chunks", 16, 1, "scalar_rgb")
+    assert sorted(os.listdir("/proc/self/fd")) == before
+
+
+def test_a_started_child_runs_the_named_function_with_its_pipes_and_arguments():
+    child, requests, replies = process.start_child("matfit.render.process", "serve_requests", "no_such_variant")
+    header, array = process.read_message(replies)
+    requests.close()
+    replies.close()
+    assert child.wait(timeout=60) == 0
+    assert array is None and "no_such_variant" in header["failed"]
+
+
 def test_a_render_process_ends_with_its_caller_even_a_killed_one():
     script = (
         "import time\n"

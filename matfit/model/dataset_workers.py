@@ -14,14 +14,11 @@ import contextlib
 import os
 import queue
 import signal
-import subprocess
-import sys
 import threading
 from collections.abc import Iterator
 
 import numpy as np
 
-from matfit import shipped
 from matfit.errors import DatasetError, RenderError
 from matfit.model.dataset import (
     IMAGE_DTYPE,
@@ -96,37 +93,19 @@ def in_this_process(settings: Settings, tasks: list[Task], workers: int) -> Iter
 
 
 class _Worker:
-    """One rendering child process of `render_missing`: `serve_chunks` in a new interpreter, spoken to over two pipes.
+    """One rendering child process of `render_missing`: `serve_chunks` in a new interpreter, spoken to over two pipes
+    (`process.start_child`, as the render process of a fit).
 
-    The child holds only its own ends of the pipes, so it sees its requests end as soon as this process ends, however
-    it ends (`kill -9` included): it then finishes the render in hand and leaves without a word (`serve_chunks`).
-    Nothing of multiprocessing is used, so no semaphore or resource tracker outlives a killed parent either.
+    The child runs in a session of its own: the terminal's Ctrl-C reaches only the parent, which stops the workers, so
+    no render cancelled by Mitsuba's own SIGINT handler is ever stored. It sees its requests end as soon as this
+    process ends, however it ends (`kill -9` included): it then finishes the render in hand and leaves without a word
+    (`serve_chunks`).
     """
 
     def __init__(self, settings: Settings):
-        requests_read, requests_write = os.pipe()
-        replies_read, replies_write = os.pipe()
-        package = str(shipped.PACKAGE.parent)  # this very matfit, wherever it lies
-        code = (
-            f"import sys; sys.path.insert(0, {package!r}); from matfit.model import dataset_workers; "
-            f"dataset_workers.serve_chunks({requests_read}, {replies_write}, {settings.resolution}, {settings.spp}, "
-            f"{settings.variant!r})"
+        self.process, self.requests, self.replies = process.start_child(
+            "matfit.model.dataset_workers", "serve_chunks", settings.resolution, settings.spp, settings.variant
         )
-        try:
-            # A session of its own: the terminal's Ctrl-C reaches only the parent, which stops the workers, so no
-            # render cancelled by Mitsuba's own SIGINT handler is ever stored.
-            self.process = subprocess.Popen(
-                [sys.executable, "-c", code], pass_fds=(requests_read, replies_write), start_new_session=True
-            )
-        except BaseException:
-            for descriptor in (requests_write, replies_read):
-                os.close(descriptor)
-            raise
-        finally:
-            os.close(requests_read)
-            os.close(replies_write)
-        self.requests = os.fdopen(requests_write, "wb")
-        self.replies = os.fdopen(replies_read, "rb")
 
     def render(self, task: Task) -> tuple[np.ndarray, np.ndarray]:
         """Returns (indices, float16 images) of one task, rendered by the child."""

@@ -3,7 +3,8 @@
 `Background` loads a `Renderer` and renders on one thread of this process while the caller computes;
 `Process` runs one in a child interpreter started at once, so Mitsuba's import and variant choice
 take another core while the caller imports JAX. The child's main (`serve_requests`) answers the
-requests it reads from one pipe on another; the messages on both are data only
+requests it reads from one pipe on another. `start_child` starts such a child (a dataset's render
+workers too, `dataset_workers`); the messages on both pipes are data only
 (`write_message`, `read_message`: a JSON header and a float array), so reading one runs no code.
 """
 
@@ -18,6 +19,7 @@ import subprocess
 import sys
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor, wait
+from typing import BinaryIO
 
 import numpy as np
 
@@ -72,6 +74,46 @@ class Background:
         return job.result() if job is not None else renderer.render(values, seed, spp)
 
 
+def start_child(
+    module: str, function: str, *arguments: object, pipe_bytes: int | None = None
+) -> tuple[subprocess.Popen, BinaryIO, BinaryIO]:
+    """Returns (the child, the file to write its requests to, the file to read its replies from): a new interpreter of
+    this very matfit that runs `module.function(requests, replies, *arguments)`, the first two the file descriptors
+    of its ends of two pipes.
+
+    The child imports the matfit this process runs, wherever it lies (clone or site-packages), whatever the working
+    directory holds. It runs in a session of its own, so the terminal's Ctrl-C reaches only this process, which
+    stops it. It holds only its own ends of the pipes, so it sees its requests end as soon as this process ends,
+    however it ends (`kill -9` included). Nothing of multiprocessing is used, so no semaphore or resource tracker
+    outlives a killed parent either. `arguments` are written into its command line by `repr` (numbers, strings,
+    None). `pipe_bytes`: room asked for in the replies pipe (Linux), so that the child need not wait for a read.
+    Both ends of both pipes are closed here if the child cannot start.
+    """
+    requests_read, requests_write = os.pipe()
+    replies_read, replies_write = os.pipe()
+    if pipe_bytes is not None:
+        with contextlib.suppress(ImportError, AttributeError, OSError):  # Linux: a pipe holds more than 64 KiB if asked
+            import fcntl
+
+            fcntl.fcntl(replies_write, fcntl.F_SETPIPE_SZ, pipe_bytes)
+    package = str(shipped.PACKAGE.parent)
+    parent, _, name = module.rpartition(".")
+    call = ", ".join(repr(value) for value in (requests_read, replies_write, *arguments))
+    code = f"import sys; sys.path.insert(0, {package!r}); from {parent} import {name}; {name}.{function}({call})"
+    try:
+        child = subprocess.Popen(
+            [sys.executable, "-c", code], pass_fds=(requests_read, replies_write), start_new_session=True
+        )
+    except BaseException:
+        os.close(requests_write)
+        os.close(replies_read)
+        raise
+    finally:
+        os.close(requests_read)
+        os.close(replies_write)
+    return child, os.fdopen(requests_write, "wb"), os.fdopen(replies_read, "rb")
+
+
 class Process:
     """A `Renderer` in a child process, which imports Mitsuba as soon as it is made, beside whatever the caller loads.
 
@@ -90,28 +132,9 @@ class Process:
     PIPE_BYTES = 1 << 20  # room for the replies of every prefetched render, so the child never waits for a read
 
     def __init__(self, variant: str | None = None):
-        requests_read, requests_write = os.pipe()
-        replies_read, replies_write = os.pipe()
-        with contextlib.suppress(ImportError, AttributeError, OSError):  # Linux: a pipe holds more than 64 KiB if asked
-            import fcntl
-
-            fcntl.fcntl(replies_write, fcntl.F_SETPIPE_SZ, self.PIPE_BYTES)
-        # The child imports this very matfit, wherever it lies (clone or site-packages), whatever the working
-        # directory holds.
-        package = str(shipped.PACKAGE.parent)
-        code = (
-            f"import sys; sys.path.insert(0, {package!r}); from matfit.render import process; "
-            f"process.serve_requests({requests_read}, {replies_write}, {variant!r})"
+        self._child, self._requests, self._replies = start_child(
+            "matfit.render.process", "serve_requests", variant, pipe_bytes=self.PIPE_BYTES
         )
-        try:
-            self._child = subprocess.Popen(
-                [sys.executable, "-c", code], pass_fds=(requests_read, replies_write), start_new_session=True
-            )
-        finally:
-            os.close(requests_read)
-            os.close(replies_write)
-        self._requests = os.fdopen(requests_write, "wb")
-        self._replies = os.fdopen(replies_read, "rb")
         self._ready: tuple | None = None  # the child's first reply: (variant, notice)
         self._pending: list[tuple] = []  # keys of the renders asked for and not yet read, in order
         self._answers: dict[tuple, object] = {}  # key -> image, or the RenderError of its render
