@@ -28,13 +28,14 @@ import select
 import signal
 import sys
 import threading
+from typing import Any
 
 EXIT_CODE = 130
 GRACE = 1.0  # seconds the main thread has to stop by itself
 STOPPING = (signal.SIGINT, signal.SIGTERM)
 
 _temporaries: set[str] = set()
-_state = {"message": "nothing was written", "announced": False}
+_state: dict[str, Any] = {"message": "nothing was written", "announced": False}
 _lock = threading.Lock()
 
 

@@ -183,7 +183,7 @@ def environment() -> tuple:
     import flax
     import jaxlib
 
-    config = jax.config
+    config: Any = jax.config  # its options are attributes made at run time, unknown to a type checker
     devices = jax.devices()
     return (
         jax.__version__,
@@ -272,7 +272,7 @@ class Program:
 
     def _cache_size(self) -> int:
         """Returns how many programs this function holds in this process (compiled by jax.jit or read back)."""
-        return self.jitted._cache_size() + len(self.loaded)
+        return self.jitted._cache_size() + len(self.loaded)  # type: ignore[attr-defined]  # jit's private counter
 
 
 def pack(payload: bytes, in_tree, out_tree) -> bytes:
@@ -308,11 +308,13 @@ def jax_cache_enabled() -> bool:
     An executable that XLA's CPU backend read from that cache and that is then serialized again loads in a later
     process but fails when run ("Function wrapped_iota not found"): with the cache on, nothing is stored.
     """
-    return bool(jax.config.jax_compilation_cache_dir) and bool(jax.config.jax_enable_compilation_cache)
+    config: Any = jax.config  # its options are attributes made at run time, unknown to a type checker
+    return bool(config.jax_compilation_cache_dir) and bool(config.jax_enable_compilation_cache)
 
 
 def _stored_path(name: str, parts: Any, suffix: str) -> str:
     """Returns where the store keeps `name` for `parts`: hashed with the environment and matfit's source."""
+    assert _directory is not None, "called only with the store on"
     key = repr((name, parts, environment(), source_digest()))
     return os.path.join(_directory, f"{name}-{hashlib.sha256(key.encode()).hexdigest()[:32]}{suffix}")
 
