@@ -21,12 +21,16 @@ import os
 import re
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from matfit import params
 from matfit.errors import RenderError
 from matfit.render import scene
+
+if TYPE_CHECKING:
+    from jaxtyping import Float
 
 CUDA_VARIANT = "cuda_ad_rgb"
 LLVM_VARIANT = "llvm_ad_rgb"
@@ -197,7 +201,7 @@ def versions() -> dict[str, str]:
     import drjit
     import mitsuba as mi
 
-    return {"mitsuba": mi.__version__, "drjit": drjit.__version__}
+    return {"mitsuba": str(mi.__version__), "drjit": drjit.__version__}  # type: ignore[attr-defined]  # not in the stubs
 
 
 def _transform(mi, transform: scene.Transform):
@@ -283,7 +287,7 @@ class Renderer:
         self.scene = self.mi.load_dict(to_mitsuba(self.mi, scene.scene(resolution, spp)))
         self.parameters = self.mi.traverse(self.scene)
 
-    def set_material(self, values: np.ndarray) -> None:
+    def set_material(self, values: Float[np.ndarray, " 19"]) -> None:
         """Applies a physical parameter vector (19,) to the loaded scene."""
         mi, p, keys = self.mi, self.parameters, Keys()
         v = np.asarray(values, dtype=np.float64)
@@ -301,15 +305,17 @@ class Renderer:
         p[keys.phase_g] = self.drjit.opaque(mi.Float, float(v[index["phase_g"]]))
         p.update()
 
-    def prefetch(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> None:
+    def prefetch(self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None) -> None:
         """Renders nothing ahead: `Background` and `Process` do (every renderer answers `prefetch`)."""
 
-    def render(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> np.ndarray:
+    def render(
+        self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None
+    ) -> Float[np.ndarray, "R R 3"]:
         """Returns the linear float32 (H, W, 3) image of a material rendered with `seed`."""
         self.set_material(values)
         return self.render_current(seed, spp)
 
-    def render_current(self, seed: int = 0, spp: int | None = None) -> np.ndarray:
+    def render_current(self, seed: int = 0, spp: int | None = None) -> Float[np.ndarray, "R R 3"]:
         """Returns the image of whatever material is loaded, without touching the scene."""
         if self.threads is not None and self.drjit.thread_count() != self.threads:
             self.drjit.set_thread_count(self.threads)  # another renderer of this process changed it since
@@ -327,7 +333,7 @@ class Rendered:
 
 
 def render_file(
-    values: np.ndarray,
+    values: Float[np.ndarray, " 19"],
     path: str,
     size: int,
     spp: int,
@@ -348,7 +354,9 @@ def render_file(
     return Rendered(renderer.variant, [renderer.notice] if renderer.notice else [], time.perf_counter() - started)
 
 
-def render_without_sphere(resolution: int, spp: int, variant: str | None = None, seed: int = 0) -> np.ndarray:
+def render_without_sphere(
+    resolution: int, spp: int, variant: str | None = None, seed: int = 0
+) -> Float[np.ndarray, "R R 3"]:
     """Returns the linear float32 (H, W, 3) image of the test scene without its sphere, rendered on one thread.
 
     Datasets keep it (clean) as the picture of what lies behind the sphere. Call it where no other thread renders.

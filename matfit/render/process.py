@@ -19,13 +19,16 @@ import subprocess
 import sys
 import threading
 from concurrent.futures import Future, ThreadPoolExecutor, wait
-from typing import BinaryIO
+from typing import TYPE_CHECKING, BinaryIO, NoReturn
 
 import numpy as np
 
 from matfit import params, shipped
 from matfit.errors import RenderError
 from matfit.render.engine import Renderer, choose_variant, mitsuba
+
+if TYPE_CHECKING:
+    from jaxtyping import Float
 
 
 class Background:
@@ -56,7 +59,7 @@ class Background:
     def _key(values: np.ndarray, seed: int, spp: int | None) -> tuple:
         return np.asarray(values, np.float64).tobytes(), int(seed), spp
 
-    def prefetch(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> None:
+    def prefetch(self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None) -> None:
         """Starts rendering a material in the background, for a later `render` of the same arguments."""
         key = self._key(values, seed, spp)
         if key not in self._prefetched:
@@ -67,7 +70,9 @@ class Background:
         wait(self._prefetched.values())
         return self._loaded.result()
 
-    def render(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> np.ndarray:
+    def render(
+        self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None
+    ) -> Float[np.ndarray, "R R 3"]:
         """Returns what `Renderer.render` returns: the prefetched image of these arguments, or a new render."""
         renderer = self.renderer()
         job = self._prefetched.get(self._key(values, seed, spp))
@@ -137,7 +142,7 @@ class Process:
         )
         self._ready: tuple | None = None  # the child's first reply: (variant, notice)
         self._pending: list[tuple] = []  # keys of the renders asked for and not yet read, in order
-        self._answers: dict[tuple, object] = {}  # key -> image, or the RenderError of its render
+        self._answers: dict[tuple, np.ndarray | RenderError] = {}  # key -> image, or the RenderError of its render
         self._resolution: int | None = None
         self._failure: RenderError | None = None  # the child's reason for not starting, raised again at every use
 
@@ -157,14 +162,16 @@ class Process:
         self._send({"load": [int(resolution), int(spp)]})
         self._pending.append(("load", resolution))
 
-    def prefetch(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> None:
+    def prefetch(self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None) -> None:
         """Asks for a render now, for a later `render` of the same arguments."""
         key = Background._key(values, seed, spp)
         if key not in self._answers and key not in self._pending:
             self._send({"seed": int(seed), "spp": spp}, np.asarray(values, np.float64))
             self._pending.append(key)
 
-    def render(self, values: np.ndarray, seed: int = 0, spp: int | None = None) -> np.ndarray:
+    def render(
+        self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None
+    ) -> Float[np.ndarray, "R R 3"]:
         """Returns what `Renderer.render` returns: the linear float32 (H, W, 3) image of a material."""
         if self._resolution is None:
             raise RenderError("the render process has no scene yet: call load(resolution, spp) first")
@@ -231,9 +238,9 @@ class Process:
             if isinstance(answer, RenderError):
                 raise answer
             return
-        self._answers[key] = answer
+        self._answers[key] = answer if answer is not None else RenderError("the render process sent no image")
 
-    def _failed(self):
+    def _failed(self) -> NoReturn:
         code = self._child.poll()
         raise RenderError(
             f"the render process ended unexpectedly (exit code {code}): run `matfit render` on a preset to see "
@@ -270,10 +277,13 @@ def answer_requests(requests: int, replies: int, variant: str | None) -> None:
                 return
             try:
                 if "load" in request:
-                    renderer = Renderer(*request["load"], chosen, threads=1)  # its renders decide: bit-identical
+                    resolution, spp = request["load"]
+                    renderer = Renderer(resolution, spp, chosen, threads=1)  # its renders decide: bit-identical
                     renderer.render(params.DEFAULTS, spp=1)  # warms the kernels, as Background does
                     write_message(outgoing, {"done": True})
                 else:
+                    if renderer is None or values is None:  # `Process` loads first and sends values with a render
+                        raise RenderError("a render request came before the scene, or without parameters")
                     image = renderer.render(values, request["seed"], request["spp"])
                     write_message(outgoing, {"done": True}, image)
             except RenderError as error:
