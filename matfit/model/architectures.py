@@ -26,6 +26,7 @@ import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
+from typing import TYPE_CHECKING
 
 import flax.linen as nn
 import jax
@@ -48,6 +49,9 @@ from matfit.model.layers import (
     upsample,
     upsampled_conv,
 )
+
+if TYPE_CHECKING:
+    from jaxtyping import Float
 from matfit.render import scene
 
 ENCODER_RESOLUTION = 32
@@ -112,7 +116,7 @@ class Decoder(nn.Module):
     path_start: float = 0.0  # the coarse absorption layer's path length at initialisation, in radii
 
     @nn.compact
-    def __call__(self, x: jax.Array) -> jax.Array:
+    def __call__(self, x: Float[jax.Array, "*batch 19"]) -> Float[jax.Array, "*batch R R 3"]:
         stages = self.resolution.bit_length() - 1 - 3  # from 4 x 4 up to resolution / 2
         if self.resolution < 8 or 8 * 2**stages != self.resolution:
             raise ValueError(
@@ -235,7 +239,7 @@ class Encoder(nn.Module):
     dense: Dense
 
     @nn.compact
-    def __call__(self, image: jax.Array, train: bool = False) -> jax.Array:
+    def __call__(self, image: Float[jax.Array, "*batch 32 32 3"], train: bool = False) -> Float[jax.Array, "*batch 19"]:
         batch_shape = image.shape[:-3]
         x = image.reshape(-1, *image.shape[-3:])
         for block in self.blocks:

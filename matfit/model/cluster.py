@@ -28,6 +28,7 @@ import os
 import socket
 import time
 from collections.abc import Iterator
+from types import ModuleType
 
 import numpy as np
 
@@ -48,7 +49,7 @@ WORKER_NICENESS = "RAY_worker_niceness"
 _worker_settings: Settings | None = None
 
 
-def require_ray():
+def require_ray() -> ModuleType:
     """Returns the `ray` module, or raises DatasetError saying how to install it."""
     try:
         import ray
@@ -93,7 +94,7 @@ def _render_task(settings: Settings, task: Task) -> tuple[np.ndarray, np.ndarray
 
 
 @contextlib.contextmanager
-def connect(address: str, workers: int) -> Iterator[object]:
+def connect(address: str, workers: int) -> Iterator[ModuleType]:
     """Connects to the Ray at `address` ("local": a new one of `workers` CPUs) for the block."""
     ray = require_ray()
     if ray.is_initialized():  # the caller's own connection: use it, leave it open

@@ -24,8 +24,9 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -97,8 +98,8 @@ class Dataset:
     path: str
     meta: dict
     params: np.ndarray
-    images: np.ndarray
-    done: np.ndarray
+    images: np.memmap
+    done: np.memmap
 
     @property
     def count(self) -> int:
@@ -120,13 +121,13 @@ class Dataset:
         path = os.path.join(self.path, SCENE_FILE)
         return np.load(path).astype(np.float32) if os.path.isfile(path) else None
 
-    def glass_basis(self, shape: tuple[int, int], progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+    def glass_basis(self, shape: Sequence[int], progress: Callable[[int, int], None] | None = None) -> np.ndarray:
         """Returns the clear-glass basis (S, G, R, R, 3) of `scene.glass_basis_materials`, linear float32,
         rendering what is missing first; `progress(done, total)` after each render."""
         path = os.path.join(self.path, GLASS_FILE.format(specular=shape[0], roughness=shape[1]))
         return self.rendered_grid(path, scene.glass_basis_materials(shape), 0, progress)
 
-    def medium_basis(self, shape: tuple[int, int], progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+    def medium_basis(self, shape: Sequence[int], progress: Callable[[int, int], None] | None = None) -> np.ndarray:
         """Returns the scattering basis (T, A, R, R, 3) of `scene.medium_basis_materials`, linear float32: each
         grid point's render less that of its thickness at albedo 0 (the last column), so only the light the
         medium scatters; zero at thickness 0 (not rendered). Renders what is missing first."""
@@ -267,7 +268,7 @@ def open_dataset(path: str, writable: bool = False) -> Dataset:
     difference = params.describe_table_difference(meta.get("parameter_table", {}))
     if difference is not None:
         raise DatasetError(f"{path} was made with another parameter table ({difference}): render a new dataset")
-    mode = "r+" if writable else "r"
+    mode: Literal["r+", "r"] = "r+" if writable else "r"
     count, resolution = int(meta["count"]), int(meta["resolution"])
     expected = {
         "params.npy": (count, params.COUNT),

@@ -76,6 +76,7 @@ def init_worker(
 def render_chunk(task: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
     """Returns (indices, float16 images) of one task (indices, parameter values, render seeds)."""
     indices, values, seeds = task
+    assert _worker_renderer is not None, "init_worker made it"
     images = np.stack([_worker_renderer.render(v, seed=int(s)) for v, s in zip(values, seeds, strict=True)])
     return indices, images.astype(IMAGE_DTYPE)
 
@@ -121,6 +122,8 @@ class _Worker:
             ) from None
         if "error" in reply:
             raise RenderError(reply["error"])
+        if images is None:
+            raise RenderError("a rendering process answered without images")
         return indices, images
 
     def stop(self) -> None:
@@ -205,6 +208,9 @@ def _answer_chunks(requests: int, replies: int, resolution: int, spp: int, varia
                 header, values = process.read_message(incoming)
             except (EOFError, OSError, ValueError):  # the parent closed its end, or ended
                 return
+            if values is None:  # the parent sends the values with every task
+                process.write_message(outgoing, {"error": "a rendering task came without parameter values"})
+                continue
             task = (np.array(header["indices"], np.int64), values, np.array(header["seeds"], np.int64))
             try:
                 _, images = render_chunk(task)

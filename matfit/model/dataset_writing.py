@@ -11,6 +11,7 @@ process alone stores them, so the bytes are the same whatever renders them.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
 import os
@@ -38,6 +39,8 @@ from matfit.model.dataset import (
 from matfit.model.dataset_workers import (
     CHUNK,
     MAX_WORKERS,
+    Results,
+    Task,
     default_workers,
     in_this_process,
     in_worker_processes,
@@ -243,6 +246,7 @@ def render_missing(
         progress(finished, total, 0.0)
     if not tasks:
         return 0
+    executor: Callable[[Settings, list[Task], int], contextlib.AbstractContextManager[Results]]
     if ray_address is not None:
         from matfit.model import cluster
 

@@ -53,7 +53,7 @@ def upsampled_conv(inputs: jax.Array, kernel: jax.Array, window_strides=(1, 1), 
     """
     if tuple(window_strides) != (1, 1) or padding != "SAME" or kernel.shape[:2] != (3, 3):
         raise ValueError(f"upsampled_conv is a 3x3 SAME convolution of stride 1, not {kernel.shape[:2]} {padding}")
-    n, h, w, _ = inputs.shape
+    n, h, w = inputs.shape[:3]
     out = kernel.shape[-1]
     phases = _phases(_phases(kernel, 0), 2)  # (row phase, row tap, column phase, column tap, I, O)
     combined = phases.transpose(1, 3, 4, 0, 2, 5).reshape(2, 2, kernel.shape[2], 4 * out)
@@ -133,7 +133,7 @@ def interpolate_glass(basis: jax.Array, specular: jax.Array, roughness: jax.Arra
 def medium_physical(unit: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Returns the interior medium's optical thickness of a radius per colour, tau = density x -ln(colour) (N, 3),
     and its albedo (N, 1), from unit-cube parameters (N, 19)."""
-    physical = params.LOW.astype(np.float32)[None] + unit * (params.HIGH - params.LOW).astype(np.float32)[None]
+    physical = unit * (params.HIGH - params.LOW).astype(np.float32)[None] + params.LOW.astype(np.float32)[None]
     colour = physical[:, params.INDEX["medium_color_r"] : params.INDEX["medium_color_b"] + 1]
     tau = physical[:, params.INDEX["density"], None] * -jnp.log(jnp.clip(colour, 1e-3, 1.0))
     return tau, physical[:, params.INDEX["scattering"], None]

@@ -12,6 +12,7 @@ import dataclasses
 import hashlib
 import os
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import flax.linen as nn
 import jax
@@ -23,8 +24,11 @@ from matfit.errors import WeightsError
 from matfit.model.architectures import DECODER, ENCODER_NAMES, ENCODER_RESOLUTION, ENCODERS
 from matfit.model.weight_files import Network, load, non_finite_leaf, weights_path
 
+if TYPE_CHECKING:
+    from jaxtyping import Float, PyTree
 
-def as_float32(variables: dict) -> dict:
+
+def as_float32(variables: PyTree) -> PyTree:
     """Returns the weights as float32 (float32 weights are left as they are): an encoder loaded alone (`load`) keeps
     its stored float16 weights, which a compiled program then converts where XLA runs."""
     return jax.tree_util.tree_map(lambda leaf: jnp.asarray(leaf).astype(jnp.float32), variables)
@@ -33,10 +37,12 @@ def as_float32(variables: dict) -> dict:
 @programs.jit(static_argnames=("module",))
 def apply(module: nn.Module, variables: dict, x: jax.Array) -> jax.Array:
     """Returns `module` applied to a batch in inference mode; compiled once per module and shape."""
-    return module.apply(as_float32(variables), x)
+    return module.apply(as_float32(variables), x)  # type: ignore[return-value]  # a tuple only with `mutable`
 
 
-def apply_in_batches(module: nn.Module, variables: dict, inputs: np.ndarray, batch: int = 256) -> np.ndarray:
+def apply_in_batches(
+    module: nn.Module, variables: dict, inputs: Float[np.ndarray, "n ..."], batch: int = 256
+) -> Float[np.ndarray, "n ..."]:
     """Returns `module` applied to every input, float32, in batches of one size (one compilation per size)."""
     batch = max(1, min(batch, len(inputs)))
     outputs = []
@@ -48,7 +54,7 @@ def apply_in_batches(module: nn.Module, variables: dict, inputs: np.ndarray, bat
     return np.concatenate(outputs)
 
 
-def encoder_input(linear: np.ndarray) -> np.ndarray:
+def encoder_input(linear: Float[np.ndarray, "*batch R R 3"]) -> Float[np.ndarray, "*batch 32 32 3"]:
     """Returns what every encoder sees of linear images (..., R, R, 3): clipped to [0, 1], box-filtered
     to ENCODER_RESOLUTION, then sRGB-encoded, float32. R must be a multiple of ENCODER_RESOLUTION.
 
@@ -80,7 +86,7 @@ class Model:
             digest.update(f"{arch}:{network.identity()}".encode())
         return digest.hexdigest()
 
-    def decode(self, unit: np.ndarray) -> np.ndarray:
+    def decode(self, unit: Float[np.ndarray, "n 19"]) -> Float[np.ndarray, "n R R 3"]:
         """Returns phi(x) of unit-cube parameters (N, 19): sRGB images (N, R, R, 3), float32, decoded in batches."""
         return apply_in_batches(
             self.decoder.module, self.decoder.variables, np.asarray(unit, np.float32).reshape(-1, params.COUNT)

@@ -79,7 +79,7 @@ def measure_loader(
     fed as long as this is well above its training rate in samples/s.
     """
     rng = np.random.default_rng(0)
-    arrays = {
+    arrays: dict[str, tuple[np.ndarray, np.ndarray]] = {
         "decoder": (
             rng.random((samples, 19), np.float32),
             rng.random((samples, resolution, resolution, 3), np.float32).astype(np.float16),

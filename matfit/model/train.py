@@ -27,6 +27,7 @@ import os
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -41,6 +42,9 @@ from matfit.model.checkpoints import Checkpoint, checkpoint_path, load_checkpoin
 from matfit.model.dataset import Dataset
 from matfit.model.losses import image_loss, validation_metrics
 from matfit.model.train_config import Config, validation_count
+
+if TYPE_CHECKING:
+    import flax.linen as nn
 
 # Decoder fields that add a layer, so that `Config.start_from` may add it to trained weights: it starts fresh
 # (with `path_start` 0 the decoder then draws what it drew; other starts change the picture at once).
@@ -98,6 +102,7 @@ def dataset_identity(data: Dataset) -> dict:
 
 def optimiser(config: Config, steps_per_epoch: int) -> optax.GradientTransformation:
     """Returns Adam with a linear warm-up and a cosine decay over the whole run."""
+    assert config.epochs is not None, "Config.check refused None"
     total = config.epochs * steps_per_epoch
     schedule = optax.warmup_cosine_decay_schedule(
         init_value=0.0,
@@ -161,7 +166,7 @@ class Run:
 
     name: str
     description: dict
-    module: object
+    module: nn.Module
     inputs: np.ndarray
     targets: np.ndarray
     training_samples: int
@@ -214,7 +219,7 @@ def create_run(
     root = jax.random.fold_in(jax.random.key(config.seed), NETWORKS.index(name))
     module = architectures.build(description)
     constants = {}
-    if name == architectures.DECODER and module.glass_grid:
+    if isinstance(module, architectures.Decoder) and module.glass_grid:
         progress = reporter.rendering if reporter else None
         glass = datasets[0].glass_basis(tuple(module.glass_grid), progress)
         medium = datasets[0].medium_basis(tuple(module.medium_grid), progress) if module.medium_grid else None
@@ -291,7 +296,7 @@ def starting_network(name: str, config: Config, out: str, description: dict) -> 
     # Described again from its module: a file written before a field of the architecture existed
     # (the shipped decoder predates `absorption`) holds that field's default implicitly.
     described = architectures.architecture(
-        name, network.resolution, network.module if name == architectures.DECODER else None
+        name, network.resolution, network.module if isinstance(network.module, architectures.Decoder) else None
     )
     # A layer that starts as (nearly) the identity may be added to trained weights: it starts fresh.
     grown = {field: description[field] for field in GROWABLE if description.get(field) and not described.get(field)}
@@ -338,6 +343,7 @@ def train_epoch(run: Run, train_step, state: Checkpoint, reporter: Reporter) -> 
     Shuffling and dropout depend only on (seed, network, epoch, step), so an epoch gives the same
     weights whether or not the run was interrupted before it.
     """
+    assert run.config.epochs is not None, "Config.check refused None"
     epoch = state.epoch + 1
     batch_size = run.config.batch_size
     reporter.start_epoch(run.name, epoch, run.config.epochs, run.steps)
@@ -413,6 +419,7 @@ def train_network(
     """
     reporter = reporter or Reporter()
     run = create_run(name, data, out, config, decoder, reporter)
+    assert config.epochs is not None, "Config.check (in create_run) refused None"
     state = create_train_state(run)
     if state.epoch == config.epochs and os.path.exists(run.weights_file):
         return weight_files.load(run.weights_file).info["metrics"]

@@ -56,7 +56,7 @@ class Network:
         return digest.hexdigest()
 
 
-def save(path: str, network: Network, dtype: np.dtype = np.float16) -> None:
+def save(path: str, network: Network, dtype: type = np.float16) -> None:
     """Writes a network's weights (as `dtype`) and description to a Flax msgpack file, atomically."""
     weights = jax.tree_util.tree_map(
         lambda leaf: np.asarray(leaf, dtype=dtype), serialization.to_state_dict(network.variables)
@@ -100,7 +100,7 @@ def restore_document(path: str, expected_format: str, what: str) -> dict:
 
 
 def restore_variables(
-    path: str, description: dict, stored: dict, dtype: type | None = np.float32
+    path: str, description: dict, stored: dict | None, dtype: type | None = np.float32
 ) -> tuple[nn.Module, dict]:
     """Returns the module of `description` and `stored` weights checked against its shapes, as `dtype` (None: as
     stored)."""
