@@ -12,7 +12,7 @@ import os
 import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, overload
 
 import numpy as np
 import OpenImageIO as oiio
@@ -40,6 +40,18 @@ def srgb_decode(encoded: Float[np.ndarray, "*shape"]) -> Float[np.ndarray, "*sha
     return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
 
 
+@overload
+def rmse(
+    images: Float[np.ndarray, "*batch H W 3"],
+    targets: Float[np.ndarray, "*#batch H W 3"],
+    weights: Float[np.ndarray, "H W"] | None = None,
+) -> Float[np.ndarray, "*batch"]: ...
+@overload
+def rmse(
+    images: Float[jax.Array, "*batch H W 3"],
+    targets: Float[np.ndarray | jax.Array, "*#batch H W 3"],
+    weights: Float[np.ndarray | jax.Array, "H W"] | None = None,
+) -> Float[jax.Array, "*batch"]: ...
 def rmse(
     images: Float[np.ndarray | jax.Array, "*batch H W 3"],
     targets: Float[np.ndarray | jax.Array, "*#batch H W 3"],
