@@ -18,7 +18,6 @@ returns:
 from __future__ import annotations
 
 import os
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -27,9 +26,6 @@ from matfit.errors import DatasetError
 from matfit.model import architectures, models, pipeline, weight_files
 from matfit.model.dataset import Dataset
 from matfit.render import presets
-
-if TYPE_CHECKING:
-    import jax
 
 PRESET_SPP = 4096
 PRESET_FILE = "presets.npz"
@@ -83,7 +79,7 @@ def preset_references(references: Dataset, spp: int = PRESET_SPP) -> dict[str, n
     return dict(zip(names, rendered, strict=True))
 
 
-def summary(values: np.ndarray | jax.Array) -> dict:
+def summary(values: np.ndarray) -> dict:
     """Returns mean, median and 95th percentile of a set of per-image figures."""
     return {"mean": float(np.mean(values)), "median": float(np.median(values)), "p95": float(np.percentile(values, 95))}
 
