@@ -161,7 +161,7 @@ def run(
     started = time.perf_counter()
     outputs.check({"target": target, "mask": mask, "init": init})
     init_values = params.read_file(init) if init is not None else None
-    outcome, renderer = fit_file(
+    outcome, used = fit_file(
         target,
         model,
         settings,
@@ -177,7 +177,7 @@ def run(
         variant=variant,
     )
     with files.together() as batch:
-        write_outputs(outcome, outputs, batch, renderer)
+        write_outputs(outcome, outputs, batch, used)
         outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
         files.write_text(batch.path(outputs.params), params_text(outcome))
     return outcome
@@ -197,7 +197,7 @@ def fit_file(
     source: str | None = None,
     corrections: int | None = None,
     variant: str | None = None,
-) -> tuple[Outcome, object]:
+) -> tuple[Outcome, render.Renderer | render.Process | None]:
     """Returns (what a fit of the image file `target` found, with its params.json document; the renderer used).
 
     Writes nothing: `run` writes the CLI's files, `serve` offers the same ones for download.
@@ -230,6 +230,7 @@ def fit_file(
     model_path = model if isinstance(model, str) else model.path
     model = load_model(model) if isinstance(model, str) else model
     target_srgb, weights, notices = read_target(target, model.resolution, mask)
+    background: render.Process | render.Background | None
     background = on_start = None
     if isinstance(renderer, Process):
         if refine_steps:
@@ -339,6 +340,7 @@ def report_picture(outcome: Outcome) -> np.ndarray:
     from matfit.fit import report
 
     result = outcome.result
+    assert outcome.rendered is not None, "fit_file renders the answer when a report is asked for (needs_render)"
     panels = [
         (outcome.target, "target"),
         (result.start_image, f"best-of-n {result.start_rmse:.2f}"),
@@ -349,7 +351,9 @@ def report_picture(outcome: Outcome) -> np.ndarray:
     return report.compose(panels)
 
 
-def write_outputs(outcome: Outcome, outputs: Outputs, batch: files.Batch, renderer=None) -> None:
+def write_outputs(
+    outcome: Outcome, outputs: Outputs, batch: files.Batch, renderer: render.Renderer | render.Process | None = None
+) -> None:
     """Writes the report, the large render and the exports of a fit into `batch` (params.json is the caller's)."""
     values = outcome.values
     if outputs.report is not None:
