@@ -343,7 +343,8 @@ def train(
     )
     data = [dataset.open_dataset(str(path)) for path in dataset_paths]
     with TrainingProgress() as progress:
-        for name, metrics in train_module.train_networks(names, data, str(out), config, progress, coarse_absorption):
+        # TrainingProgress is a train.Reporter by its methods, not by its class (app/progress imports no JAX).
+        for name, metrics in train_module.train_networks(names, data, str(out), config, progress, coarse_absorption):  # type: ignore[arg-type]
             progress.note(f"{train_module.summary(name, metrics)} -> {out}")
 
 

@@ -197,7 +197,7 @@ def fit_file(
     source: str | None = None,
     corrections: int | None = None,
     variant: str | None = None,
-) -> tuple[Outcome, render.Renderer | render.Process | None]:
+) -> tuple[Outcome, render.Renderer | Process | None]:
     """Returns (what a fit of the image file `target` found, with its params.json document; the renderer used).
 
     Writes nothing: `run` writes the CLI's files, `serve` offers the same ones for download.
@@ -230,7 +230,7 @@ def fit_file(
     model_path = model if isinstance(model, str) else model.path
     model = load_model(model) if isinstance(model, str) else model
     target_srgb, weights, notices = read_target(target, model.resolution, mask)
-    background: render.Process | render.Background | None
+    background: Process | Background | None
     background = on_start = None
     if isinstance(renderer, Process):
         if refine_steps:
@@ -352,7 +352,7 @@ def report_picture(outcome: Outcome) -> np.ndarray:
 
 
 def write_outputs(
-    outcome: Outcome, outputs: Outputs, batch: files.Batch, renderer: render.Renderer | render.Process | None = None
+    outcome: Outcome, outputs: Outputs, batch: files.Batch, renderer: render.Renderer | Process | None = None
 ) -> None:
     """Writes the report, the large render and the exports of a fit into `batch` (params.json is the caller's)."""
     values = outcome.values
