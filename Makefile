@@ -46,15 +46,18 @@ $(BLENDER_VENV)/.installed: pyproject.toml
 blender-extension: $(BIN)/matfit
 	$(BIN)/python blender/build.py dist
 
-# Every test. `make check` is the quick loop while working: the same lint, every test but the slow end-to-end ones.
+# Every test. `make check` is the quick loop while working: the same lint and type check, every test but the slow
+# end-to-end ones. mypy reads its settings from pyproject.toml ([tool.mypy]: the package, not the tests).
 test: $(BIN)/matfit
 	$(BIN)/ruff check matfit tests blender
 	$(BIN)/ruff format --check matfit tests blender
+	$(BIN)/mypy
 	$(BIN)/python -m pytest -q
 
 check: $(BIN)/matfit
 	$(BIN)/ruff check matfit tests blender
 	$(BIN)/ruff format --check matfit tests blender
+	$(BIN)/mypy
 	$(BIN)/python -m pytest -q -m "not slow"
 
 lint: $(BIN)/matfit

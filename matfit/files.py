@@ -162,7 +162,7 @@ def named_paths(paths: Named | None) -> list[tuple[str, str]]:
     return [(label, path) for label, path in pairs if path is not None]
 
 
-def check_outputs(outputs: Named, inputs: Named | None = None, *, folder_field: str | None = None) -> None:
+def check_outputs(outputs: Named | None, inputs: Named | None = None, *, folder_field: str | None = None) -> None:
     """Raises OutputError, before any work, unless every output can be written without losing a file.
 
     `outputs` and `inputs` map what each file is (the option's name: "report", "mask"; a name may

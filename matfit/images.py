@@ -12,6 +12,7 @@ import os
 import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, overload
 
 import numpy as np
 import OpenImageIO as oiio
@@ -19,23 +20,43 @@ import OpenImageIO as oiio
 from matfit.errors import ImageError, printable
 from matfit.files import Named, check_outputs, check_writable, final_name, write_bytes
 
+if TYPE_CHECKING:
+    import jax
+    from jaxtyping import Float
+
 LINEAR_EXTENSIONS = (".exr", ".hdr")
 DISPLAY_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 
 
-def srgb_encode(linear: np.ndarray) -> np.ndarray:
+def srgb_encode(linear: Float[np.ndarray, "*shape"]) -> Float[np.ndarray, "*shape"]:
     """Returns sRGB-encoded values in [0, 1] for linear values (clipped to [0, 1] first)."""
     x = np.clip(np.asarray(linear, dtype=np.float32), 0.0, 1.0)
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055).astype(np.float32)
 
 
-def srgb_decode(encoded: np.ndarray) -> np.ndarray:
+def srgb_decode(encoded: Float[np.ndarray, "*shape"]) -> Float[np.ndarray, "*shape"]:
     """Returns linear values for sRGB-encoded values in [0, 1]."""
     x = np.clip(np.asarray(encoded, dtype=np.float32), 0.0, 1.0)
     return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
 
 
-def rmse(images, targets, weights=None):
+@overload
+def rmse(
+    images: Float[np.ndarray, "*batch H W 3"],
+    targets: Float[np.ndarray, "*#batch H W 3"],
+    weights: Float[np.ndarray, "H W"] | None = None,
+) -> Float[np.ndarray, "*batch"]: ...
+@overload
+def rmse(
+    images: Float[jax.Array, "*batch H W 3"],
+    targets: Float[np.ndarray | jax.Array, "*#batch H W 3"],
+    weights: Float[np.ndarray | jax.Array, "H W"] | None = None,
+) -> Float[jax.Array, "*batch"]: ...
+def rmse(
+    images: Float[np.ndarray | jax.Array, "*batch H W 3"],
+    targets: Float[np.ndarray | jax.Array, "*#batch H W 3"],
+    weights: Float[np.ndarray | jax.Array, "H W"] | None = None,
+) -> Float[np.ndarray | jax.Array, "*batch"]:
     """Returns the RMSE on the 0-255 scale of sRGB images (..., H, W, 3) against targets: one figure per image.
 
     Targets are (H, W, 3), one for every image, or (..., H, W, 3), one each. With per-pixel weights
@@ -58,7 +79,7 @@ def rmse(images, targets, weights=None):
     return 255.0 * (weighted.sum(axis=(-3, -2, -1)) / (3.0 * weights.sum())) ** 0.5
 
 
-def box_downsample(linear: np.ndarray, size: int) -> np.ndarray:
+def box_downsample(linear: Float[np.ndarray, "*batch H W C"], size: int) -> Float[np.ndarray, "*batch size size C"]:
     """Returns images (..., H, W, C) averaged over square blocks down to (..., size, size, C).
 
     H and W must be equal and a multiple of `size`; averaging linear values is what a render at
@@ -93,7 +114,7 @@ def check_output(path: str, inputs: Named | None = None) -> None:
     check_outputs({"output": path}, inputs)
 
 
-def write(path: str, linear: np.ndarray) -> None:
+def write(path: str, linear: Float[np.ndarray, "H W C"]) -> None:
     """Writes a linear (H, W, 3) image atomically: sRGB 8-bit for PNG/JPEG/TIFF, float for EXR/HDR.
 
     The file is encoded in memory first and then written, flushed and size-checked by
@@ -106,7 +127,7 @@ def write(path: str, linear: np.ndarray) -> None:
     write_bytes(path, encode(linear, extension, final_name(path)))
 
 
-def encode(linear: np.ndarray, extension: str, path: str = "the image") -> bytes:
+def encode(linear: Float[np.ndarray, "H W C"], extension: str, path: str = "the image") -> bytes:
     """Returns the bytes of an image file of type `extension` (".png", ".exr", ...) holding a linear (H, W, 3) image."""
     linear = np.asarray(linear, dtype=np.float32)
     if extension in LINEAR_EXTENSIONS:
@@ -205,7 +226,7 @@ def quiet_stderr() -> Iterator[None]:
 class Loaded:
     """An image file's pixels (linear float32 (H, W, 3)) and what was done to make them RGB."""
 
-    pixels: np.ndarray
+    pixels: Float[np.ndarray, "H W 3"]
     notices: list[str]
 
 
@@ -239,7 +260,7 @@ def load(path: str, max_pixels: int = MAX_PIXELS) -> Loaded:
     return Loaded(np.ascontiguousarray(pixels), notices)
 
 
-def decode(path: str) -> np.ndarray:
+def decode(path: str) -> Float[np.ndarray, "H W C"]:
     """Returns the pixels of an image file as OpenImageIO decodes them (float); ImageError if damaged or truncated."""
     config = oiio.ImageSpec()
     config.attribute("oiio:UnassociatedAlpha", 1)  # the colour as painted, not multiplied by alpha
@@ -261,7 +282,7 @@ def is_jpeg(path: str) -> bool:
         return file.read(len(JPEG_START)) == JPEG_START
 
 
-def decode_jpeg(path: str) -> np.ndarray:
+def decode_jpeg(path: str) -> Float[np.ndarray, "H W C"]:
     """Returns the pixels of a JPEG file (float); ImageError if it is truncated or its data is corrupt.
 
     libjpeg only warns of a truncated file or corrupt data (and fills the rest with grey); OpenImageIO's
@@ -282,7 +303,7 @@ def decode_jpeg(path: str) -> np.ndarray:
     return pixels
 
 
-def read(path: str) -> np.ndarray:
+def read(path: str) -> Float[np.ndarray, "H W 3"]:
     """Returns an image file as linear float32 (H, W, 3); display formats are sRGB-decoded."""
     return load(path).pixels
 
@@ -294,7 +315,7 @@ def read(path: str) -> np.ndarray:
 DOWNSAMPLE_FILTER = ("gaussian", 2.0)
 
 
-def resample(linear: np.ndarray, width: int, height: int) -> np.ndarray:
+def resample(linear: Float[np.ndarray, "H W C"], width: int, height: int) -> Float[np.ndarray, "height width C"]:
     """Returns a linear image (H, W, C) resized to (height, width, C) with OpenImageIO.
 
     Shrinking uses DOWNSAMPLE_FILTER (width in output pixels); enlarging uses OpenImageIO's default.
@@ -315,7 +336,7 @@ def resample(linear: np.ndarray, width: int, height: int) -> np.ndarray:
     return np.asarray(resized.get_pixels(oiio.FLOAT), np.float32).reshape(height, width, channels)
 
 
-def label(image_srgb: np.ndarray, text: str, height: int = 14) -> np.ndarray:
+def label(image_srgb: Float[np.ndarray, "H W 3"], text: str, height: int = 14) -> Float[np.ndarray, "H+height W 3"]:
     """Returns an sRGB image with a caption strip of `height` pixels rendered under it."""
     width = image_srgb.shape[1]
     strip = oiio.ImageBuf(oiio.ImageSpec(width, height, 3, "float"))

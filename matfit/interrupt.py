@@ -28,13 +28,14 @@ import select
 import signal
 import sys
 import threading
+from typing import Any
 
 EXIT_CODE = 130
 GRACE = 1.0  # seconds the main thread has to stop by itself
 STOPPING = (signal.SIGINT, signal.SIGTERM)
 
 _temporaries: set[str] = set()
-_state = {"message": "nothing was written", "announced": False}
+_state: dict[str, Any] = {"message": "nothing was written", "announced": False}
 _lock = threading.Lock()
 
 
@@ -129,7 +130,7 @@ def install() -> None:
 def raise_on_signal() -> None:
     """Makes Ctrl-C and `kill` raise KeyboardInterrupt in the main thread again: for work that stops its children.
 
-    A dataset's rendering processes are stopped by the parent's KeyboardInterrupt (`dataset._in_worker_processes`
+    A dataset's rendering processes are stopped by the parent's KeyboardInterrupt (`dataset_workers.in_worker_processes`
     kills them once the results that are in are stored).
     """
     if threading.current_thread() is threading.main_thread():

@@ -22,11 +22,15 @@ import difflib
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from matfit import documents
 from matfit.errors import ParameterError
+
+if TYPE_CHECKING:
+    from jaxtyping import Float
 
 
 @dataclass(frozen=True)
@@ -151,13 +155,13 @@ MAX_SEED = 2**32 - 1  # every seed of matfit (sampling, renders, training, fits)
 assert COUNT == 19, "the paper's shader has m = 19 parameters"
 
 
-def to_unit(values: np.ndarray) -> np.ndarray:
+def to_unit(values: Float[np.ndarray, "*batch 19"]) -> Float[np.ndarray, "*batch 19"]:
     """Returns physical values (..., 19) mapped affinely onto the unit cube [0, 1]^19."""
     values = np.asarray(values, dtype=np.float64)
     return (values - LOW) / (HIGH - LOW)
 
 
-def from_unit(unit: np.ndarray) -> np.ndarray:
+def from_unit(unit: Float[np.ndarray, "*batch 19"]) -> Float[np.ndarray, "*batch 19"]:
     """Returns unit-cube coordinates (..., 19) mapped back onto the physical ranges."""
     unit = np.asarray(unit, dtype=np.float64)
     return LOW + unit * (HIGH - LOW)
@@ -191,7 +195,7 @@ def describe_table_difference(stored: Mapping) -> str | None:
     return f"parameter table version {stored.get('version')} (this matfit uses {TABLE_VERSION})"
 
 
-def sample_unit(rng: np.random.Generator) -> np.ndarray:
+def sample_unit(rng: np.random.Generator) -> Float[np.ndarray, " 19"]:
     """Returns one unit-cube vector from the training distribution.
 
     Per parameter: with probability `low_corner` the value lies uniformly in [0, 0.05], with
@@ -214,7 +218,7 @@ def sample_unit(rng: np.random.Generator) -> np.ndarray:
     return out
 
 
-def sample_dense_media_unit(rng: np.random.Generator) -> np.ndarray:
+def sample_dense_media_unit(rng: np.random.Generator) -> Float[np.ndarray, " 19"]:
     """Returns one unit-cube vector from the dense-media corner of the training distribution.
 
     The other parameters as `sample_unit` draws them, then: spec_trans in its top 5% (a dielectric
@@ -233,7 +237,7 @@ def sample_dense_media_unit(rng: np.random.Generator) -> np.ndarray:
     return out
 
 
-def sample_glass_unit(rng: np.random.Generator) -> np.ndarray:
+def sample_glass_unit(rng: np.random.Generator) -> Float[np.ndarray, " 19"]:
     """Returns one unit-cube vector from the white-glass corner of the training distribution.
 
     Glass is what artists make with spec_trans = 1 and a white or grey base colour (every
@@ -260,7 +264,7 @@ def sample_glass_unit(rng: np.random.Generator) -> np.ndarray:
     return out
 
 
-def sample_tinted_glass_unit(rng: np.random.Generator) -> np.ndarray:
+def sample_tinted_glass_unit(rng: np.random.Generator) -> Float[np.ndarray, " 19"]:
     """Returns one unit-cube vector from the tinted-glass corner: amber-like dielectrics that absorb but do not scatter.
 
     The white or grey dielectric of `sample_glass_unit`, then a medium that colours the light it
@@ -290,7 +294,7 @@ SAMPLERS = {
 }
 
 
-def sample_index(seed: int, index: int, sampler: str = "uniform") -> np.ndarray:
+def sample_index(seed: int, index: int, sampler: str = "uniform") -> Float[np.ndarray, " 19"]:
     """Returns the unit-cube vector number `index` of the dataset drawn with `seed` and `sampler`.
 
     Each index has its own random stream, so sample i is the same whatever order, chunking or
@@ -327,7 +331,7 @@ def check_value(name: str, value: object) -> float:
     return value
 
 
-def from_mapping(values: Mapping[str, object]) -> np.ndarray:
+def from_mapping(values: Mapping[str, object]) -> Float[np.ndarray, " 19"]:
     """Returns the physical vector (19,) for named values; missing names take their defaults."""
     out = DEFAULTS.copy()
     for name, value in values.items():
@@ -336,7 +340,7 @@ def from_mapping(values: Mapping[str, object]) -> np.ndarray:
     return out
 
 
-def to_mapping(values: np.ndarray) -> dict[str, float]:
+def to_mapping(values: Float[np.ndarray, " 19"]) -> dict[str, float]:
     """Returns the named values of a physical vector (19,), rounded to 6 decimals for humans."""
     values = np.asarray(values, dtype=np.float64)
     if values.shape != (COUNT,):
@@ -349,7 +353,7 @@ def to_mapping(values: np.ndarray) -> dict[str, float]:
     return {name: round(float(v), 6) for name, v in zip(NAMES, values, strict=True)}
 
 
-def parse_params_json(text: str, source: str = "params.json") -> np.ndarray:
+def parse_params_json(text: str, source: str = "params.json") -> Float[np.ndarray, " 19"]:
     """Returns the physical vector described by a params.json text.
 
     The file is a JSON object, either {"params": {name: value, ...}, ...other fields} (what matfit
@@ -364,7 +368,7 @@ def parse_params_json(text: str, source: str = "params.json") -> np.ndarray:
 PARAMS_FIX = 'give a params.json that matfit wrote, or a JSON object like {"roughness": 0.2}'
 
 
-def from_document(data: object, source: str) -> np.ndarray:
+def from_document(data: object, source: str) -> Float[np.ndarray, " 19"]:
     """Returns the physical vector of a parsed params.json document (see `parse_params_json`)."""
     if not isinstance(data, dict):
         raise ParameterError(
@@ -395,13 +399,13 @@ def _unique_keys(pairs: list[tuple[str, object]]) -> dict:
     return dict(pairs)
 
 
-def read_file(path: str) -> np.ndarray:
+def read_file(path: str) -> Float[np.ndarray, " 19"]:
     """Returns the physical parameter vector of a params.json file."""
     data = documents.read(path, PARAMS_FIX, ParameterError, object_pairs_hook=_unique_keys, parse_int=float)
     return from_document(data, path)
 
 
-def params_document(values: np.ndarray, **extra: object) -> dict:
+def params_document(values: Float[np.ndarray, " 19"], **extra: object) -> dict:
     """Returns the params.json document for a physical vector, with units and extra fields."""
     return {
         "params": to_mapping(values),
@@ -410,7 +414,7 @@ def params_document(values: np.ndarray, **extra: object) -> dict:
     }
 
 
-def medium_coefficients(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def medium_coefficients(values: Float[np.ndarray, " 19"]) -> tuple[Float[np.ndarray, " 3"], Float[np.ndarray, " 3"]]:
     """Returns (sigma_t rgb, albedo rgb) of the interior medium for a physical vector (19,).
 
     sigma_t = density * -ln(absorption colour), albedo = scattering fraction (grey).

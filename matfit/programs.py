@@ -44,6 +44,7 @@ import platform
 import secrets
 import stat
 import struct
+import sys
 import tempfile
 import threading
 from collections.abc import Callable
@@ -182,7 +183,7 @@ def environment() -> tuple:
     import flax
     import jaxlib
 
-    config = jax.config
+    config: Any = jax.config  # its options are attributes made at run time, unknown to a type checker
     devices = jax.devices()
     return (
         jax.__version__,
@@ -271,7 +272,7 @@ class Program:
 
     def _cache_size(self) -> int:
         """Returns how many programs this function holds in this process (compiled by jax.jit or read back)."""
-        return self.jitted._cache_size() + len(self.loaded)
+        return self.jitted._cache_size() + len(self.loaded)  # type: ignore[attr-defined]  # jit's private counter
 
 
 def pack(payload: bytes, in_tree, out_tree) -> bytes:
@@ -307,11 +308,13 @@ def jax_cache_enabled() -> bool:
     An executable that XLA's CPU backend read from that cache and that is then serialized again loads in a later
     process but fails when run ("Function wrapped_iota not found"): with the cache on, nothing is stored.
     """
-    return bool(jax.config.jax_compilation_cache_dir) and bool(jax.config.jax_enable_compilation_cache)
+    config: Any = jax.config  # its options are attributes made at run time, unknown to a type checker
+    return bool(config.jax_compilation_cache_dir) and bool(config.jax_enable_compilation_cache)
 
 
 def _stored_path(name: str, parts: Any, suffix: str) -> str:
     """Returns where the store keeps `name` for `parts`: hashed with the environment and matfit's source."""
+    assert _directory is not None, "called only with the store on"
     key = repr((name, parts, environment(), source_digest()))
     return os.path.join(_directory, f"{name}-{hashlib.sha256(key.encode()).hexdigest()[:32]}{suffix}")
 
@@ -377,3 +380,32 @@ def stored() -> list[str]:
     if _directory is None or not os.path.isdir(_directory):
         return []
     return sorted(name for name in os.listdir(_directory) if name.endswith((SUFFIX, ".json")))
+
+
+# The most the program store may hold: the shipped model's default fit stores ~2.4 MB of executables (its four compiled
+# stages and the encoders' conversion); every new matfit, JAX or model writes new entries beside the old, which only
+# pruning removes.
+CACHE_BYTES = {"programs": 64 * 2**20}
+
+
+def enable_compilation_cache() -> None:
+    """Turns on the store of compiled programs (this module) under $XDG_CACHE_HOME/matfit or ~/.cache/matfit.
+
+    A second `matfit fit` then loads its compiled stages instead of tracing and compiling them again. The store
+    does not grow without bound: each process first prunes it to `CACHE_BYTES` (least recently used first).
+    JAX's own persistent compilation cache is not turned on: the store keeps the executables themselves, and an
+    executable that JAX read from its cache does not survive being stored again (it fails at its next load with
+    "Function ... not found"). What earlier matfit versions kept there (`matfit/jax`) is removed. A store that
+    another user could have written (see above) is not used, with a one-line notice on standard error.
+    """
+    root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    stored = os.path.join(root, "matfit", "programs")
+    try:
+        enable(stored)
+    except OSError:
+        return  # no writable cache: trace and compile every time
+    except OutputError as error:  # a store others could have written to is never read: said once, then compiled
+        print(f"notice: compiled programs are not stored or read: {error}", file=sys.stderr)
+        return
+    prune(os.path.join(root, "matfit", "jax"), 0)
+    prune(stored, CACHE_BYTES["programs"])

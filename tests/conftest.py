@@ -34,12 +34,14 @@ def renderer() -> Renderer:
 @pytest.fixture(scope="session")
 def tiny_dataset(tmp_path_factory, renderer) -> str:
     """Returns the path of a finished 32 px, 4-spp, 48-sample dataset (encoders need 32 px)."""
-    from matfit.model import dataset
+    from matfit.model import dataset, dataset_writing
     from matfit.render import scene
 
     path = str(tmp_path_factory.mktemp("tiny") / "data")
-    data = dataset.prepare(path, dataset.Settings(32, 4, 5, renderer.variant), 48, {"mitsuba": "test", "drjit": "test"})
-    dataset.render_missing(data, 0)
+    data = dataset_writing.prepare(
+        path, dataset.Settings(32, 4, 5, renderer.variant), 48, {"mitsuba": "test", "drjit": "test"}
+    )
+    dataset_writing.render_missing(data, 0)
     # The default decoder's clear-glass basis, as `Dataset.glass_basis` keeps it, rendered at 4 spp
     # instead of 1024 so that tests training the default decoder do not spend minutes on it.
     cheap = Renderer(32, 4, renderer.variant)

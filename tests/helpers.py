@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from matfit import images, params
-from matfit.model import models
+from matfit.model import architectures, models, weight_files
 
 R = 32
 
@@ -23,21 +23,21 @@ def random_model(seed: int = 0) -> models.Model:
 
 @functools.cache
 def _random_model(seed: int) -> models.Model:
-    decoder = models.Decoder(resolution=R, hidden=64, base_channels=32, stage_channels=(32,))
-    variables = models.initialise(decoder, jax.random.key(seed), (19,))
+    decoder = architectures.Decoder(resolution=R, hidden=64, base_channels=32, stage_channels=(32,))
+    variables = architectures.initialise(decoder, jax.random.key(seed), (19,))
     networks = {}
     for arch in (3, 8):
-        module = models.encoder(arch)
-        networks[arch] = models.Network(
+        module = architectures.encoder(arch)
+        networks[arch] = weight_files.Network(
             f"encoder-{arch}",
-            models.architecture(f"encoder-{arch}", 64),
+            architectures.architecture(f"encoder-{arch}", 64),
             module,
-            models.initialise(module, jax.random.key(arch), (32, 32, 3)),
+            architectures.initialise(module, jax.random.key(arch), (32, 32, 3)),
             {},
         )
     return models.Model(
         "memory",
-        models.Network("decoder", models.architecture("decoder", R, decoder), decoder, variables, {}),
+        weight_files.Network("decoder", architectures.architecture("decoder", R, decoder), decoder, variables, {}),
         networks,
     )
 

@@ -15,7 +15,7 @@ from matfit import images, params, shipped
 from matfit.app.cli import app
 from matfit.fit import search as fit
 from matfit.fit import verify
-from matfit.model import models
+from matfit.model import architectures, weight_files
 from matfit.render import engine, presets
 
 runner = CliRunner()
@@ -282,10 +282,10 @@ def test_corrupt_checkpoint_and_weights(tmp_path, tiny_dataset, trained):
 
 
 def test_finished_networks_are_not_trained_again(trained, tiny_dataset):
-    before = models.load(str(trained / "encoder-8.msgpack")).info["metrics"]["wall_time_s"]
+    before = weight_files.load(str(trained / "encoder-8.msgpack")).info["metrics"]["wall_time_s"]
     result = run("train", "--arch", "8", "--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8, "--out", trained)
     assert result.exit_code == 0, result.output
-    assert models.load(str(trained / "encoder-8.msgpack")).info["metrics"]["wall_time_s"] == before
+    assert weight_files.load(str(trained / "encoder-8.msgpack")).info["metrics"]["wall_time_s"] == before
 
 
 @pytest.mark.slow
@@ -294,8 +294,8 @@ def test_train_coarse_absorption_grows_the_layer_on_a_plain_decoder(trained, tin
     arguments = ("--dataset", tiny_dataset, "--epochs", 1, "--batch-size", 8)  # the layer is the default
     result = run("train", "--arch", "decoder", *arguments, "--start-from", trained, "--out", out)
     assert result.exit_code == 0, result.output
-    coarse, plain = models.load(str(out / "decoder.msgpack")), models.load(str(trained / "decoder.msgpack"))
-    assert coarse.module.coarse_absorption and coarse.module.path_start == models.COARSE_PATH_START
+    coarse, plain = weight_files.load(str(out / "decoder.msgpack")), weight_files.load(str(trained / "decoder.msgpack"))
+    assert coarse.module.coarse_absorption and coarse.module.path_start == architectures.COARSE_PATH_START
     assert not plain.module.coarse_absorption
     assert set(coarse.variables["params"]) - set(plain.variables["params"]) == {"path"}
     assert float(coarse.variables["params"]["path"]["bias"][0]) == pytest.approx(1.0, abs=0.05)  # one epoch at 1e-3

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from matfit import params
-from matfit.model import dataset
+from matfit.model import dataset, dataset_workers, dataset_writing
 from matfit.model.dataset import DatasetError, Settings
 from matfit.render import engine
 
@@ -30,20 +30,20 @@ def settings(renderer):
 
 
 def make(path, settings, count, workers=0, progress=None, ray_address=None):
-    data = dataset.prepare(str(path), settings, count, VERSIONS)
-    dataset.render_missing(data, workers, progress, ray_address)
+    data = dataset_writing.prepare(str(path), settings, count, VERSIONS)
+    dataset_writing.render_missing(data, workers, progress, ray_address)
     return dataset.open_dataset(str(path))
 
 
 def test_default_workers_are_one_per_core_on_the_cpu_and_a_constant_on_a_gpu(monkeypatch):
     monkeypatch.setattr(os, "cpu_count", lambda: 6)
-    assert dataset.default_workers("llvm_ad_rgb") == dataset.default_workers("scalar_rgb") == 6
-    assert dataset.default_workers("cuda_ad_rgb") == dataset.GPU_WORKERS
+    assert dataset_workers.default_workers("llvm_ad_rgb") == dataset_workers.default_workers("scalar_rgb") == 6
+    assert dataset_workers.default_workers("cuda_ad_rgb") == dataset_workers.GPU_WORKERS
     monkeypatch.setattr(os, "cpu_count", lambda: 200)
-    assert dataset.default_workers("llvm_ad_rgb") == dataset.MAX_WORKERS
-    assert dataset.default_workers("cuda_ad_rgb") == dataset.GPU_WORKERS
+    assert dataset_workers.default_workers("llvm_ad_rgb") == dataset_workers.MAX_WORKERS
+    assert dataset_workers.default_workers("cuda_ad_rgb") == dataset_workers.GPU_WORKERS
     monkeypatch.setattr(os, "cpu_count", lambda: None)
-    assert dataset.default_workers("scalar_rgb") == 1
+    assert dataset_workers.default_workers("scalar_rgb") == 1
 
 
 def array_bytes(path):
@@ -180,20 +180,22 @@ def test_stopped_command_resumes_to_identical_bytes(tmp_path, long_reference, st
 def test_other_settings_are_refused(reference, settings, change, message):
     other = Settings(**{**settings.__dict__, **change})
     with pytest.raises(DatasetError, match=message):
-        dataset.prepare(str(reference), other, 40, VERSIONS)
+        dataset_writing.prepare(str(reference), other, 40, VERSIONS)
 
 
 def test_a_dataset_records_its_sampler_and_refuses_another(tmp_path, reference, settings):
     assert json.loads((reference / "meta.json").read_text())["sampler"] == "uniform"
     media = Settings(**{**settings.__dict__, "sampler": "dense-media"})
-    data = dataset.prepare(str(tmp_path / "media"), media, 6, VERSIONS)
+    data = dataset_writing.prepare(str(tmp_path / "media"), media, 6, VERSIONS)
     assert data.meta["sampler"] == "dense-media"
     expected = np.stack([params.from_unit(params.sample_index(3, i, "dense-media")) for i in range(6)])
     np.testing.assert_allclose(data.params, expected, rtol=1e-6)
     with pytest.raises(DatasetError, match="drawn with sampler uniform, not dense-media: pass --sampler uniform"):
-        dataset.prepare(str(reference), media, 40, VERSIONS)
+        dataset_writing.prepare(str(reference), media, 40, VERSIONS)
     with pytest.raises(DatasetError, match="sampler 'milk' is unknown: use uniform or dense-media"):
-        dataset.prepare(str(tmp_path / "other"), Settings(**{**settings.__dict__, "sampler": "milk"}), 6, VERSIONS)
+        dataset_writing.prepare(
+            str(tmp_path / "other"), Settings(**{**settings.__dict__, "sampler": "milk"}), 6, VERSIONS
+        )
     assert not (tmp_path / "other").exists()
 
 
@@ -209,9 +211,9 @@ def test_other_parameter_table_is_refused(tmp_path, reference):
 
 def test_shrinking_and_bad_counts_are_refused(reference, settings, tmp_path):
     with pytest.raises(DatasetError, match="already holds 40 samples: pass --count 40 or more"):
-        dataset.prepare(str(reference), settings, 10, VERSIONS)
+        dataset_writing.prepare(str(reference), settings, 10, VERSIONS)
     with pytest.raises(DatasetError, match="count 0 is out of range"):
-        dataset.prepare(str(tmp_path / "new"), settings, 0, VERSIONS)
+        dataset_writing.prepare(str(tmp_path / "new"), settings, 0, VERSIONS)
     assert not (tmp_path / "new").exists()
 
 
@@ -225,27 +227,29 @@ def test_shrinking_and_bad_counts_are_refused(reference, settings, tmp_path):
 )
 def test_absurd_settings_are_refused(tmp_path, settings, change, message):
     with pytest.raises(DatasetError, match=message):
-        dataset.prepare(str(tmp_path / "new"), Settings(**{**settings.__dict__, **change}), 10, VERSIONS)
+        dataset_writing.prepare(str(tmp_path / "new"), Settings(**{**settings.__dict__, **change}), 10, VERSIONS)
     assert not (tmp_path / "new").exists()
 
 
 def test_bad_directories_are_refused(tmp_path, settings):
     (tmp_path / "file").write_text("x")
     with pytest.raises(DatasetError, match="is a file"):
-        dataset.prepare(str(tmp_path / "file"), settings, 10, VERSIONS)
+        dataset_writing.prepare(str(tmp_path / "file"), settings, 10, VERSIONS)
     with pytest.raises(DatasetError, match="does not exist"):
-        dataset.prepare(str(tmp_path / "missing" / "data"), settings, 10, VERSIONS)
+        dataset_writing.prepare(str(tmp_path / "missing" / "data"), settings, 10, VERSIONS)
     (tmp_path / "other").mkdir()
     (tmp_path / "other" / "notes.txt").write_text("x")
     with pytest.raises(DatasetError, match="not a matfit dataset"):
-        dataset.prepare(str(tmp_path / "other"), settings, 10, VERSIONS)
+        dataset_writing.prepare(str(tmp_path / "other"), settings, 10, VERSIONS)
     with pytest.raises(DatasetError, match="read-only"):
-        dataset.prepare("/proc/matfit-data", settings, 10, VERSIONS)
+        dataset_writing.prepare("/proc/matfit-data", settings, 10, VERSIONS)
 
 
 def test_a_dataset_too_large_for_the_disk_is_refused_before_its_folder_is_made(tmp_path, settings):
     with pytest.raises(DatasetError, match="GiB are free: lower --count or --resolution"):
-        dataset.prepare(str(tmp_path / "huge"), Settings(1024, 1, 0, settings.variant), dataset.MAX_COUNT, VERSIONS)
+        dataset_writing.prepare(
+            str(tmp_path / "huge"), Settings(1024, 1, 0, settings.variant), dataset.MAX_COUNT, VERSIONS
+        )
     assert not (tmp_path / "huge").exists()
 
 
@@ -329,13 +333,13 @@ def test_killed_ray_worker_loses_nothing(tmp_path, long_reference, settings, loc
                 killed.append(busy[0])
 
     long_settings = Settings(16, 8, 3, settings.variant)
-    data = dataset.prepare(str(tmp_path), long_settings, 300, VERSIONS)
+    data = dataset_writing.prepare(str(tmp_path), long_settings, 300, VERSIONS)
     try:
-        dataset.render_missing(data, 2, kill_a_busy_worker, ray_address="local")
+        dataset_writing.render_missing(data, 2, kill_a_busy_worker, ray_address="local")
     except DatasetError as error:
         assert "run the same command to resume" in str(error)
     assert killed, "no Ray worker was busy rendering when the test looked for one"
-    dataset.render_missing(dataset.open_dataset(str(tmp_path), writable=True), 2, ray_address="local")
+    dataset_writing.render_missing(dataset.open_dataset(str(tmp_path), writable=True), 2, ray_address="local")
     assert array_bytes(tmp_path) == array_bytes(long_reference)
 
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from matfit import params
-from matfit.model import dataset, evaluate, models
+from matfit.model import architectures, dataset, evaluate
 from matfit.render import engine, presets
 
 
@@ -44,16 +44,18 @@ def test_preset_references_are_rendered_once_and_kept(tiny_dataset, monkeypatch)
 
 
 def test_the_card_says_how_the_decoder_draws_glass():
-    default = evaluate.describe_decoder(models.architecture("decoder", 64))  # `matfit train` without options
+    default = evaluate.describe_decoder(architectures.architecture("decoder", 64))  # `matfit train` without options
     assert "17 x 6 basis of clear-glass Mitsuba renders" in default and "features of the medium" in default
     assert "grey-medium" not in default and "Beer-Lambert" not in default
-    coarse = evaluate.describe_decoder(models.architecture("decoder", 64, models.trained_decoder(64, True)))
-    assert "path length per 2 x 2 pixels (Beer-Lambert)" in coarse
-    scattering = models.Decoder(glass_grid=(17, 6), medium_grid=(9, 6))
-    assert "9 x 6 basis of grey-medium Mitsuba renders" in evaluate.describe_decoder(
-        models.architecture("decoder", 64, scattering)
+    coarse = evaluate.describe_decoder(
+        architectures.architecture("decoder", 64, architectures.trained_decoder(64, True))
     )
-    plain = evaluate.describe_decoder(models.architecture("decoder", 64, models.Decoder()))
+    assert "path length per 2 x 2 pixels (Beer-Lambert)" in coarse
+    scattering = architectures.Decoder(glass_grid=(17, 6), medium_grid=(9, 6))
+    assert "9 x 6 basis of grey-medium Mitsuba renders" in evaluate.describe_decoder(
+        architectures.architecture("decoder", 64, scattering)
+    )
+    plain = evaluate.describe_decoder(architectures.architecture("decoder", 64, architectures.Decoder()))
     assert "stages of 64, 48, 32 filters" in plain and "glass" not in plain and "medium" not in plain
 
 

@@ -7,7 +7,7 @@ from helpers import R, decode, random_model, true_point
 from matfit import images, params
 from matfit.fit import gradient, search
 from matfit.fit.search import FitError, Settings
-from matfit.model import models
+from matfit.model import architectures
 
 
 @pytest.fixture(scope="module")
@@ -38,8 +38,8 @@ def test_hybrid_improves_on_its_start_and_stays_in_the_box(model):
 
 
 def test_box_terms():
-    decoder = models.Decoder(resolution=8, hidden=8, base_channels=4, stage_channels=(4,))
-    variables = models.initialise(decoder, jax.random.key(0), (19,))
+    decoder = architectures.Decoder(resolution=8, hidden=8, base_channels=4, stage_channels=(4,))
+    variables = architectures.initialise(decoder, jax.random.key(0), (19,))
     target, weights = np.zeros((8, 8, 3), np.float32), np.ones((8, 8), np.float32)
     inside = np.full(19, 0.5, np.float32)
     outside = inside.copy()

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from matfit import params
-from matfit.model import models
+from matfit.errors import WeightsError
+from matfit.model import architectures, layers, models, weight_files
 from matfit.render import presets, scene
 
 # The paper's Appendix A as (conv filters in order, FC neurons, dropout), written out independently.
@@ -35,19 +36,21 @@ def expected_encoder_weights(filters, neurons, resolution):
 @pytest.mark.parametrize("arch", range(1, 10))
 def test_encoders_match_appendix_a(arch):
     filters, neurons, dropout = APPENDIX_A[arch]
-    model = models.encoder(arch)
+    model = architectures.encoder(arch)
     assert [b.filters for b in model.blocks for _ in range(b.repeat)] == filters
     assert (model.dense.repeat, model.dense.neurons, model.dense.dropout) == (2, neurons, dropout)
-    variables = models.initialise(model, jax.random.key(0), (models.ENCODER_RESOLUTION,) * 2 + (3,))
-    assert models.parameter_count(variables) == expected_encoder_weights(filters, neurons, models.ENCODER_RESOLUTION)
+    variables = architectures.initialise(model, jax.random.key(0), (architectures.ENCODER_RESOLUTION,) * 2 + (3,))
+    assert architectures.parameter_count(variables) == expected_encoder_weights(
+        filters, neurons, architectures.ENCODER_RESOLUTION
+    )
     out = model.apply(variables, jnp.full((2, 32, 32, 3), 0.5))
     assert out.shape == (2, 19)
     assert float(out.min()) > 0.0 and float(out.max()) < 1.0
 
 
 def test_dropout_is_active_only_in_training():
-    model = models.encoder(3)
-    variables = models.initialise(model, jax.random.key(0), (32, 32, 3))
+    model = architectures.encoder(3)
+    variables = architectures.initialise(model, jax.random.key(0), (32, 32, 3))
     image = jax.random.uniform(jax.random.key(1), (4, 32, 32, 3))
     np.testing.assert_array_equal(model.apply(variables, image), model.apply(variables, image))
     trained = model.apply(variables, image, train=True, rngs={"dropout": jax.random.key(2)})
@@ -57,13 +60,13 @@ def test_dropout_is_active_only_in_training():
 def test_unknown_architectures_are_refused():
     for arch in (0, 10):
         with pytest.raises(ValueError, match="use 1 to 9"):
-            models.encoder(arch)
+            architectures.encoder(arch)
 
 
 @pytest.mark.parametrize("resolution", [16, 64, 128])
 def test_decoder_outputs_images_in_the_unit_range(resolution):
-    model = models.Decoder(resolution=resolution, hidden=32, base_channels=16, stage_channels=(8,))
-    variables = models.initialise(model, jax.random.key(0), (19,))
+    model = architectures.Decoder(resolution=resolution, hidden=32, base_channels=16, stage_channels=(8,))
+    variables = architectures.initialise(model, jax.random.key(0), (19,))
     out = models.apply(model, variables, jax.random.uniform(jax.random.key(1), (3, 19)))
     assert out.shape == (3, resolution, resolution, 3)
     assert float(out.min()) > 0.0 and float(out.max()) < 1.0
@@ -72,9 +75,9 @@ def test_decoder_outputs_images_in_the_unit_range(resolution):
 def test_decoder_weights_do_not_grow_with_the_image_beyond_one_stage():
     sizes = {}
     for resolution in (64, 128, 256):
-        model = models.Decoder(resolution=resolution)
-        shapes = jax.eval_shape(lambda model=model: models.initialise(model, jax.random.key(0), (19,)))
-        sizes[resolution] = models.parameter_count(shapes)
+        model = architectures.Decoder(resolution=resolution)
+        shapes = jax.eval_shape(lambda model=model: architectures.initialise(model, jax.random.key(0), (19,)))
+        sizes[resolution] = architectures.parameter_count(shapes)
     # one more upsampling stage of 32 channels (one 3x3 convolution 32 -> 32) and a larger background image
     stage = 3 * 3 * 32 * 32 + 32
     assert sizes[128] - sizes[64] == stage + (128**2 - 64**2) * 3
@@ -83,46 +86,14 @@ def test_decoder_weights_do_not_grow_with_the_image_beyond_one_stage():
 
 def test_decoder_rejects_resolutions_it_cannot_reach():
     with pytest.raises(ValueError, match="4 times a power of two"):
-        models.initialise(models.Decoder(resolution=48), jax.random.key(0), (19,))
-
-
-def test_upsample_pool_and_shuffle_match_their_definitions():
-    x = jax.random.normal(jax.random.key(0), (2, 4, 6, 8))
-    np.testing.assert_array_equal(models.upsample(x), np.repeat(np.repeat(x, 2, axis=1), 2, axis=2))
-    np.testing.assert_array_equal(
-        models.max_pool(x), jax.lax.reduce_window(x, -np.inf, jax.lax.max, (1, 2, 2, 1), (1, 2, 2, 1), "VALID")
-    )
-    shuffled = models.depth_to_space(x)
-    assert shuffled.shape == (2, 8, 12, 2)
-    # output pixel (2i + a, 2j + b) channel c comes from input (i, j) channel (2a + b) * 2 + c
-    np.testing.assert_array_equal(shuffled[:, 3, 5, 1], x[:, 1, 2, (2 * 1 + 1) * 2 + 1])
-
-
-def _conv_of_upsampled(x, kernel):
-    return jax.lax.conv_general_dilated(
-        models.upsample(x), kernel, (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
-    )
-
-
-def test_the_upsampling_folded_into_a_convolution_is_the_convolution_of_the_upsampled_map():
-    x = jax.random.normal(jax.random.key(0), (2, 3, 5, 4))  # not square: rows and columns are not mixed up
-    kernel = jax.random.normal(jax.random.key(1), (3, 3, 4, 6))
-    folded = models.upsampled_conv(x, kernel)
-    assert folded.shape == (2, 6, 10, 6)
-    np.testing.assert_allclose(folded, _conv_of_upsampled(x, kernel), rtol=1e-5, atol=1e-5)
-    # and so are its gradients, with respect to the map and to the kernel
-    probe = jax.random.normal(jax.random.key(2), folded.shape)
-    grads = [
-        jax.grad(lambda x, k, f=f: jnp.sum(f(x, k) * probe), argnums=(0, 1))(x, kernel)
-        for f in (models.upsampled_conv, _conv_of_upsampled)
-    ]
-    for ours, theirs in zip(*grads, strict=True):
-        np.testing.assert_allclose(ours, theirs, rtol=1e-4, atol=1e-4)
+        architectures.initialise(architectures.Decoder(resolution=48), jax.random.key(0), (19,))
 
 
 def test_the_decoder_folds_its_upsampling_without_changing_its_weights_or_what_it_draws():
-    decoder = models.Decoder(resolution=32, hidden=32, base_channels=16, stage_channels=(8, 6), convs_per_stage=2)
-    variables = models.initialise(decoder, jax.random.key(0), (19,))
+    decoder = architectures.Decoder(
+        resolution=32, hidden=32, base_channels=16, stage_channels=(8, 6), convs_per_stage=2
+    )
+    variables = architectures.initialise(decoder, jax.random.key(0), (19,))
     names = sorted(variables["params"])
     assert names == ["Conv_0", "Conv_1", "Conv_2", "Conv_3", "Conv_4", "Dense_0", "Dense_1", "Dense_2", "background"]
     assert variables["params"]["Conv_0"]["kernel"].shape == (3, 3, 16, 8)  # a plain 3x3 kernel on the source
@@ -143,46 +114,46 @@ def test_the_decoder_folds_its_upsampling_without_changing_its_weights_or_what_i
         )
 
     for stage in range(2):
-        x = jax.nn.gelu(conv(models.upsample(x), f"Conv_{2 * stage}"))
+        x = jax.nn.gelu(conv(layers.upsample(x), f"Conv_{2 * stage}"))
         x = jax.nn.gelu(conv(x, f"Conv_{2 * stage + 1}"))
-    expected = jax.nn.sigmoid(models.depth_to_space(conv(x, "Conv_4")) + p["background"][None])
+    expected = jax.nn.sigmoid(layers.depth_to_space(conv(x, "Conv_4")) + p["background"][None])
     np.testing.assert_allclose(models.apply(decoder, variables, y), expected, atol=1e-5)
 
 
 def test_a_weights_file_of_another_network_is_refused(tmp_path):
-    decoder = models.Decoder(resolution=32, hidden=64, base_channels=32, stage_channels=(32,))
-    network = models.Network(
+    decoder = architectures.Decoder(resolution=32, hidden=64, base_channels=32, stage_channels=(32,))
+    network = weight_files.Network(
         "decoder",
-        models.architecture("decoder", 32, decoder),
+        architectures.architecture("decoder", 32, decoder),
         decoder,
-        models.initialise(decoder, jax.random.key(0), (19,)),
+        architectures.initialise(decoder, jax.random.key(0), (19,)),
         {},
     )
-    encoder = models.encoder(8)
-    variables = models.initialise(encoder, jax.random.key(1), (32, 32, 3))
-    models.save(
+    encoder = architectures.encoder(8)
+    variables = architectures.initialise(encoder, jax.random.key(1), (32, 32, 3))
+    weight_files.save(
         str(tmp_path / "decoder.msgpack"),
-        models.Network("encoder-8", models.architecture("encoder-8", 32), encoder, variables, {}),
+        weight_files.Network("encoder-8", architectures.architecture("encoder-8", 32), encoder, variables, {}),
     )
     with pytest.raises(
-        models.WeightsError, match="holds the weights of the encoder-8, not of the decoder: copy the right file"
+        WeightsError, match="holds the weights of the encoder-8, not of the decoder: copy the right file"
     ):
         models.load_model(str(tmp_path))
-    models.save(str(tmp_path / "decoder.msgpack"), network)
-    models.save(str(tmp_path / "encoder-3.msgpack"), network)
+    weight_files.save(str(tmp_path / "decoder.msgpack"), network)
+    weight_files.save(str(tmp_path / "encoder-3.msgpack"), network)
     with pytest.raises(
-        models.WeightsError, match=r"encoder-3\.msgpack holds the weights of the decoder, not of the encoder-3"
+        WeightsError, match=r"encoder-3\.msgpack holds the weights of the decoder, not of the encoder-3"
     ):
         models.load_model(str(tmp_path))
     moved = tmp_path / "moved"
     moved.mkdir()
-    models.save(str(moved / "decoder.msgpack"), network)
-    models.save(
+    weight_files.save(str(moved / "decoder.msgpack"), network)
+    weight_files.save(
         str(moved / "encoder-8.msgpack"),
-        models.Network("encoder-8", models.architecture("encoder-8", 32), encoder, variables, {}),
+        weight_files.Network("encoder-8", architectures.architecture("encoder-8", 32), encoder, variables, {}),
     )
     first = models.load_model(str(moved))
-    stored = models.load(str(moved / "encoder-8.msgpack")).variables  # one network alone: its weights as stored
+    stored = weight_files.load(str(moved / "encoder-8.msgpack")).variables  # one network alone: its weights as stored
     loaded = first.encoders[8].variables  # the model's: converted on the device, the same numbers
     for kept, converted in zip(jax.tree_util.tree_leaves(stored), jax.tree_util.tree_leaves(loaded), strict=True):
         assert kept.dtype == np.float16 and converted.dtype == np.float32
@@ -190,37 +161,6 @@ def test_a_weights_file_of_another_network_is_refused(tmp_path):
     assert {leaf.dtype for leaf in jax.tree_util.tree_leaves(first.decoder.variables)} == {np.dtype(np.float32)}
     os.rename(moved, tmp_path / "elsewhere")
     assert models.load_model(str(tmp_path / "elsewhere")).identity() == first.identity()  # the weights, not the place
-
-
-def test_coordinate_channels_are_pixel_centres_in_the_unit_square():
-    out = models.coordinate_channels(jnp.zeros((1, 2, 4, 1)))
-    assert out.shape == (1, 2, 4, 3)
-    np.testing.assert_allclose(out[0, 0, :, 1], [-0.75, -0.25, 0.25, 0.75])  # x along a row
-    np.testing.assert_allclose(out[0, :, 0, 2], [-0.5, 0.5])  # y down a column
-
-
-def test_glass_interpolation_hits_grid_points_and_blends_between_them():
-    shape = (5, 3)
-    basis = jnp.asarray(np.random.default_rng(0).uniform(size=(*shape, 4, 4, 3)).astype(np.float32))
-    specular, roughness = scene.glass_grid_values(shape)  # roughness 0, 0.25, 1
-    at = models.interpolate_glass(basis, jnp.asarray([specular[2], specular[4]]), jnp.asarray([roughness[1], 1.0]))
-    np.testing.assert_allclose(at[0], basis[2, 1], atol=1e-5)
-    np.testing.assert_allclose(at[1], basis[4, 2], atol=1e-5)
-    # halfway in specular, and halfway in the square root of roughness (0.5 ** 2)
-    between = models.interpolate_glass(basis, jnp.asarray([0.125]), jnp.asarray([0.25]))
-    np.testing.assert_allclose(between[0], 0.5 * (basis[0, 1] + basis[1, 1]), atol=1e-5)
-    between = models.interpolate_glass(basis, jnp.asarray([0.0]), jnp.asarray([0.75**2]))  # root halfway 0.5 to 1
-    np.testing.assert_allclose(between[0], 0.5 * (basis[0, 1] + basis[0, 2]), atol=1e-5)
-
-    def brightness(s, r):
-        return jnp.sum(models.interpolate_glass(basis, s, r))
-
-    grad_s, grad_r = jax.grad(brightness, argnums=(0, 1))(jnp.asarray([0.3]), jnp.asarray([0.4]))
-    # specular 0.3 lies between grid points 1 and 2 (spacing 1/4); roughness 0.4 between 1 and 2 in its root
-    wr = np.sqrt(0.4) * 2 - 1
-    step = (basis[2, 1] - basis[1, 1]) * (1 - wr) + (basis[2, 2] - basis[1, 2]) * wr
-    assert float(grad_s[0]) == pytest.approx(4 * float(jnp.sum(step)), rel=1e-3)
-    assert np.isfinite(float(grad_r[0])) and float(grad_r[0]) != 0.0
 
 
 def test_glass_basis_materials_are_clear_glass_on_the_grid():
@@ -234,33 +174,33 @@ def test_glass_basis_materials_are_clear_glass_on_the_grid():
     assert np.all(materials[..., index["metallic"]] == 0.0) and np.all(unit >= 0) and np.all(unit <= 1)
 
 
-def saved_and_loaded(tmp_path, model: models.Decoder, variables: dict) -> models.Network:
+def saved_and_loaded(tmp_path, model: architectures.Decoder, variables: dict) -> weight_files.Network:
     """Returns a decoder's weights saved with its description and loaded back (the same module rebuilt)."""
     path = str(tmp_path / "decoder.msgpack")
-    description = models.architecture("decoder", model.resolution, model)
-    models.save(path, models.Network("decoder", description, model, variables, {}))
-    loaded = models.load(path)
+    description = architectures.architecture("decoder", model.resolution, model)
+    weight_files.save(path, weight_files.Network("decoder", description, model, variables, {}))
+    loaded = weight_files.load(path)
     assert loaded.module == model
     return loaded
 
 
 def tiny_refracting_decoder():
-    return models.Decoder(resolution=16, hidden=16, base_channels=8, stage_channels=(8,), glass_grid=(3, 2))
+    return architectures.Decoder(resolution=16, hidden=16, base_channels=8, stage_channels=(8,), glass_grid=(3, 2))
 
 
 def test_refracting_decoder_adds_the_glass_basis_and_round_trips_with_it(tmp_path):
     model = tiny_refracting_decoder()
     basis = np.random.default_rng(2).uniform(0.0, 0.5, size=(3, 2, 16, 16, 3)).astype(np.float32)
-    variables = models.with_bases(model, dict(models.initialise(model, jax.random.key(0), (19,))), basis)
+    variables = architectures.with_bases(model, dict(architectures.initialise(model, jax.random.key(0), (19,))), basis)
     np.testing.assert_array_equal(variables["constants"]["glass"], basis)
     x = jax.random.uniform(jax.random.key(1), (2, 19))
     out = models.apply(model, variables, x)
     assert out.shape == (2, 16, 16, 3) and float(out.min()) >= 0.0 and float(out.max()) <= 1.0
-    darker = models.apply(model, models.with_bases(model, variables, basis * 0.0), x)
+    darker = models.apply(model, architectures.with_bases(model, variables, basis * 0.0), x)
     assert float(jnp.mean(out - darker)) > 0.002  # the glass layer adds light
     with pytest.raises(ValueError, match="glass basis"):
-        models.with_bases(model, variables, basis[:2])
-    assert models.architecture("decoder", 16, model)["glass_grid"] == [3, 2]
+        architectures.with_bases(model, variables, basis[:2])
+    assert architectures.architecture("decoder", 16, model)["glass_grid"] == [3, 2]
     loaded = saved_and_loaded(tmp_path, model, variables)
     np.testing.assert_allclose(loaded.variables["constants"]["glass"], basis, atol=1e-3)
     np.testing.assert_allclose(models.apply(loaded.module, loaded.variables, x), out, atol=1e-2)
@@ -283,81 +223,46 @@ def test_medium_basis_materials_are_grey_media_of_the_grid_thickness_and_albedo(
     assert np.all(unit >= 0) and np.all(unit <= 1)
 
 
-def test_medium_weights_read_each_channel_at_its_own_thickness():
-    shape = (4, 3)
-    thickness, albedo = scene.medium_grid_values(shape)
-    material = presets.preset("milk")
-    index = params.INDEX
-    material[index["density"]] = 4.0  # the largest: colour 0.01 gives the largest thickness
-    # channel r on grid point 1, g on grid point 3, b halfway between 0 and 1 in log2(1 + 8 tau)
-    halfway = (2.0 ** (0.5 * np.log2(1.0 + 8.0 * thickness[1])) - 1.0) / 8.0
-    for channel, tau in zip(("r", "g", "b"), (thickness[1], thickness[3], halfway), strict=True):
-        material[index[f"medium_color_{channel}"]] = np.exp(-tau / 4.0)
-    material[index["scattering"]] = albedo[1]
-    weights = np.asarray(models.medium_weights(jnp.asarray(params.to_unit(material)[None], jnp.float32), shape))
-    assert weights.shape == (1, 3, 12)
-    grid = weights[0].reshape(3, 4, 3)
-    np.testing.assert_allclose(weights.sum(-1), 1.0, atol=1e-5)
-    assert grid[0, 1, 1] == pytest.approx(1.0, abs=1e-4) and grid[1, 3, 1] == pytest.approx(1.0, abs=1e-4)
-    np.testing.assert_allclose(grid[2, :2, 1], [0.5, 0.5], atol=1e-4)
-
-    def light(unit):
-        return jnp.sum(models.medium_weights(unit, shape) * jnp.arange(12, dtype=jnp.float32)[None, None])
-
-    gradient = jax.grad(light)(jnp.asarray(params.to_unit(material)[None], jnp.float32))
-    assert np.all(np.isfinite(gradient)) and float(gradient[0, index["density"]]) != 0.0
-
-
 def test_scattering_decoder_adds_the_basis_by_the_transmitted_share(tmp_path):
-    model = models.Decoder(
+    model = architectures.Decoder(
         resolution=16, hidden=16, base_channels=8, stage_channels=(8,), glass_grid=(3, 2), medium_grid=(4, 3)
     )
     rng = np.random.default_rng(3)
     glass = rng.uniform(0.0, 0.3, size=(3, 2, 16, 16, 3)).astype(np.float32)
     medium = rng.uniform(0.0, 0.3, size=(4, 3, 16, 16, 3)).astype(np.float32)
-    variables = models.with_bases(model, dict(models.initialise(model, jax.random.key(0), (19,))), glass, medium)
+    variables = architectures.with_bases(
+        model, dict(architectures.initialise(model, jax.random.key(0), (19,))), glass, medium
+    )
     milk = params.to_unit(presets.preset("milk"))
     opaque = milk.copy()
     opaque[params.INDEX["spec_trans"]] = 0.0
     x = jnp.asarray(np.stack([milk, opaque]), jnp.float32)
     out = models.apply(model, variables, x)
-    without = models.apply(model, models.with_bases(model, variables, glass, medium * 0.0), x)
+    without = models.apply(model, architectures.with_bases(model, variables, glass, medium * 0.0), x)
     assert float(jnp.mean(out[0] - without[0])) > 0.01  # milk: the scattered light is added
     np.testing.assert_allclose(out[1], without[1], atol=1e-6)  # nothing transmitted, nothing scattered
     with pytest.raises(ValueError, match="scattering basis"):
-        models.with_bases(model, variables, glass)
+        architectures.with_bases(model, variables, glass)
     with pytest.raises(ValueError, match="scattering basis"):
-        models.with_bases(model, variables, glass, medium[:2])
-    assert models.architecture("decoder", 16, model)["medium_grid"] == [4, 3]
+        architectures.with_bases(model, variables, glass, medium[:2])
+    assert architectures.architecture("decoder", 16, model)["medium_grid"] == [4, 3]
     loaded = saved_and_loaded(tmp_path, model, variables)
     np.testing.assert_allclose(loaded.variables["constants"]["medium"], medium, atol=1e-3)
     np.testing.assert_allclose(models.apply(loaded.module, loaded.variables, x), out, atol=1e-2)
 
 
-def test_absorption_is_beer_lambert_per_colour_along_the_predicted_path():
-    amber = presets.preset("amber-glass")
-    unit = jnp.asarray(params.to_unit(np.stack([amber, presets.preset("glass")])), jnp.float32)
-    path = jnp.broadcast_to(jnp.asarray([2.0, 0.5])[:, None, None, None], (2, 4, 4, 1))
-    transmittance = np.asarray(models.absorbed(unit, path))
-    assert transmittance.shape == (2, 4, 4, 3)
-    colour = amber[params.INDEX["medium_color_r"] : params.INDEX["medium_color_b"] + 1]
-    # a diameter of amber (density 1): each colour's own exp(-2 tau) = colour^2; clear glass keeps everything
-    np.testing.assert_allclose(transmittance[0], np.broadcast_to(colour**2, (4, 4, 3)), rtol=1e-4)
-    np.testing.assert_allclose(transmittance[1], 1.0, atol=1e-3)
-
-
 def test_an_absorbing_decoder_tints_the_glass_layer_by_the_medium_and_round_trips(tmp_path):
-    model = models.Decoder(
+    model = architectures.Decoder(
         resolution=16, hidden=16, base_channels=8, stage_channels=(8,), glass_grid=(3, 2), absorption=True
     )
     basis = np.random.default_rng(4).uniform(0.0, 0.5, size=(3, 2, 16, 16, 3)).astype(np.float32)
-    variables = models.with_bases(model, dict(models.initialise(model, jax.random.key(0), (19,))), basis)
+    variables = architectures.with_bases(model, dict(architectures.initialise(model, jax.random.key(0), (19,))), basis)
     amber = params.to_unit(presets.preset("amber-glass"))
     clear = amber.copy()
     clear[params.INDEX["density"]] = 0.0
     x = jnp.asarray(np.stack([amber, clear]), jnp.float32)
     glass_layer = models.apply(model, variables, x) - models.apply(
-        model, models.with_bases(model, variables, basis * 0.0), x
+        model, architectures.with_bases(model, variables, basis * 0.0), x
     )
     # the layer starts at path length 1: amber keeps more red than blue, clear glass keeps every colour
     red, blue = (float(jnp.mean(glass_layer[0, ..., k])) for k in (0, 2))
@@ -365,7 +270,7 @@ def test_an_absorbing_decoder_tints_the_glass_layer_by_the_medium_and_round_trip
     np.testing.assert_allclose(jnp.mean(glass_layer[1], axis=(0, 1)), jnp.mean(glass_layer[1]), rtol=0.2)
     gradient = jax.grad(lambda y: jnp.sum(models.apply(model, variables, y)))(x)
     assert np.all(np.isfinite(np.asarray(gradient))) and float(gradient[0, params.INDEX["medium_color_b"]]) > 0.0
-    assert models.architecture("decoder", 16, model)["absorption"] is True
+    assert architectures.architecture("decoder", 16, model)["absorption"] is True
     loaded = saved_and_loaded(tmp_path, model, variables)
     np.testing.assert_allclose(
         models.apply(loaded.module, loaded.variables, x), models.apply(model, variables, x), atol=1e-2
@@ -373,11 +278,11 @@ def test_an_absorbing_decoder_tints_the_glass_layer_by_the_medium_and_round_trip
 
 
 def test_a_coarse_absorption_layer_grows_on_a_decoder_without_changing_it_and_absorbs_by_extinction(tmp_path):
-    plain = models.Decoder(resolution=16, hidden=16, base_channels=8, stage_channels=(8,), glass_grid=(3, 2))
+    plain = architectures.Decoder(resolution=16, hidden=16, base_channels=8, stage_channels=(8,), glass_grid=(3, 2))
     coarse = plain.clone(coarse_absorption=True)
     basis = np.random.default_rng(4).uniform(0.0, 0.5, size=(3, 2, 16, 16, 3)).astype(np.float32)
-    trained = models.with_bases(plain, dict(models.initialise(plain, jax.random.key(0), (19,))), basis)
-    fresh = models.initialise(coarse, jax.random.key(1), (19,))["params"]
+    trained = architectures.with_bases(plain, dict(architectures.initialise(plain, jax.random.key(0), (19,))), basis)
+    fresh = architectures.initialise(coarse, jax.random.key(1), (19,))["params"]
     assert set(fresh) - set(trained["params"]) == {"path"}  # one layer more, the others named as before
     grown = {**trained, "params": {**trained["params"], "path": fresh["path"]}}
     amber = params.to_unit(presets.preset("amber-glass"))
@@ -390,17 +295,17 @@ def test_a_coarse_absorption_layer_grows_on_a_decoder_without_changing_it_and_ab
     # 2.53): blue most, red least; clear glass not at all.
     def glass_layer(path_bias):
         weights = {**grown["params"], "path": {**grown["params"]["path"], "bias": jnp.full((1,), path_bias)}}
-        return models.srgb_decode(models.apply(coarse, {**grown, "params": weights}, x)) - models.srgb_decode(
-            models.apply(plain, models.with_bases(plain, trained, basis * 0.0), x)
+        return layers.srgb_decode(models.apply(coarse, {**grown, "params": weights}, x)) - layers.srgb_decode(
+            models.apply(plain, architectures.with_bases(plain, trained, basis * 0.0), x)
         )
 
-    longer = models.initialise(coarse.clone(path_start=2.0), jax.random.key(1), (19,))["params"]["path"]
+    longer = architectures.initialise(coarse.clone(path_start=2.0), jax.random.key(1), (19,))["params"]["path"]
     assert float(longer["bias"][0]) == 2.0 and not np.any(np.asarray(longer["kernel"]))
     kept = jnp.sum(glass_layer(2.0), axis=(1, 2)) / jnp.sum(glass_layer(0.0), axis=(1, 2))
     assert 0.0 < float(kept[0, 2]) < float(kept[0, 1]) < float(kept[0, 0]) < 1.0
     np.testing.assert_allclose(kept[1], 1.0, rtol=1e-5)
     assert float(jnp.max(glass_layer(-50.0))) <= 1.5 * float(basis.max()) + 1e-5  # bounded whatever E
-    assert models.architecture("decoder", 16, coarse)["coarse_absorption"] is True
+    assert architectures.architecture("decoder", 16, coarse)["coarse_absorption"] is True
     loaded = saved_and_loaded(tmp_path, coarse, grown)
     np.testing.assert_allclose(
         models.apply(loaded.module, loaded.variables, x), models.apply(coarse, grown, x), atol=1e-2
@@ -408,7 +313,7 @@ def test_a_coarse_absorption_layer_grows_on_a_decoder_without_changing_it_and_ab
 
 
 def test_decoder_descriptions_without_refraction_fields_still_build():
-    description = models.architecture("decoder", 64)
+    description = architectures.architecture("decoder", 64)
     for key in (
         "coordinates",
         "glass_grid",
@@ -419,62 +324,27 @@ def test_decoder_descriptions_without_refraction_fields_still_build():
         "path_start",
     ):
         description.pop(key)
-    assert models.build(description) == models.Decoder()
-
-
-def test_medium_features_follow_the_physics_of_the_presets():
-    names = ("milk", "glass", "amber-glass")
-    unit = jnp.asarray(params.to_unit(np.stack([presets.preset(name) for name in names])), jnp.float32)
-    opacity, transmittance, scattered, reflectance = np.split(np.asarray(models.medium_features(unit)), [3, 6, 9], 1)
-    milk, glass, amber = range(3)
-    # milk: opaque, nothing absorbed, everything scattered, a white half-space (albedo 1)
-    np.testing.assert_allclose(np.stack([opacity[milk], transmittance[milk], scattered[milk]]), 1.0, atol=1e-3)
-    assert reflectance[milk, 0] == pytest.approx(1.0, abs=0.01)
-    # clear glass: no medium at all
-    np.testing.assert_allclose(np.concatenate([opacity[glass], scattered[glass], reflectance[glass]]), 0.0, atol=1e-6)
-    np.testing.assert_allclose(transmittance[glass], 1.0)
-    # amber: absorbs blue most, scatters nothing
-    colour = presets.preset("amber-glass")[params.INDEX["medium_color_r"] : params.INDEX["medium_color_b"] + 1]
-    density = presets.preset("amber-glass")[params.INDEX["density"]]
-    np.testing.assert_allclose(transmittance[amber], colour ** (2 * density), rtol=1e-4)
-    assert transmittance[amber, 2] < transmittance[amber, 0] and reflectance[amber, 0] == 0.0
+    assert architectures.build(description) == architectures.Decoder()
 
 
 def test_a_decoder_with_medium_inputs_has_finite_gradients_everywhere_in_the_box():
-    model = models.Decoder(resolution=16, hidden=16, base_channels=8, stage_channels=(8,), medium_inputs=True)
-    variables = models.initialise(model, jax.random.key(0), (19,))
+    model = architectures.Decoder(resolution=16, hidden=16, base_channels=8, stage_channels=(8,), medium_inputs=True)
+    variables = architectures.initialise(model, jax.random.key(0), (19,))
     corners = jnp.asarray(np.stack([np.zeros(19), np.ones(19), np.full(19, 0.5)]), jnp.float32)
     gradient = jax.grad(lambda x: jnp.sum(models.apply(model, variables, x)))(corners)
     assert np.all(np.isfinite(np.asarray(gradient)))
 
 
-def test_the_program_store_is_pruned_to_its_cap_and_the_old_jax_cache_removed_when_enabled(tmp_path, monkeypatch):
-    from matfit import programs
-
-    pruned = []
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    monkeypatch.setattr(programs, "prune", lambda directory, cap: pruned.append((directory, cap)) or 0)
-    monkeypatch.setattr(programs, "_directory", programs._directory)  # restored after the test, with its key
-    monkeypatch.setattr(programs, "_key", programs._key)
-    models.enable_compilation_cache()
-    assert pruned == [
-        (str(tmp_path / "matfit" / "jax"), 0),  # what earlier versions kept in JAX's own cache
-        (str(tmp_path / "matfit" / "programs"), models.CACHE_BYTES["programs"]),
-    ]
-    assert programs._directory == str(tmp_path / "matfit" / "programs")
-    assert not programs.jax_cache_enabled()  # JAX's persistent cache stays off
-
-
 @pytest.fixture(scope="module")
 def tiny_networks():
     """A small decoder and encoder 8, initialised once: (decoder module, its variables, encoder, its variables)."""
-    decoder = models.Decoder(resolution=32, hidden=64, base_channels=32, stage_channels=(32,))
-    encoder = models.encoder(8)
+    decoder = architectures.Decoder(resolution=32, hidden=64, base_channels=32, stage_channels=(32,))
+    encoder = architectures.encoder(8)
     return (
         decoder,
-        models.initialise(decoder, jax.random.key(0), (19,)),
+        architectures.initialise(decoder, jax.random.key(0), (19,)),
         encoder,
-        models.initialise(encoder, jax.random.key(1), (32, 32, 3)),
+        architectures.initialise(encoder, jax.random.key(1), (32, 32, 3)),
     )
 
 
@@ -497,23 +367,23 @@ def tiny_networks():
 )
 def test_a_damaged_architecture_record_is_refused_in_one_line(tmp_path, change, message):
     path = tmp_path / "decoder.msgpack"
-    description = {**models.architecture("decoder", 32), **change}
+    description = {**architectures.architecture("decoder", 32), **change}
     # The record is refused before any weight is looked at: any will do.
-    models.save(str(path), models.Network("decoder", description, None, {"params": {"x": np.zeros(1)}}, {}))
-    with pytest.raises(models.WeightsError) as caught:
-        models.load(str(path))
+    weight_files.save(str(path), weight_files.Network("decoder", description, None, {"params": {"x": np.zeros(1)}}, {}))
+    with pytest.raises(WeightsError) as caught:
+        weight_files.load(str(path))
     assert str(caught.value).startswith(f"{path}: architecture {message}")
     assert str(caught.value).endswith(": train it again (or copy an intact file there)")
 
 
 def test_an_encoder_architecture_record_is_checked_too(tmp_path):
-    description = {**models.architecture("encoder-8", 32), "arch": "8"}
-    models.save(
+    description = {**architectures.architecture("encoder-8", 32), "arch": "8"}
+    weight_files.save(
         str(tmp_path / "encoder-8.msgpack"),
-        models.Network("encoder-8", description, None, {"params": {"x": np.zeros(1)}}, {}),
+        weight_files.Network("encoder-8", description, None, {"params": {"x": np.zeros(1)}}, {}),
     )
-    with pytest.raises(models.WeightsError, match="field 'arch' is \"8\", not a whole number from 1 to 9"):
-        models.load(str(tmp_path / "encoder-8.msgpack"))
+    with pytest.raises(WeightsError, match="field 'arch' is \"8\", not a whole number from 1 to 9"):
+        weight_files.load(str(tmp_path / "encoder-8.msgpack"))
 
 
 @pytest.mark.parametrize(("network", "value"), [("decoder", np.nan), ("encoder-8", np.inf)])
@@ -523,21 +393,25 @@ def test_weights_with_nan_or_infinity_are_refused_when_a_model_loads(tmp_path, t
     variables = {"decoder": decoder_variables, "encoder-8": encoder_variables}
     variables[network] = jax.tree_util.tree_map(lambda leaf: np.array(leaf), variables[network])
     variables[network]["params"]["Dense_1"]["kernel"][3, 2] = value
-    models.save(
+    weight_files.save(
         str(tmp_path / "decoder.msgpack"),
-        models.Network("decoder", models.architecture("decoder", 32, decoder), decoder, variables["decoder"], {}),
+        weight_files.Network(
+            "decoder", architectures.architecture("decoder", 32, decoder), decoder, variables["decoder"], {}
+        ),
     )
-    models.save(
+    weight_files.save(
         str(tmp_path / "encoder-8.msgpack"),
-        models.Network("encoder-8", models.architecture("encoder-8", 32), encoder, variables["encoder-8"], {}),
+        weight_files.Network(
+            "encoder-8", architectures.architecture("encoder-8", 32), encoder, variables["encoder-8"], {}
+        ),
     )
     expected = (
         f"{tmp_path / (network + '.msgpack')}: weights params/Dense_1/kernel hold NaN or infinity: "
         "train it again (or copy an intact file there)"
     )
-    with pytest.raises(models.WeightsError) as caught:
+    with pytest.raises(WeightsError) as caught:
         models.load_model(str(tmp_path))
     assert str(caught.value) == expected
-    with pytest.raises(models.WeightsError) as caught:
-        models.load(str(tmp_path / f"{network}.msgpack"))
+    with pytest.raises(WeightsError) as caught:
+        weight_files.load(str(tmp_path / f"{network}.msgpack"))
     assert str(caught.value) == expected

@@ -253,3 +253,18 @@ def test_the_key_is_private_and_a_store_others_can_write_is_not_used(tmp_path):
             programs.enable(str(tmp_path / "private"))
     finally:
         programs._directory, programs._key = previous
+
+
+def test_the_program_store_is_pruned_to_its_cap_and_the_old_jax_cache_removed_when_enabled(tmp_path, monkeypatch):
+    pruned = []
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(programs, "prune", lambda directory, cap: pruned.append((directory, cap)) or 0)
+    monkeypatch.setattr(programs, "_directory", programs._directory)  # restored after the test, with its key
+    monkeypatch.setattr(programs, "_key", programs._key)
+    programs.enable_compilation_cache()
+    assert pruned == [
+        (str(tmp_path / "matfit" / "jax"), 0),  # what earlier versions kept in JAX's own cache
+        (str(tmp_path / "matfit" / "programs"), programs.CACHE_BYTES["programs"]),
+    ]
+    assert programs._directory == str(tmp_path / "matfit" / "programs")
+    assert not programs.jax_cache_enabled()  # JAX's persistent cache stays off

@@ -20,7 +20,7 @@ import pytest
 from helpers import R, decode, random_model, true_point
 
 from matfit import images
-from matfit.model import models
+from matfit.model import architectures, weight_files
 
 PROMPT = 10.0  # seconds: the promise is about a second; a hang (the bug) lasted minutes
 
@@ -30,10 +30,10 @@ def model_dir(tmp_path_factory):
     """A random 32 px model saved as a model directory: a subprocess fits with it in milliseconds per step."""
     model = random_model()
     directory = tmp_path_factory.mktemp("model")
-    models.save(str(directory / "decoder.msgpack"), model.decoder)
+    weight_files.save(str(directory / "decoder.msgpack"), model.decoder)
     for network in model.encoders.values():  # described at the decoder's resolution, as training would
-        network = dataclasses.replace(network, description=models.architecture(network.name, R))
-        models.save(str(directory / f"{network.name}.msgpack"), network)
+        network = dataclasses.replace(network, description=architectures.architecture(network.name, R))
+        weight_files.save(str(directory / f"{network.name}.msgpack"), network)
     images.write(str(directory / "target.png"), images.srgb_decode(decode(model, true_point(3))))
     return directory
 

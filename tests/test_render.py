@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from matfit import images, params
-from matfit.render import engine, presets
+from matfit.render import engine, presets, process
 from matfit.render.engine import RenderError
 
 
@@ -212,7 +212,7 @@ def test_a_gpu_is_looked_for_only_when_the_choice_needs_it(monkeypatch, renderer
 
 
 def test_a_background_renderer_renders_what_one_loaded_in_front_does_and_answers_prefetches(renderer):
-    background = engine.Background(renderer.resolution, renderer.spp)
+    background = process.Background(renderer.resolution, renderer.spp)
     material = params.from_unit(params.sample_index(0, 3))
     other = params.from_unit(params.sample_index(0, 4))
     background.prefetch(material, seed=4)
@@ -231,7 +231,7 @@ def test_a_background_renderer_renders_what_one_loaded_in_front_does_and_answers
 
 
 def test_a_renderer_that_fails_in_the_background_raises_for_whoever_waits():
-    background = engine.Background(16, 4, "no_such_variant")
+    background = process.Background(16, 4, "no_such_variant")
     background.prefetch(params.DEFAULTS, seed=1)
     with pytest.raises(RenderError, match="unknown variant 'no_such_variant'"):
         background.renderer()
@@ -242,7 +242,7 @@ def test_a_renderer_that_fails_in_the_background_raises_for_whoever_waits():
 def test_a_render_process_renders_what_one_in_this_process_does_and_answers_prefetches(renderer):
     material = params.from_unit(params.sample_index(0, 3))
     other = params.from_unit(params.sample_index(0, 4))
-    with engine.Process() as child:
+    with process.Process() as child:
         assert child.variant == renderer.variant and child.renderer() is child
         with pytest.raises(RenderError, match="load"):
             child.render(material, seed=4)
@@ -266,14 +266,14 @@ def test_two_render_processes_render_a_material_to_the_same_bits():
     material = presets.preset("jade")
     pictures = []
     for _ in range(2):
-        with engine.Process() as child:
+        with process.Process() as child:
             child.load(64, 64)  # verification's renders
             pictures.append(child.render(material, seed=7))
     np.testing.assert_array_equal(pictures[0], pictures[1])
 
 
 def test_a_render_process_that_cannot_start_raises_its_reason():
-    with engine.Process("no_such_variant") as child:
+    with process.Process("no_such_variant") as child:
         child.load(16, 4)
         for _ in range(2):  # the reason, every time it is asked, not a pipe's end
             with pytest.raises(RenderError, match="unknown variant 'no_such_variant'"):
@@ -292,11 +292,32 @@ def running(pid: int) -> bool:
         return False
 
 
+def test_a_child_that_cannot_start_leaves_no_pipe_open(monkeypatch):
+    # Both the fit's render process and a dataset's workers start through `start_child`: a failed start closes all
+    # four pipe ends, so a caller that retries does not run out of file descriptors.
+    before = sorted(os.listdir("/proc/self/fd"))
+    monkeypatch.setattr(sys, "executable", "/nonexistent/python")
+    with pytest.raises(FileNotFoundError):
+        process.Process()
+    with pytest.raises(FileNotFoundError):
+        process.start_child("matfit.model.dataset_workers", "serve_chunks", 16, 1, "scalar_rgb")
+    assert sorted(os.listdir("/proc/self/fd")) == before
+
+
+def test_a_started_child_runs_the_named_function_with_its_pipes_and_arguments():
+    child, requests, replies = process.start_child("matfit.render.process", "serve_requests", "no_such_variant")
+    header, array = process.read_message(replies)
+    requests.close()
+    replies.close()
+    assert child.wait(timeout=60) == 0
+    assert array is None and "no_such_variant" in header["failed"]
+
+
 def test_a_render_process_ends_with_its_caller_even_a_killed_one():
     script = (
         "import time\n"
-        "from matfit import params; from matfit.render import engine as render\n"
-        "child = render.Process()\n"
+        "from matfit import params; from matfit.render import process\n"
+        "child = process.Process()\n"
         "child.load(16, 4)\n"
         "child.render(params.DEFAULTS, seed=1)\n"
         "print(child._child.pid, flush=True)\n"
@@ -319,27 +340,27 @@ def test_a_render_process_ends_with_its_caller_even_a_killed_one():
 def test_render_process_messages_round_trip_and_a_cut_one_is_the_pipes_end():
     image = np.arange(2 * 3 * 3, dtype=np.float32).reshape(2, 3, 3)
     pipe = io.BytesIO()
-    engine.write_message(pipe, {"done": True}, image)
-    engine.write_message(pipe, {"error": "a material is 19 finite values"})
+    process.write_message(pipe, {"done": True}, image)
+    process.write_message(pipe, {"error": "a material is 19 finite values"})
     whole = pipe.getvalue()
     pipe.seek(0)
-    header, array = engine.read_message(pipe)
+    header, array = process.read_message(pipe)
     assert header["done"] is True and array.dtype == np.float32
     np.testing.assert_array_equal(array, image)
     array[0, 0, 0] = -1  # the caller's own copy
-    assert engine.read_message(pipe) == ({"error": "a material is 19 finite values"}, None)
+    assert process.read_message(pipe) == ({"error": "a material is 19 finite values"}, None)
     with pytest.raises(EOFError, match="ended"):
-        engine.read_message(pipe)
+        process.read_message(pipe)
     for cut in (3, 12, len(whole) // 2):
         with pytest.raises(EOFError, match="inside a message"):
-            engine.read_message(io.BytesIO(whole[:cut]))
+            process.read_message(io.BytesIO(whole[:cut]))
 
 
 def test_a_render_process_whose_caller_left_ends_without_a_word():
     # The caller's end of the replies is closed before the child's first message (Ctrl-C or kill -9 while it starts).
     requests_read, requests_write = os.pipe()
     replies_read, replies_write = os.pipe()
-    code = f"from matfit.render import engine; engine.serve_requests({requests_read}, {replies_write}, 'scalar_rgb')"
+    code = f"from matfit.render import process; process.serve_requests({requests_read}, {replies_write}, 'scalar_rgb')"
     child = subprocess.Popen(
         [sys.executable, "-c", code], pass_fds=(requests_read, replies_write), stderr=subprocess.PIPE, text=True
     )

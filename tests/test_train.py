@@ -11,11 +11,22 @@ import numpy as np
 import pytest
 
 from matfit import images, params
-from matfit.errors import DatasetError
-from matfit.model import dataset, models, pipeline, train
-from matfit.model.train import Config, TrainingError
+from matfit.errors import DatasetError, TrainingError, WeightsError
+from matfit.model import (
+    architectures,
+    checkpoints,
+    dataset,
+    dataset_writing,
+    losses,
+    models,
+    pipeline,
+    train,
+    train_config,
+    weight_files,
+)
+from matfit.model.train_config import Config
 
-TINY_DECODER = models.Decoder(resolution=32, hidden=32, base_channels=16, stage_channels=(16, 8, 8))
+TINY_DECODER = architectures.Decoder(resolution=32, hidden=32, base_channels=16, stage_channels=(16, 8, 8))
 
 
 @pytest.fixture(scope="module")
@@ -37,9 +48,9 @@ def weights_equal(a, b):
 
 
 def test_split_holds_out_the_last_samples():
-    assert train.validation_count(48, 0.05) == 2
-    assert train.validation_count(10, 0.05) == 1
-    assert train.validation_count(22000, 0.05) == 1100
+    assert train_config.validation_count(48, 0.05) == 2
+    assert train_config.validation_count(10, 0.05) == 1
+    assert train_config.validation_count(22000, 0.05) == 1100
 
 
 def test_several_datasets_train_together_and_each_holds_out_its_own_last_samples(tmp_path, data):
@@ -63,8 +74,8 @@ def test_several_datasets_train_together_and_each_holds_out_its_own_last_samples
 
 
 def test_datasets_of_two_resolutions_are_refused(tmp_path, data, renderer):
-    small = dataset.prepare(str(tmp_path / "small"), dataset.Settings(16, 1, 5, renderer.variant), 4, {})
-    dataset.render_missing(small, 0)
+    small = dataset_writing.prepare(str(tmp_path / "small"), dataset.Settings(16, 1, 5, renderer.variant), 4, {})
+    dataset_writing.render_missing(small, 0)
     with pytest.raises(TrainingError, match=r"16 px images, .* 32 px: train on datasets of one resolution"):
         train.create_run("decoder", [data, dataset.open_dataset(str(tmp_path / "small"))], str(tmp_path), Config(1))
     with pytest.raises(TrainingError, match="no dataset to train on: give at least one --dataset"):
@@ -83,7 +94,7 @@ def test_training_reduces_the_loss(tmp_path, data, name):
     assert metrics["training_samples"] == 46 and metrics["validation_samples"] == 2
     stored = json.loads((tmp_path / f"{name}.json").read_text())
     assert stored["epochs"] == 8 and stored["dataset"]["count"] == 48
-    network = models.load(models.weights_path(str(tmp_path), name), resolution=32)
+    network = weight_files.load(weight_files.weights_path(str(tmp_path), name), resolution=32)
     assert network.info["metrics"]["validation_loss"] == pytest.approx(metrics["validation_loss"])
 
 
@@ -100,7 +111,7 @@ def test_refracting_decoder_renders_its_bases_once_and_ships_them(tmp_path, data
     copy = tmp_path / "data"
     shutil.copytree(data.path, copy)
     copied = dataset.open_dataset(str(copy))
-    decoder = models.Decoder(
+    decoder = architectures.Decoder(
         resolution=32, hidden=32, base_channels=16, stage_channels=(16, 8, 8), glass_grid=(2, 2), medium_grid=(2, 2)
     )
     reporter = Renders()
@@ -121,7 +132,7 @@ def test_refracting_decoder_renders_its_bases_once_and_ships_them(tmp_path, data
     # specular 0 is glass of index 1: the sphere vanishes, the floor and backdrop show through unbent
     np.testing.assert_allclose(basis[0, 0].mean(), copied.scene_image().mean(), rtol=0.1)
     assert np.abs(basis[1, 0] - basis[0, 0]).mean() > 0.01  # index 1.79 bends the checkers
-    network = models.load(models.weights_path(str(tmp_path / "model"), "decoder"), resolution=32)
+    network = weight_files.load(weight_files.weights_path(str(tmp_path / "model"), "decoder"), resolution=32)
     np.testing.assert_allclose(network.variables["constants"]["glass"], basis, atol=2e-3)
     assert copied.glass_basis((2, 2)) is not None and len(reporter.calls) == 6  # kept: not rendered again
     medium = copied.medium_basis((2, 2))
@@ -150,9 +161,9 @@ def test_an_interrupted_glass_basis_keeps_its_renders(tmp_path, data):
 
 @pytest.mark.parametrize("arch", [1, 3])
 def test_encoder_steps_fit_a_batch(data, arch):
-    module = models.encoder(arch)
+    module = architectures.encoder(arch)
     tx = train.optimiser(Config(epochs=1, learning_rate=1e-3), steps_per_epoch=40)
-    variables = models.initialise(module, jax.random.key(0), (32, 32, 3))
+    variables = architectures.initialise(module, jax.random.key(0), (32, 32, 3))
     train_step = train.make_train_step(module, tx, is_encoder=True)
     x, y = (np.asarray(a[:8], np.float32) for a in pipeline.training_arrays(f"encoder-{arch}", data))
     state = (variables["params"], tx.init(variables["params"]))
@@ -170,11 +181,11 @@ def test_interrupted_run_resumes_to_the_same_weights(tmp_path, data):
     parts = tmp_path / "parts"
     with pytest.raises(KeyboardInterrupt):
         train.train_network("encoder-3", data, str(parts), config, StopAfterOneEpoch())
-    assert not os.path.exists(models.weights_path(str(parts), "encoder-3"))
+    assert not os.path.exists(weight_files.weights_path(str(parts), "encoder-3"))
     resumed = train.train_network("encoder-3", data, str(parts), config)
     assert [r["epoch"] for r in resumed["history"]] == [1, 2, 3]
-    a = models.load(models.weights_path(str(whole), "encoder-3"))
-    b = models.load(models.weights_path(str(parts), "encoder-3"))
+    a = weight_files.load(weight_files.weights_path(str(whole), "encoder-3"))
+    b = weight_files.load(weight_files.weights_path(str(parts), "encoder-3"))
     assert weights_equal(a.variables, b.variables)
     # a finished run is found, not trained again
     again = train.train_network("encoder-3", data, str(parts), config)
@@ -182,31 +193,35 @@ def test_interrupted_run_resumes_to_the_same_weights(tmp_path, data):
 
 
 def test_save_load_round_trip_is_exact(tmp_path):
-    module = models.encoder(8)
-    variables = models.initialise(module, jax.random.key(3), (32, 32, 3))
-    network = models.Network("encoder-8", models.architecture("encoder-8", 64), module, variables, {"note": "x"})
+    module = architectures.encoder(8)
+    variables = architectures.initialise(module, jax.random.key(3), (32, 32, 3))
+    network = weight_files.Network(
+        "encoder-8", architectures.architecture("encoder-8", 64), module, variables, {"note": "x"}
+    )
     path = str(tmp_path / "e.msgpack")
-    models.save(path, network, dtype=np.float32)
-    loaded = models.load(path, resolution=64)
+    weight_files.save(path, network, dtype=np.float32)
+    loaded = weight_files.load(path, resolution=64)
     assert weights_equal(loaded.variables, variables)
     assert loaded.info == {"note": "x"} and loaded.name == "encoder-8"
-    models.save(path, network)  # float16 storage: exactly the rounded weights come back
+    weight_files.save(path, network)  # float16 storage: exactly the rounded weights come back
     rounded = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float16).astype(np.float32), variables)
-    assert weights_equal(models.load(path).variables, rounded)
+    assert weights_equal(weight_files.load(path).variables, rounded)
 
 
 def test_other_resolution_or_table_is_refused(tmp_path, monkeypatch):
-    module = models.Decoder(resolution=16, hidden=8, base_channels=4, stage_channels=(4,))
-    variables = models.initialise(module, jax.random.key(0), (19,))
+    module = architectures.Decoder(resolution=16, hidden=8, base_channels=4, stage_channels=(4,))
+    variables = architectures.initialise(module, jax.random.key(0), (19,))
     path = str(tmp_path / "decoder.msgpack")
-    models.save(path, models.Network("decoder", models.architecture("decoder", 16, module), module, variables, {}))
-    with pytest.raises(models.WeightsError, match="trained on 16 px images, not 64 px"):
-        models.load(path, resolution=64)
+    weight_files.save(
+        path, weight_files.Network("decoder", architectures.architecture("decoder", 16, module), module, variables, {})
+    )
+    with pytest.raises(WeightsError, match="trained on 16 px images, not 64 px"):
+        weight_files.load(path, resolution=64)
     changed = params.table_fingerprint()
     changed["parameters"][4] = {**changed["parameters"][4], "high": 2.0}
     monkeypatch.setattr(params, "table_fingerprint", lambda: changed)
-    with pytest.raises(models.WeightsError, match=r"another parameter table .*'roughness'"):
-        models.load(path)
+    with pytest.raises(WeightsError, match=r"another parameter table .*'roughness'"):
+        weight_files.load(path)
 
 
 @pytest.mark.parametrize(
@@ -218,13 +233,15 @@ def test_other_resolution_or_table_is_refused(tmp_path, monkeypatch):
     ],
 )
 def test_corrupt_weights_are_refused(tmp_path, damage, message):
-    module = models.encoder(8)
-    variables = models.initialise(module, jax.random.key(0), (32, 32, 3))
+    module = architectures.encoder(8)
+    variables = architectures.initialise(module, jax.random.key(0), (32, 32, 3))
     path = tmp_path / "encoder-8.msgpack"
-    models.save(str(path), models.Network("encoder-8", models.architecture("encoder-8", 64), module, variables, {}))
+    weight_files.save(
+        str(path), weight_files.Network("encoder-8", architectures.architecture("encoder-8", 64), module, variables, {})
+    )
     path.write_bytes(damage(path.read_bytes()))
-    with pytest.raises(models.WeightsError, match=message):
-        models.load(str(path))
+    with pytest.raises(WeightsError, match=message):
+        weight_files.load(str(path))
 
 
 def test_checkpoint_of_other_settings_or_damaged_is_refused(tmp_path, data):
@@ -233,10 +250,10 @@ def test_checkpoint_of_other_settings_or_damaged_is_refused(tmp_path, data):
         train.train_network("encoder-8", data, out, Config(epochs=2, batch_size=8), StopAfterOneEpoch())
     with pytest.raises(TrainingError, match=r"other settings \(batch_size 8 \(now 16\)\)"):
         train.train_network("encoder-8", data, out, Config(epochs=2, batch_size=16))
-    checkpoint = train.checkpoint_path(out, "encoder-8")
+    checkpoint = checkpoints.checkpoint_path(out, "encoder-8")
     with open(checkpoint, "r+b") as file:
         file.truncate(200)
-    with pytest.raises(models.WeightsError, match="not a readable checkpoint"):
+    with pytest.raises(WeightsError, match="not a readable checkpoint"):
         train.train_network("encoder-8", data, out, Config(epochs=2, batch_size=8))
 
 
@@ -251,23 +268,23 @@ def test_bad_settings_are_refused(tmp_path, data):
 
 def test_unfinished_dataset_is_refused(tmp_path, renderer):
     path = str(tmp_path / "partial")
-    dataset.prepare(path, dataset.Settings(32, 1, 0, renderer.variant), 4, {})
+    dataset_writing.prepare(path, dataset.Settings(32, 1, 0, renderer.variant), 4, {})
     with pytest.raises(DatasetError, match="0/4 samples rendered"):
         train.train_network("decoder", dataset.open_dataset(path), str(tmp_path), Config(epochs=1, batch_size=1))
 
 
 def test_arch_parsing():
-    assert train.parse_arch("decoder") == ["decoder"]
-    assert train.parse_arch("4") == ["encoder-4"]
-    assert train.parse_arch("1..9") == [f"encoder-{i}" for i in range(1, 10)]
-    assert train.parse_arch("all")[0] == "decoder" and len(train.parse_arch("all")) == 10
+    assert train_config.parse_arch("decoder") == ["decoder"]
+    assert train_config.parse_arch("4") == ["encoder-4"]
+    assert train_config.parse_arch("1..9") == [f"encoder-{i}" for i in range(1, 10)]
+    assert train_config.parse_arch("all")[0] == "decoder" and len(train_config.parse_arch("all")) == 10
     for bad, message in (
         ("0", "arch 0 does not exist"),
         ("10", "arch 10 does not exist"),
         ("x", "not an architecture"),
     ):
         with pytest.raises(TrainingError, match=message):
-            train.parse_arch(bad)
+            train_config.parse_arch(bad)
 
 
 def test_encoder_input_box_filters_then_encodes():
@@ -292,10 +309,10 @@ def test_a_run_started_from_trained_weights_continues_from_them_and_resumes_exac
     base = str(tmp_path / "base")
     train.train_network("decoder", data, base, Config(epochs=8, batch_size=8, learning_rate=3e-3), decoder=TINY_DECODER)
     # written before a field of the architecture existed (the shipped decoder predates `absorption`): still this run's
-    older = models.load(models.weights_path(base, "decoder"))
+    older = weight_files.load(weight_files.weights_path(base, "decoder"))
     description = {key: value for key, value in older.description.items() if key != "absorption"}
-    models.save(models.weights_path(base, "decoder"), dataclasses.replace(older, description=description))
-    started = models.load(models.weights_path(base, "decoder"))
+    weight_files.save(weight_files.weights_path(base, "decoder"), dataclasses.replace(older, description=description))
+    started = weight_files.load(weight_files.weights_path(base, "decoder"))
     assert "absorption" not in started.description
     config = Config(epochs=2, batch_size=8, learning_rate=1e-3, start_from=base)
     run = train.create_run("decoder", data, str(tmp_path / "next"), config, TINY_DECODER)
@@ -310,15 +327,15 @@ def test_a_run_started_from_trained_weights_continues_from_them_and_resumes_exac
     resumed = train.train_network("decoder", data, parts, config, decoder=TINY_DECODER)
     assert [r["epoch"] for r in resumed["history"]] == [1, 2]
     assert weights_equal(
-        models.load(models.weights_path(parts, "decoder")).variables,
-        models.load(models.weights_path(str(tmp_path / "whole"), "decoder")).variables,
+        weight_files.load(weight_files.weights_path(parts, "decoder")).variables,
+        weight_files.load(weight_files.weights_path(str(tmp_path / "whole"), "decoder")).variables,
     )
     # the start changed under an unfinished run: its checkpoint is refused, not silently mixed
     with pytest.raises(KeyboardInterrupt):
         train.train_network("decoder", data, str(tmp_path / "changed"), config, StopAfterOneEpoch(), TINY_DECODER)
     other = str(tmp_path / "other")
     train.train_network("decoder", data, other, Config(epochs=1, batch_size=8), decoder=TINY_DECODER)
-    shutil.copy(models.weights_path(other, "decoder"), models.weights_path(base, "decoder"))
+    shutil.copy(weight_files.weights_path(other, "decoder"), weight_files.weights_path(base, "decoder"))
     with pytest.raises(TrainingError, match=r"started from other weights than .*base/decoder\.msgpack holds now"):
         train.train_network("decoder", data, str(tmp_path / "changed"), config, decoder=TINY_DECODER)
 
@@ -332,7 +349,7 @@ def test_a_start_that_cannot_start_the_run_is_refused(tmp_path, data):
     with pytest.raises(TrainingError, match="is the model directory being trained: train into another --out"):
         train.train_network("encoder-8", data, base, Config(1, 8, start_from=base))
     train.train_network("decoder", data, base, Config(epochs=1, batch_size=8), decoder=TINY_DECODER)
-    other = models.Decoder(resolution=32, hidden=16, base_channels=16, stage_channels=(16, 8, 8))
+    other = architectures.Decoder(resolution=32, hidden=16, base_channels=16, stage_channels=(16, 8, 8))
     with pytest.raises(TrainingError, match=r"decoder\.msgpack is a decoder of another architecture"):
         train.train_network("decoder", data, str(tmp_path / "m"), Config(1, 8, start_from=base), decoder=other)
 
@@ -342,11 +359,13 @@ def test_a_run_may_grow_a_coarse_absorption_layer_on_trained_weights_but_not_dro
     copy = tmp_path / "data"
     shutil.copytree(data.path, copy)
     copied = dataset.open_dataset(str(copy))
-    plain = models.Decoder(resolution=32, hidden=16, base_channels=8, stage_channels=(8, 8, 8), glass_grid=(2, 2))
+    plain = architectures.Decoder(
+        resolution=32, hidden=16, base_channels=8, stage_channels=(8, 8, 8), glass_grid=(2, 2)
+    )
     coarse = plain.clone(coarse_absorption=True)
     base = str(tmp_path / "base")
     train.train_network("decoder", copied, base, Config(epochs=1, batch_size=8), decoder=plain)
-    started = models.load(models.weights_path(base, "decoder"))
+    started = weight_files.load(weight_files.weights_path(base, "decoder"))
     run = train.create_run("decoder", copied, str(tmp_path / "grown"), Config(1, 8, start_from=base), coarse)
     state = train.create_train_state(run)
     grown = dict(state.weights)
@@ -371,7 +390,7 @@ def test_the_linear_loss_learns_the_encoding_of_the_mean_render_where_the_srgb_l
 
     def optimum(loss: str) -> float:
         target = jnp.asarray(linear if loss == "linear" else images.srgb_encode(linear))
-        slope = jax.grad(lambda p: train.image_loss(jnp.full(target.shape, p), target, loss))
+        slope = jax.grad(lambda p: losses.image_loss(jnp.full(target.shape, p), target, loss))
         low, high = 0.0, 1.0
         for _ in range(30):  # the loss is convex in p: bisect on the sign of its slope
             low, high = ((low + high) / 2, high) if slope((low + high) / 2) < 0 else (low, (low + high) / 2)
@@ -384,7 +403,7 @@ def test_the_linear_loss_learns_the_encoding_of_the_mean_render_where_the_srgb_l
 
 def test_the_linear_residual_is_clipped_to_one_full_scale():
     prediction = jnp.array([0.5, 0.5, 0.0, 1.0])
-    residual = train.linear_residual(prediction, jnp.array([8.0, 0.0, 0.5, 1.0]))
+    residual = losses.linear_residual(prediction, jnp.array([8.0, 0.0, 0.5, 1.0]))
     # 0.5 encodes 0.2140 linear, where the curve rises 1.0804 per linear unit: -0.2140 x 1.0804
     np.testing.assert_allclose(residual, [1.0, -0.2312, 1.0, 0.0], atol=2e-4)
 
@@ -403,7 +422,7 @@ def test_a_decoder_trained_with_the_linear_loss_is_judged_against_the_encoded_re
     # Its loss holds the 4-spp targets' noise in linear light: the picture's error tells more.
     judged = [record["validation_rmse"] for record in metrics["history"]]
     assert judged[-1] < 0.85 * judged[0]
-    network = models.load(str(tmp_path / "decoder.msgpack"))
+    network = weight_files.load(str(tmp_path / "decoder.msgpack"))
     predictions = models.apply(network.module, network.variables, inputs[46:])
     expected = images.rmse(np.asarray(predictions, np.float64), pipeline.srgb_targets(data)[46:].astype(np.float64))
     assert metrics["validation_rmse"] == pytest.approx(float(expected.mean()), abs=0.05)
@@ -469,8 +488,10 @@ def test_make_model_trains_what_ships():
     assert decoder["epochs"] == int(last["--epochs"][0]) and decoder["loss"] == last["--loss"][0]
     assert decoder["learning_rate"] == float(last["--learning-rate"][0])
     assert decoder["start_from"] == last["--start-from"][0] == trains[0]["--out"][0]
-    architecture = models.load(str(shipped / "decoder.msgpack")).description
-    assert architecture == models.architecture("decoder", 64, models.trained_decoder(64, "--coarse-absorption" in last))
+    architecture = weight_files.load(str(shipped / "decoder.msgpack")).description
+    assert architecture == architectures.architecture(
+        "decoder", 64, architectures.trained_decoder(64, "--coarse-absorption" in last)
+    )
     assert ("--coarse-absorption" in trains[0]) == ("--coarse-absorption" in last)
 
 
@@ -481,13 +502,13 @@ def test_a_refused_train_leaves_no_folder(tmp_path, data, renderer):
     from matfit.app.cli import app
 
     partial = str(tmp_path / "partial")
-    dataset.prepare(partial, dataset.Settings(32, 1, 0, renderer.variant), 4, {})
+    dataset_writing.prepare(partial, dataset.Settings(32, 1, 0, renderer.variant), 4, {})
     base = tmp_path / "base"  # an encoder 8 trained on 64 px images: it cannot start a run on 32 px ones
     base.mkdir()
-    encoder = models.encoder(8)
-    variables = models.initialise(encoder, jax.random.key(1), (32, 32, 3))
-    network = models.Network("encoder-8", models.architecture("encoder-8", 64), encoder, variables, {})
-    models.save(models.weights_path(str(base), "encoder-8"), network)
+    encoder = architectures.encoder(8)
+    variables = architectures.initialise(encoder, jax.random.key(1), (32, 32, 3))
+    network = weight_files.Network("encoder-8", architectures.architecture("encoder-8", 64), encoder, variables, {})
+    weight_files.save(weight_files.weights_path(str(base), "encoder-8"), network)
     cases = [
         (["--arch", "9..1", "--dataset", data.path], "error: --arch 9..1 is an empty range: give it from low to high"),
         (["--arch", "3..2,8", "--dataset", data.path], "error: --arch 3..2 is an empty range"),

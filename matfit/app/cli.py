@@ -20,7 +20,7 @@ import typer
 from matfit import documents, params
 from matfit.app import console, options
 from matfit.fit.methods import Box, Method, Settings
-from matfit.model import dataset
+from matfit.model import dataset, dataset_workers, dataset_writing
 from matfit.render import presets
 
 app = typer.Typer(
@@ -156,7 +156,8 @@ def render_dataset(
     workers: Annotated[
         int | None,
         typer.Option(
-            help=f"Rendering processes, one thread each (default: one per core; {dataset.GPU_WORKERS} on a GPU).",
+            help=f"Rendering processes, one thread each (default: one per core; {dataset_workers.GPU_WORKERS} on a "
+            "GPU).",
             show_default=False,
         ),
     ] = None,
@@ -172,7 +173,7 @@ def render_dataset(
 
     with Progress(f"rendering {out}") as progress:
         counter = progress.counter()
-        data, rendered, notices = dataset.render_dataset(
+        data, rendered, notices = dataset_writing.render_dataset(
             str(out), count, resolution, spp, seed, workers, variant, counter, ray_address=ray, sampler=sampler
         )
     echo_lines(notices)
@@ -207,10 +208,11 @@ def fit_command(
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
     from matfit.render import engine as render_module
+    from matfit.render.process import Process
 
     render_module.check_request(variant)
     # Verification's Mitsuba starts in a child process now, on the other core, while this one imports JAX.
-    with render_module.Process(variant) if verify and not refine else contextlib.nullcontext() as renderer:
+    with Process(variant) if verify and not refine else contextlib.nullcontext() as renderer:
         from matfit.fit import fitfile
         from matfit.fit.request import Outputs, Request
 
@@ -328,14 +330,16 @@ def train(
     """Train the decoder and/or the encoders; run the same command again to resume after an interruption."""
     from matfit.app.progress import TrainingProgress
     from matfit.model import train as train_module
+    from matfit.model import train_config
 
-    names = train_module.parse_arch(arch)
-    config = train_module.Config(
+    names = train_config.parse_arch(arch)
+    config = train_config.Config(
         epochs, batch_size, learning_rate, seed=seed, start_from=options.text(start_from), loss=loss
     )
     data = [dataset.open_dataset(str(path)) for path in dataset_paths]
     with TrainingProgress() as progress:
-        for name, metrics in train_module.train_networks(names, data, str(out), config, progress, coarse_absorption):
+        # TrainingProgress is a train.Reporter by its methods, not by its class (app/progress imports no JAX).
+        for name, metrics in train_module.train_networks(names, data, str(out), config, progress, coarse_absorption):  # type: ignore[arg-type]
             progress.note(f"{train_module.summary(name, metrics)} -> {out}")
 
 

@@ -31,10 +31,19 @@ CLOSED_PIPE_EXIT_CODE = 141  # 128 + SIGPIPE: what the shell reports for a tool 
 class OneLineErrors(TyperGroup):
     """Typer's command group, with usage errors (an unknown option, `--evals abc`) as one `error:` line, exit 2."""
 
-    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+    def main(
+        self, args=None, prog_name=None, complete_var=None, standalone_mode=True, windows_expand_args=True, **extra
+    ):
         arguments = list(sys.argv[1:] if args is None else args)
         try:
-            code = super().main(arguments, prog_name, complete_var, standalone_mode=False, **extra)
+            code = super().main(
+                arguments,
+                prog_name,
+                complete_var,
+                standalone_mode=False,
+                windows_expand_args=windows_expand_args,
+                **extra,
+            )
         except typer._click.exceptions.NoArgsIsHelpError as error:
             typer.echo(error.format_message())
             code = 0

@@ -53,14 +53,15 @@ Model = Annotated[
     Path, typer.Option("--model", help="Model directory (default: the shipped model).", show_default=False)
 ]
 Variant = Annotated[
-    Literal[VARIANTS] | None,
+    Literal[VARIANTS] | None,  # type: ignore[valid-type]  # a Literal of a tuple's values: Typer reads them at run time
     typer.Option(
         help="Mitsuba variant (default: cuda_ad_rgb with an NVIDIA GPU, else llvm_ad_rgb with libLLVM >= 19, "
         "else scalar_rgb)."
     ),
 ]
+SAMPLERS = tuple(params.SAMPLERS)  # named, as VARIANTS is: a type checker then reads Sampler as a type
 Sampler = Annotated[
-    Literal[tuple(params.SAMPLERS)],
+    Literal[SAMPLERS],  # type: ignore[valid-type]  # as Variant's
     typer.Option(
         help="How parameters are drawn: the training distribution, or one of its corners (a supplement): "
         "dense-media (milky, jade-like), glass (transmissive dielectrics with a white or grey base colour) or "

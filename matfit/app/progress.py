@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import sys
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from rich.progress import TaskID
 
 
 class Progress:
@@ -15,7 +19,7 @@ class Progress:
 
     def __init__(self, label: str = "", total: int = 0):
         self.bar = None
-        self.task = None
+        self.task: TaskID | None = None
         self.label, self.total, self.next_report = label, total, 0.0
         if sys.stderr.isatty():
             from rich.progress import BarColumn, MofNCompleteColumn, TextColumn, TimeRemainingColumn
@@ -43,6 +47,7 @@ class Progress:
         if self.bar is not None:
             if self.task is None:
                 self.start(self.label, self.total, done)
+            assert self.task is not None  # start made it, the bar being there
             self.bar.update(self.task, completed=done, stats=stats)
         elif self.total and (done / self.total >= self.next_report or done == self.total):
             print(

@@ -16,12 +16,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from matfit import documents, files, images, params, shipped
+from matfit import documents, files, images, params, programs, shipped
 from matfit.errors import FitError
 from matfit.fit import refine, search, verify
 from matfit.fit.request import Outputs, Request
 from matfit.model import models
 from matfit.render import engine as render
+from matfit.render.process import Background, Process
 
 # The folder holding the package: the clone, or site-packages when installed (the shipped model reads
 # matfit/data/model either way; a user's own paths lie outside it and stay as given).
@@ -81,7 +82,7 @@ class Outcome:
 
 def load_model(path: str) -> models.Model:
     """Returns the model of a directory, with JAX's compilation cache on (a second fit loads its compiled programs)."""
-    models.enable_compilation_cache()
+    programs.enable_compilation_cache()
     return models.load_model(path)
 
 
@@ -97,10 +98,10 @@ def read_target(
     return target, weights, [*loaded.notices, *notices]
 
 
-def run(request: Request, model: models.Model | str, *, renderer: render.Process | None = None) -> Outcome:
+def run(request: Request, model: models.Model | str, *, renderer: Process | None = None) -> Outcome:
     """Fits the picture of `request` with a model (or a model directory) and writes its outputs; returns what was found.
 
-    `renderer`: an `engine.Process` to verify with, started early by the caller (`fit_file`), or None. Every
+    `renderer`: a `process.Process` to verify with, started early by the caller (`fit_file`), or None. Every
     input is read and every output path checked before the fit (`Request.check`); the outputs are written
     together at the end (`files.together`), so a failure leaves none of them.
     """
@@ -109,28 +110,32 @@ def run(request: Request, model: models.Model | str, *, renderer: render.Process
     if outputs is None:
         raise ValueError("run writes the request's outputs: name them (Outputs), or call fit_file")
     request.check()
-    outcome, renderer = _fit_checked(request, model, renderer)
+    outcome, used = _fit_checked(request, model, renderer)
     with files.together() as batch:
-        write_outputs(outcome, outputs, batch, renderer=renderer)
+        write_outputs(outcome, outputs, batch, renderer=used)
         outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
         files.write_text(batch.path(outputs.params), params_text(outcome))
     return outcome
 
 
-def fit_file(request: Request, model: models.Model | str, *, renderer=None) -> tuple[Outcome, object]:
+def fit_file(
+    request: Request, model: models.Model | str, *, renderer: render.Renderer | Process | None = None
+) -> tuple[Outcome, render.Renderer | Process | None]:
     """Returns (what a fit of the picture of `request` found, with its params.json document; the renderer used).
 
     Writes nothing: `run` writes the CLI's files, `serve` offers the same ones for download.
-    `renderer`: a loaded `engine.Renderer` at the model's resolution to reuse, an `engine.Process`
-    (started early by the caller; it loads the scene here, and cannot refine), or None (an
-    `engine.Background` with the request's variant is made when verification, refinement or a render
+    `renderer`: a loaded `engine.Renderer` at the model's resolution to reuse, a `process.Process`
+    (started early by the caller; it loads the scene here, and cannot refine), or None (a
+    `process.Background` with the request's variant is made when verification, refinement or a render
     output needs one). Refinement differentiates with the renderer's variant.
     """
     request.check()
     return _fit_checked(request, model, renderer)
 
 
-def _fit_checked(request: Request, model: models.Model | str, renderer) -> tuple[Outcome, object]:
+def _fit_checked(
+    request: Request, model: models.Model | str, renderer: render.Renderer | Process | None
+) -> tuple[Outcome, render.Renderer | Process | None]:
     """Returns `fit_file`'s answer to a checked request: the search, then Mitsuba's stages, then the document."""
     init_values = request.initial_values()
     model_path = model if isinstance(model, str) else model.path
@@ -149,19 +154,21 @@ def _fit_checked(request: Request, model: models.Model | str, renderer) -> tuple
     return outcome, renderer
 
 
-def start_renderer(request: Request, resolution: int, renderer) -> tuple[object, object]:
+def start_renderer(
+    request: Request, resolution: int, renderer: render.Renderer | Process | None
+) -> tuple[Process | Background | None, render.Renderer | None]:
     """Returns (a renderer that loads while the fit runs, or None; the loaded renderer given, or None).
 
-    An `engine.Process` given is loaded here and returned first; with none given, an `engine.Background`
+    A `process.Process` given is loaded here and returned first; with none given, a `process.Background`
     is made when verification, refinement or a render output needs one.
     """
-    if isinstance(renderer, render.Process):
+    if isinstance(renderer, Process):
         if request.refine_steps:
             raise ValueError("refinement renders through Mitsuba in this process: give a Renderer, or none")
         renderer.load(resolution, verify.SPP)
         return renderer, None
     if renderer is None and (request.verified or request.refine_steps or request.needs_render):
-        return render.Background(resolution, verify.SPP, request.variant), None
+        return Background(resolution, verify.SPP, request.variant), None
     return None, renderer
 
 
@@ -276,6 +283,7 @@ def report_picture(outcome: Outcome) -> np.ndarray:
     from matfit.fit import report
 
     result = outcome.result
+    assert outcome.rendered is not None, "fit_file renders the answer when a report is asked for (needs_render)"
     panels = [
         (outcome.target, "target"),
         (result.start_image, f"best-of-n {result.start_rmse:.2f}"),
@@ -286,7 +294,9 @@ def report_picture(outcome: Outcome) -> np.ndarray:
     return report.compose(panels)
 
 
-def write_outputs(outcome: Outcome, outputs: Outputs, batch: files.Batch, *, renderer=None) -> None:
+def write_outputs(
+    outcome: Outcome, outputs: Outputs, batch: files.Batch, *, renderer: render.Renderer | Process | None = None
+) -> None:
     """Writes the report, the large render and the exports of a fit into `batch` (params.json is the caller's)."""
     values = outcome.values
     if outputs.report is not None:

@@ -33,7 +33,7 @@ import itertools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -44,6 +44,9 @@ from matfit.errors import FitError
 from matfit.fit import gradient
 from matfit.fit.methods import Box, Method, Settings
 from matfit.model import models
+
+if TYPE_CHECKING:
+    from jaxtyping import Float
 
 __all__ = [
     "Box",
@@ -83,7 +86,7 @@ def distance_outside(x: jax.Array) -> jax.Array:
 
 
 @functools.cache
-def media_candidates() -> np.ndarray:
+def media_candidates() -> Float[np.ndarray, "k 19"]:
     """Returns the unit-cube grid (k, 19) of transmissive candidates the gradient methods add to best-of-n.
 
     Each is the default material made a white dielectric (base colour 1, spec_trans 1) holding a grey
@@ -102,7 +105,7 @@ def media_candidates() -> np.ndarray:
     return np.asarray(points, np.float32)
 
 
-def objective(x: jax.Array, args: tuple) -> jax.Array:
+def objective(x: Float[jax.Array, " 19"], args: tuple) -> Float[jax.Array, ""]:
     """Returns E(x) plus the box term; args = (decoder module, decoder variables, target, weights, box)."""
     decoder, variables, target, weights, box = args
     error = images.rmse(decoder.apply(variables, jnp.clip(x, 0.0, 1.0)), target, weights)
@@ -132,7 +135,7 @@ def neural_polish(decoder, variables, target, weights, x: jax.Array, steps: int,
     return jnp.where(last < best_value, y, best)
 
 
-def decoded_rmse(y: jax.Array, args: tuple) -> jax.Array:
+def decoded_rmse(y: Float[jax.Array, " 19"], args: tuple) -> Float[jax.Array, ""]:
     """Returns E(y) = RMSE(phi(y), t) for y inside the box, the gradient stage's objective.
 
     args = (decoder module, variables, target, weights). No clip: the gradient stage only evaluates
@@ -246,22 +249,22 @@ def _polish_and_sort(decoder, settings: Settings, decoder_variables, target, wei
 class Result:
     """What a fit found and how."""
 
-    values: np.ndarray  # physical parameters (19,)
-    unit: np.ndarray  # the same on the unit cube
-    image: np.ndarray  # phi(x), sRGB (R, R, 3)
+    values: Float[np.ndarray, " 19"]  # physical parameters (19,)
+    unit: Float[np.ndarray, " 19"]  # the same on the unit cube
+    image: Float[np.ndarray, "R R 3"]  # phi(x), sRGB (R, R, 3)
     rmse: float  # neural RMSE against the target, 0-255
     start_rmse: float  # RMSE of the best-of-n start
-    start: np.ndarray  # unit-cube start chosen by best-of-n
-    start_image: np.ndarray  # phi(start), sRGB (R, R, 3)
+    start: Float[np.ndarray, " 19"]  # unit-cube start chosen by best-of-n
+    start_image: Float[np.ndarray, "R R 3"]  # phi(start), sRGB (R, R, 3)
     chosen: str  # which candidate won best-of-n ("encoder-4", "extra-1", ...), or "random" (`optimize`)
     candidate_rmse: dict = field(default_factory=dict)
     evaluations: int = 0  # objective evaluations, a value-and-gradient counted as GRADIENT_COST of them
     seconds: float = 0.0
-    ends: np.ndarray | None = None  # the fit's end points (unit cube, (k, 19)), best neural RMSE first
-    end_rmse: np.ndarray | None = None  # their neural RMSE
-    end_images: np.ndarray | None = None  # their decoded images, sRGB (k, R, R, 3)
+    ends: Float[np.ndarray, "k 19"] | None = None  # the fit's end points (unit cube, (k, 19)), best neural RMSE first
+    end_rmse: Float[np.ndarray, " k"] | None = None  # their neural RMSE
+    end_images: Float[np.ndarray, "k R R 3"] | None = None  # their decoded images, sRGB (k, R, R, 3)
 
-    def decoded(self, unit: np.ndarray) -> np.ndarray | None:
+    def decoded(self, unit: Float[np.ndarray, " 19"]) -> Float[np.ndarray, "R R 3"] | None:
         """Returns phi(unit) if `unit` is the start or an end point (already decoded by the fit), else None."""
         unit = np.asarray(unit, np.float64)
         if np.array_equal(unit, np.asarray(self.start, np.float64)):
@@ -284,13 +287,13 @@ def candidate_names(model: models.Model, extra_count: int, *, media_count: int =
 
 def neural_search(
     model: models.Model,
-    target: np.ndarray,
+    target: Float[np.ndarray, "R R 3"],
     *,
     settings: Settings | None = None,
-    weights: np.ndarray | None = None,
-    extra: np.ndarray | None = None,
+    weights: Float[np.ndarray, "R R"] | None = None,
+    extra: Float[np.ndarray, "k 19"] | None = None,
     seed: int = 0,
-    on_start: Callable[[np.ndarray], None] | None = None,
+    on_start: Callable[[Float[np.ndarray, " 19"]], None] | None = None,
 ) -> Result:
     """Returns the parameters whose decoded image best matches `target`: best-of-n, then the method's optimiser.
 
@@ -407,7 +410,9 @@ def search_result(
     )
 
 
-def prepare_target(linear: np.ndarray, resolution: int, source: str) -> tuple[np.ndarray, list[str]]:
+def prepare_target(
+    linear: Float[np.ndarray, "H W 3"], resolution: int, source: str
+) -> tuple[Float[np.ndarray, "resolution resolution 3"], list[str]]:
     """Returns a linear image resampled to the model's square resolution and sRGB-encoded, with warnings."""
     height, width = linear.shape[:2]
     notices = []
@@ -419,7 +424,9 @@ def prepare_target(linear: np.ndarray, resolution: int, source: str) -> tuple[np
     return images.srgb_encode(images.resample(linear, resolution, resolution)), notices
 
 
-def prepare_mask(linear: np.ndarray, target_shape: tuple[int, int], resolution: int, source: str) -> np.ndarray:
+def prepare_mask(
+    linear: Float[np.ndarray, "H W C"], target_shape: tuple[int, int], resolution: int, source: str
+) -> Float[np.ndarray, "resolution resolution"]:
     """Returns per-pixel weights (R, R) from a mask image: white = 1 (fit here), black = 0 (ignore)."""
     if linear.shape[:2] != target_shape:
         raise FitError(

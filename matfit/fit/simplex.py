@@ -92,6 +92,64 @@ def best_so_far(state: _State) -> tuple[Array, Array]:
     )
 
 
+def trial_point(state: _State, coefficient: tuple[float, float, float, float]) -> tuple[Array, ...]:
+    """Returns (simplex, values, centroid, reflected point, the point this step evaluates) of a state's phase.
+
+    A new reflection starts from the sorted simplex; the other phases keep the order. Every phase's
+    point is an affine combination of the centroid and the worst vertex (x_r - c = a (c - x_n)), or
+    for a shrink of the best vertex and vertex `shrink_index`.
+    """
+    a, b, g, d = coefficient
+    n = state.simplex.shape[0] - 1
+    reflecting = state.phase == REFLECT
+    order = jnp.where(reflecting, jnp.argsort(state.values, stable=True), jnp.arange(n + 1))
+    simplex, values = state.simplex[order], state.values[order]
+    best, worst = simplex[0], simplex[n]
+    centroid = jnp.where(reflecting, jnp.sum(simplex[:n], axis=0) / n, state.centroid)
+    reflected = jnp.where(reflecting, (1 + a) * centroid - a * worst, state.reflected)
+    candidates = jnp.stack(
+        [
+            reflected,
+            (1 + a * b) * centroid - a * b * worst,
+            (1 + g * a) * centroid - g * a * worst,
+            (1 - g) * centroid + g * worst,
+            best + d * (simplex[state.shrink_index] - best),
+        ]
+    )
+    return simplex, values, centroid, reflected, candidates[state.phase]
+
+
+def take_point(
+    state: _State, simplex: Array, values: Array, reflected: Array, point: Array, value: Array
+) -> tuple[Array, Array, Array, Array]:
+    """Returns (simplex, values, the reflected point's value, the next phase) once `point` is evaluated: what
+    replaces the worst vertex (or, in a shrink, vertex `shrink_index`), if anything, and which phase follows."""
+    n = simplex.shape[0] - 1
+    k = state.shrink_index
+    reflecting, shrinking = state.phase == REFLECT, state.phase == SHRINK
+    f0, f_second, f_worst = values[0], values[n - 1], values[n]
+    fr = jnp.where(reflecting, value, state.reflected_value)
+    after_reflect = jnp.select([value < f0, value < f_second, value < f_worst], [EXPAND, REFLECT, OUTSIDE], INSIDE)
+    accept_point = jnp.select(
+        [state.phase == REFLECT, state.phase == EXPAND, state.phase == OUTSIDE, state.phase == INSIDE],
+        [(value >= f0) & (value < f_second), jnp.array(True), value <= fr, value < f_worst],
+        jnp.array(False),
+    )
+    expand_keeps_reflection = (state.phase == EXPAND) & (value >= fr)
+    new_point = jnp.where(expand_keeps_reflection, reflected, point)
+    new_value = jnp.where(expand_keeps_reflection, fr, value)
+    replaced = jnp.where(accept_point, n, -1)
+    index = jnp.where(shrinking, k, replaced)
+    slot = jnp.arange(n + 1) == index
+    simplex = jnp.where(slot[:, None], new_point[None], simplex)
+    values = jnp.where(slot, new_value, values)
+    next_phase = jnp.select(
+        [reflecting, state.phase == EXPAND, (state.phase == OUTSIDE) | (state.phase == INSIDE), shrinking],
+        [after_reflect, REFLECT, jnp.where(accept_point, REFLECT, SHRINK), jnp.where(k >= n, REFLECT, SHRINK)],
+    )
+    return simplex, values, fr, next_phase
+
+
 class NelderMead(optx.AbstractMinimiser):
     """Nelder-Mead with one evaluation per step; y must be a 1-D array.
 
@@ -127,53 +185,13 @@ class NelderMead(optx.AbstractMinimiser):
 
     def step(self, fn, y, args, options, state: _State, tags) -> tuple[Array, _State, Any]:
         n = y.shape[0]
-        a, b, g, d = coefficients(n, self.adaptive)
-        reflecting = state.phase == REFLECT
-        # A new reflection starts from the sorted simplex; the other phases keep the order.
-        order = jnp.where(reflecting, jnp.argsort(state.values, stable=True), jnp.arange(n + 1))
-        simplex, values = state.simplex[order], state.values[order]
-        best, worst = simplex[0], simplex[n]
-        centroid = jnp.where(reflecting, jnp.sum(simplex[:n], axis=0) / n, state.centroid)
-        # The points as affine combinations of centroid and worst vertex (x_r - c = a (c - x_n)).
-        reflected = jnp.where(reflecting, (1 + a) * centroid - a * worst, state.reflected)
-        k = state.shrink_index
-        candidates = jnp.stack(
-            [
-                reflected,
-                (1 + a * b) * centroid - a * b * worst,
-                (1 + g * a) * centroid - g * a * worst,
-                (1 - g) * centroid + g * worst,
-                best + d * (simplex[k] - best),
-            ]
-        )
-        point = candidates[state.phase]
+        coefficient = coefficients(n, self.adaptive)
+        simplex, values, centroid, reflected, point = trial_point(state, coefficient)
         value, aux = fn(point, args)
         value = value.astype(values.dtype)
-
-        f0, f_second, f_worst = values[0], values[n - 1], values[n]
-        fr = jnp.where(reflecting, value, state.reflected_value)
-        # What replaces the worst vertex, if anything, and the next phase.
-        after_reflect = jnp.select([value < f0, value < f_second, value < f_worst], [EXPAND, REFLECT, OUTSIDE], INSIDE)
-        accept_point = jnp.select(
-            [state.phase == REFLECT, state.phase == EXPAND, state.phase == OUTSIDE, state.phase == INSIDE],
-            [(value >= f0) & (value < f_second), jnp.array(True), value <= fr, value < f_worst],
-            jnp.array(False),
-        )
-        expand_keeps_reflection = (state.phase == EXPAND) & (value >= fr)
-        new_point = jnp.where(expand_keeps_reflection, reflected, point)
-        new_value = jnp.where(expand_keeps_reflection, fr, value)
-        replaced = jnp.where(accept_point, n, -1)
-        shrinking = state.phase == SHRINK
-        index = jnp.where(shrinking, k, replaced)
-        slot = jnp.arange(n + 1) == index
-        simplex = jnp.where(slot[:, None], new_point[None], simplex)
-        values = jnp.where(slot, new_value, values)
-
-        next_phase = jnp.select(
-            [reflecting, state.phase == EXPAND, (state.phase == OUTSIDE) | (state.phase == INSIDE), shrinking],
-            [after_reflect, REFLECT, jnp.where(accept_point, REFLECT, SHRINK), jnp.where(k >= n, REFLECT, SHRINK)],
-        )
-        next_shrink = jnp.where(shrinking & (k < n), k + 1, 1)
+        simplex, values, reflected_value, next_phase = take_point(state, simplex, values, reflected, point, value)
+        k = state.shrink_index
+        next_shrink = jnp.where((state.phase == SHRINK) & (k < n), k + 1, 1)
         converged = self._converged(simplex, values) & (next_phase == REFLECT)
         new_state = _State(
             simplex=simplex,
@@ -182,7 +200,7 @@ class NelderMead(optx.AbstractMinimiser):
             shrink_index=next_shrink,
             centroid=centroid,
             reflected=reflected,
-            reflected_value=fr,
+            reflected_value=reflected_value,
             evaluations=state.evaluations + 1,
             converged=converged,
         )

@@ -36,6 +36,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -43,6 +44,9 @@ from matfit import images, params
 from matfit.fit import correct, search
 from matfit.fit.methods import check_corrections
 from matfit.model import models
+
+if TYPE_CHECKING:
+    from jaxtyping import Float
 
 CANDIDATES = 5  # without correction: the start and up to four end points, every end of the default 4-start fit
 # With correction the start and the best end choose where the rounds start, and the last round joins them.
@@ -59,8 +63,8 @@ LEAD = 2.0  # standard errors by which a difference is decided without more batc
 class Verified:
     """Which candidate Mitsuba preferred, and the figures of the decision."""
 
-    unit: np.ndarray  # the chosen candidate (unit cube)
-    rendered: np.ndarray  # its Mitsuba render, sRGB (R, R, 3): the mean of its batches
+    unit: Float[np.ndarray, " 19"]  # the chosen candidate (unit cube)
+    rendered: Float[np.ndarray, "R R 3"]  # its Mitsuba render, sRGB (R, R, 3): the mean of its batches
     rmse: float  # its estimated noise-free Mitsuba RMSE against the target
     chosen: str  # "start", "end-1", "end-2", ... (end-1: the best neural RMSE), or "corrected-1", ...
     figures: dict[str, float]  # every candidate's estimated noise-free Mitsuba RMSE
@@ -73,7 +77,7 @@ class Verified:
     corrections: int = 0  # rounds of correction run
 
 
-def candidates(result: search.Result, *, count: int = CANDIDATES) -> dict[str, np.ndarray]:
+def candidates(result: search.Result, *, count: int = CANDIDATES) -> dict[str, Float[np.ndarray, " 19"]]:
     """Returns the candidates to render, by name: the start, then the fit's distinct end points, best neural first."""
     chosen = {"start": np.asarray(result.start, np.float64)}
     ends = result.ends if result.ends is not None else result.unit[None]
@@ -88,9 +92,9 @@ def candidates(result: search.Result, *, count: int = CANDIDATES) -> dict[str, n
 def verify_candidates(
     renderer,
     result: search.Result,
-    target: np.ndarray,
+    target: Float[np.ndarray, "R R 3"],
     *,
-    weights: np.ndarray | None = None,
+    weights: Float[np.ndarray, "R R"] | None = None,
     count: int = CANDIDATES,
     spp: int = SPP,
 ) -> Verified:
@@ -128,7 +132,8 @@ def correct_then_verify(
     started = time.perf_counter()
     weights = as_weights(target, weights)
     pool = candidates(result, count=count)
-    contenders, batches = list(pool), {}
+    contenders = list(pool)
+    batches: dict[str, list[np.ndarray]] = {}
     last, corrected = correction_rounds(
         renderer, model, result, pool, batches, target, weights, corrections=corrections, spp=spp
     )
@@ -196,7 +201,7 @@ def judge(renderer, pool, contenders: list[str], batches, target, weights, *, sp
     figures = {name: 255.0 * float(np.sqrt(max(value, 0.0))) for name, value in estimates.items()}
     return Verified(
         pool[chosen],
-        np.mean(batches[chosen], axis=0, dtype=np.float32),
+        np.mean(batches[chosen], axis=0, dtype=np.float32),  # type: ignore[arg-type]  # an image, not a scalar
         figures[chosen],
         chosen,
         figures,
@@ -228,7 +233,9 @@ def where_rounds_start(renderer, pool, batches, target, weights, *, spp: int = S
     return "start", render_candidate(renderer, pool["start"], seed=SEED, spp=spp)
 
 
-def squared_error(renders: list[np.ndarray], target: np.ndarray, weights: np.ndarray) -> tuple[float, np.ndarray]:
+def squared_error(
+    renders: list[Float[np.ndarray, "R R 3"]], target: Float[np.ndarray, "R R 3"], weights: Float[np.ndarray, "R R"]
+) -> tuple[float, Float[np.ndarray, " m"]]:
     """Returns (the unbiased estimate of the weighted mean squared error of the noise-free render, its jackknife
     leave-one-out estimates (m,)) from m >= 3 independent sRGB renders (m, R, R, 3) of one material.
 
@@ -249,7 +256,11 @@ def squared_error(renders: list[np.ndarray], target: np.ndarray, weights: np.nda
 
 
 def decide(
-    batches: dict[str, list[np.ndarray]], target: np.ndarray, weights: np.ndarray, *, count: int | None = None
+    batches: dict[str, list[Float[np.ndarray, "R R 3"]]],
+    target: Float[np.ndarray, "R R 3"],
+    weights: Float[np.ndarray, "R R"],
+    *,
+    count: int | None = None,
 ) -> tuple[str, dict[str, float], dict[str, float]]:
     """Returns (the leader: the lowest estimate of `squared_error`, the start first so that a tie keeps it; every
     candidate's estimate; every other candidate's margin behind the leader in standard errors).
@@ -260,7 +271,7 @@ def decide(
     """
     used = {name: renders[:count] for name, renders in batches.items()}
     estimates = {name: squared_error(renders, target, weights)[0] for name, renders in used.items()}
-    leader = min(estimates, key=estimates.get)
+    leader = min(estimates, key=estimates.__getitem__)
     margins = {}
     for name, renders in used.items():
         if name == leader:
@@ -275,8 +286,8 @@ def decide(
     return leader, estimates, margins
 
 
-def prefetch_start(renderer, start: np.ndarray, *, corrections: int = 0, spp: int = SPP) -> None:
-    """Starts, on an `engine.Background` or `engine.Process`, the renders verification will make of the fit's start
+def prefetch_start(renderer, start: Float[np.ndarray, " 19"], *, corrections: int = 0, spp: int = SPP) -> None:
+    """Starts, on a `process.Background` or `process.Process`, the renders verification will make of the fit's start
     (unit cube): its first BATCHES batches (`corrections` changes nothing: the start is judged by the same batches)."""
     values = params.from_unit(np.asarray(start, np.float64))  # as `candidates` and `render_candidate` make them
     for j in range(BATCHES):

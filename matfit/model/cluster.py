@@ -28,11 +28,13 @@ import os
 import socket
 import time
 from collections.abc import Iterator
+from types import ModuleType
 
 import numpy as np
 
-from matfit.model import dataset
-from matfit.model.dataset import DatasetError, Results, Settings, Task
+from matfit.model import dataset, dataset_workers
+from matfit.model.dataset import DatasetError, Settings
+from matfit.model.dataset_workers import Results, Task
 
 # A task whose worker dies (kill -9, out of memory, a node lost) is run again this many times.
 RETRIES = 3
@@ -47,7 +49,7 @@ WORKER_NICENESS = "RAY_worker_niceness"
 _worker_settings: Settings | None = None
 
 
-def require_ray():
+def require_ray() -> ModuleType:
     """Returns the `ray` module, or raises DatasetError saying how to install it."""
     try:
         import ray
@@ -86,13 +88,13 @@ def _render_task(settings: Settings, task: Task) -> tuple[np.ndarray, np.ndarray
     """Runs in a Ray worker: renders one chunk, making the worker's renderer on its first chunk."""
     global _worker_settings
     if _worker_settings != settings:
-        dataset.init_worker(settings.resolution, settings.spp, settings.variant, new_session=False)
+        dataset_workers.init_worker(settings.resolution, settings.spp, settings.variant, new_session=False)
         _worker_settings = settings
-    return dataset.render_chunk(task)
+    return dataset_workers.render_chunk(task)
 
 
 @contextlib.contextmanager
-def connect(address: str, workers: int) -> Iterator[object]:
+def connect(address: str, workers: int) -> Iterator[ModuleType]:
     """Connects to the Ray at `address` ("local": a new one of `workers` CPUs) for the block."""
     ray = require_ray()
     if ray.is_initialized():  # the caller's own connection: use it, leave it open
@@ -160,17 +162,17 @@ def measure_transfer(resolution: int, chunks: int = 200, workers: int = 2) -> di
 
     The figure bounds the cluster a single driver can serve: chunks/s x CHUNK images per second.
     """
-    shape = (dataset.CHUNK, resolution, resolution, 3)
+    shape = (dataset_workers.CHUNK, resolution, resolution, 3)
     with connect(LOCAL, workers) as ray:
 
         @ray.remote(num_cpus=1)
         def chunk(index: int) -> tuple[np.ndarray, np.ndarray]:
-            return np.arange(index, index + dataset.CHUNK), np.full(shape, index % 7, dataset.IMAGE_DTYPE)
+            return np.arange(index, index + dataset_workers.CHUNK), np.full(shape, index % 7, dataset.IMAGE_DTYPE)
 
         ray.get([chunk.remote(i) for i in range(workers)])  # workers started before the clock
-        store = np.zeros((chunks * dataset.CHUNK, *shape[1:]), dataset.IMAGE_DTYPE)
+        store = np.zeros((chunks * dataset_workers.CHUNK, *shape[1:]), dataset.IMAGE_DTYPE)
         started = time.perf_counter()
-        pending = [chunk.remote(i * dataset.CHUNK) for i in range(chunks)]
+        pending = [chunk.remote(i * dataset_workers.CHUNK) for i in range(chunks)]
         while pending:
             ready, pending = ray.wait(pending, num_returns=1)
             indices, images = ray.get(ready[0])
@@ -191,6 +193,6 @@ if __name__ == "__main__":
         figures = measure_transfer(side)
         print(
             f"Ray object store into the driver, {side} px: {figures['images_per_s']:.0f} img/s, "
-            f"{figures['mib_per_s']:.0f} MiB/s ({figures['chunks']} chunks of {dataset.CHUNK} in "
+            f"{figures['mib_per_s']:.0f} MiB/s ({figures['chunks']} chunks of {dataset_workers.CHUNK} in "
             f"{figures['seconds']:.2f} s)"
         )

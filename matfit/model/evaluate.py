@@ -23,7 +23,7 @@ import numpy as np
 
 from matfit import documents, files, images, params
 from matfit.errors import DatasetError
-from matfit.model import models, pipeline
+from matfit.model import architectures, models, pipeline, weight_files
 from matfit.model.dataset import Dataset
 from matfit.render import presets
 
@@ -95,15 +95,7 @@ def evaluate(model: models.Model, references: Dataset, preset_spp: int = PRESET_
     unit = references.unit_params()
     targets = pipeline.srgb_targets(references).astype(np.float32)
     masks = subsets(references.params)
-
     decoder_error = images.rmse(model.decode(unit), targets)
-    clean = preset_references(references, preset_spp)
-    preset_values = np.stack([presets.preset(name) for name in clean])
-    preset_error = images.rmse(
-        model.decode(params.to_unit(preset_values).astype(np.float32)),
-        images.srgb_encode(np.stack(list(clean.values()))),
-    )
-    preset_masks = subsets(preset_values)
     result = {
         "references": {
             "path": references.path,
@@ -116,38 +108,56 @@ def evaluate(model: models.Model, references: Dataset, preset_spp: int = PRESET_
         **{
             f"decoder_rmse_{name}": summary(decoder_error[mask]) if mask.any() else None for name, mask in masks.items()
         },
-        "presets": {
-            "spp": preset_spp,
-            "rmse": {name: float(error) for name, error in zip(clean, preset_error, strict=True)},
-            **{
-                f"{name}_mean": float(preset_error[mask].mean()) if mask.any() else None
-                for name, mask in preset_masks.items()
-            },
-            "max": float(preset_error.max()),
-        },
-        "encoders": {},
+        "presets": preset_figures(model, references, preset_spp),
     }
+    return {**result, **encoder_figures(model, references, unit, targets)}
+
+
+def preset_figures(model: models.Model, references: Dataset, preset_spp: int) -> dict:
+    """Returns the decoder's RMSE on each named material against its clean render, their means per third, the
+    largest."""
+    clean = preset_references(references, preset_spp)
+    preset_values = np.stack([presets.preset(name) for name in clean])
+    preset_error = images.rmse(
+        model.decode(params.to_unit(preset_values).astype(np.float32)),
+        images.srgb_encode(np.stack(list(clean.values()))),
+    )
+    preset_masks = subsets(preset_values)
+    return {
+        "spp": preset_spp,
+        "rmse": {name: float(error) for name, error in zip(clean, preset_error, strict=True)},
+        **{
+            f"{name}_mean": float(preset_error[mask].mean()) if mask.any() else None
+            for name, mask in preset_masks.items()
+        },
+        "max": float(preset_error.max()),
+    }
+
+
+def encoder_figures(model: models.Model, references: Dataset, unit: np.ndarray, targets: np.ndarray) -> dict:
+    """Returns {"encoders": each encoder's parameter and image RMSE, "best_of_n": the figures of keeping, per
+    reference, the encoder whose guess the decoder draws closest}."""
     encoder_inputs = pipeline.encoder_inputs(references)
-    image_errors = []
+    encoders, image_errors = {}, []
     for arch, network in model.encoders.items():
         guess = models.apply_in_batches(network.module, network.variables, encoder_inputs)
         error = images.rmse(model.decode(guess), targets)
         image_errors.append(error)
-        result["encoders"][str(arch)] = {
+        encoders[str(arch)] = {
             "parameter_rmse": float(np.sqrt(np.mean((guess - unit) ** 2))),
             "image_rmse": float(error.mean()),
         }
     errors = np.stack(image_errors)  # (encoders, N)
-    best_single = min(result["encoders"].values(), key=lambda entry: entry["image_rmse"])
+    best_single = min(encoders.values(), key=lambda entry: entry["image_rmse"])
     winners = np.argmin(errors, axis=0)
     archs = list(model.encoders)
-    result["best_of_n"] = {
+    best_of_n = {
         "n": len(archs),
         "image_rmse": float(errors.min(axis=0).mean()),
         "best_single_image_rmse": best_single["image_rmse"],
         "wins": {str(arch): int(np.sum(winners == k)) for k, arch in enumerate(archs)},
     }
-    return result
+    return {"encoders": encoders, "best_of_n": best_of_n}
 
 
 def describe_decoder(description: dict) -> str:
@@ -337,9 +347,9 @@ def weights_megabytes(directory: str) -> float:
     """Returns the size of the weight files in a model directory, in MB (10^6 bytes)."""
     return (
         sum(
-            os.path.getsize(models.weights_path(directory, name))
-            for name in models.NETWORKS
-            if os.path.exists(models.weights_path(directory, name))
+            os.path.getsize(weight_files.weights_path(directory, name))
+            for name in architectures.NETWORKS
+            if os.path.exists(weight_files.weights_path(directory, name))
         )
         / 1e6
     )

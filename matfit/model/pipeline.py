@@ -12,7 +12,7 @@ import numpy as np
 
 from matfit import images
 from matfit.errors import DatasetError
-from matfit.model import models
+from matfit.model import architectures, models
 from matfit.model.dataset import Dataset
 
 CHUNK = 1024  # images converted at a time: float32 copies of the whole set would not fit in memory at 128 px
@@ -47,7 +47,7 @@ def linear_targets(data: Dataset) -> np.ndarray:
 
 def encoder_inputs(data: Dataset) -> np.ndarray:
     """Returns every image as the encoders see it (`models.encoder_input`), float16 (count, 32, 32, 3)."""
-    side = models.ENCODER_RESOLUTION
+    side = architectures.ENCODER_RESOLUTION
     if data.resolution % side:
         raise DatasetError(
             f"encoders need images whose side is a multiple of {side} px; {data.path} has {data.resolution}: "
@@ -59,10 +59,10 @@ def encoder_inputs(data: Dataset) -> np.ndarray:
 def training_arrays(name: str, data: Dataset, linear: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Returns (inputs, targets) of network `name` for every sample: (x, image) for the decoder, else (image, x).
 
-    The decoder's images are sRGB-encoded, or with `linear` linear (`train.linear_residual`).
+    The decoder's images are sRGB-encoded, or with `linear` linear (`losses.linear_residual`).
     """
     unit = data.unit_params()
-    if name == models.DECODER:
+    if name == architectures.DECODER:
         return unit, linear_targets(data) if linear else srgb_targets(data)
     return encoder_inputs(data), unit
 
@@ -79,7 +79,7 @@ def measure_loader(
     fed as long as this is well above its training rate in samples/s.
     """
     rng = np.random.default_rng(0)
-    arrays = {
+    arrays: dict[str, tuple[np.ndarray, np.ndarray]] = {
         "decoder": (
             rng.random((samples, 19), np.float32),
             rng.random((samples, resolution, resolution, 3), np.float32).astype(np.float16),

@@ -2,18 +2,16 @@
 
 `train_network` trains one network ("decoder" or "encoder-N") on a finished `matfit render-dataset`
 directory, in the Flax examples' steps: `create_run` (module, data split, optimiser),
-`create_train_state` (fresh or resumed), `train_epoch`, `finish`:
+`create_train_state` (fresh or resumed), `train_epoch`, `finish`. What a run is asked for is
+`train_config`, what it minimises and how it is judged `losses`, its resumable state `checkpoints`:
 
 - the last `validation_fraction` of the samples are held out and never trained on;
-- the decoder learns parameters -> sRGB image (L2 on sRGB values, as the paper's RMSE), or with
-  `Config.loss = "linear"` the sRGB encoding of the mean linear render (`linear_residual`: the
-  16-spp targets' noise no longer darkens what it learns);
-  an encoder learns `models.encoder_input(image)` -> parameters (L2 on the unit cube);
+- the decoder learns parameters -> sRGB image, or the encoding of the mean linear render
+  (`losses`); an encoder learns `models.encoder_input(image)` -> parameters;
 - Adam with a warm-up + cosine schedule over the whole run, so a run is defined by its settings;
-- after every epoch the whole training state (weights, optimiser, history) is written atomically
-  to `<out>/checkpoints/<name>.ckpt`. Shuffling and dropout depend only on (seed, network,
-  epoch, step), so a run that is interrupted and resumed ends with the same weights as one that
-  was not;
+- after every epoch the whole training state is written atomically (`checkpoints`). Shuffling
+  and dropout depend only on (seed, network, epoch, step), so a run that is interrupted and
+  resumed ends with the same weights as one that was not;
 - at the end the weights are rounded to float16 (what ships), validated, and written to
   `<out>/<name>.msgpack` with their metrics, plus a readable `<out>/<name>.json`;
 - `Config.start_from` names a model directory whose weights of the same network start the run
@@ -25,89 +23,32 @@ directory, in the Flax examples' steps: `create_run` (module, data split, optimi
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import time
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from flax import serialization
 
-from matfit import documents, files, images, params
+from matfit import documents, files, images
 from matfit.errors import TrainingError
-from matfit.model import dataset, models, pipeline
+from matfit.model import architectures, dataset, models, pipeline, weight_files
+from matfit.model.architectures import NETWORKS
+from matfit.model.checkpoints import Checkpoint, checkpoint_path, load_checkpoint, save_checkpoint
 from matfit.model.dataset import Dataset
-from matfit.model.models import NETWORKS
+from matfit.model.losses import image_loss, validation_metrics
+from matfit.model.train_config import Config, validation_count
 
-CHECKPOINT_FORMAT = "matfit-checkpoint"
-# The paper trains the isomorphic encoders 6, 7 and 9 for different numbers of epochs.
-# Sized so that `make model` trains them on a CPU in less time than the decoder (docs/training.md#training).
-DEFAULT_EPOCHS = {
-    models.DECODER: 20,
-    **{name: 10 for name in models.ENCODER_NAMES},
-    "encoder-4": 8,
-    "encoder-5": 8,
-    "encoder-7": 5,
-    "encoder-9": 20,
-}
-MAX_EPOCHS = 10000
-# What the decoder learns: "srgb" the mean of the sRGB-encoded renders (the paper's L2 on sRGB
-# values), "linear" the sRGB encoding of the mean linear render (`linear_residual`).
-LOSSES = ("srgb", "linear")
-# The linear loss's per-pixel residual is clipped to this many full sRGB scales: a firefly of a
-# 16-spp render (linear values far above 1) would otherwise dominate a batch's gradient (docs/training.md#training).
-RESIDUAL_CLIP = 1.0
+if TYPE_CHECKING:
+    import flax.linen as nn
 
 # Decoder fields that add a layer, so that `Config.start_from` may add it to trained weights: it starts fresh
 # (with `path_start` 0 the decoder then draws what it drew; other starts change the picture at once).
 GROWABLE = ("coarse_absorption", "path_start")
-
-
-@dataclass(frozen=True)
-class Config:
-    """What defines a training run: resuming needs the same values."""
-
-    epochs: int | None = None  # None: the network's default (DEFAULT_EPOCHS)
-    batch_size: int = 64
-    learning_rate: float = 1e-3
-    validation_fraction: float = 0.05
-    seed: int = 0
-    start_from: str | None = None  # a model directory: its weights of the network start the run
-    loss: str = "srgb"  # the decoder's: one of LOSSES
-
-    def for_network(self, name: str) -> Config:
-        """Returns this configuration with the network's default number of epochs where none is set."""
-        return self if self.epochs is not None else replace(self, epochs=DEFAULT_EPOCHS[name])
-
-    def check(self, samples: int) -> None:
-        """Raises TrainingError for values that cannot train on `samples` samples."""
-        if self.loss not in LOSSES:
-            raise TrainingError(f"loss {self.loss!r} is unknown: use {' or '.join(LOSSES)}", field="loss")
-        if self.epochs is None or not 1 <= self.epochs <= MAX_EPOCHS:
-            raise TrainingError(f"epochs {self.epochs} is out of range: use 1 to {MAX_EPOCHS}", field="epochs")
-        if not 0.0 < self.learning_rate <= 1.0:
-            raise TrainingError(
-                f"learning rate {self.learning_rate} is out of range: use a value in (0, 1]", field="learning_rate"
-            )
-        if not 0.0 < self.validation_fraction < 0.5:
-            raise TrainingError(
-                f"validation fraction {self.validation_fraction} is out of range: use a value in (0, 0.5)"
-            )
-        training = samples - validation_count(samples, self.validation_fraction)
-        if not 1 <= self.batch_size <= training:
-            raise TrainingError(
-                f"batch size {self.batch_size} does not fit {training} training samples: use 1 to {training}",
-                field="batch_size",
-            )
-
-
-def validation_count(samples: int, fraction: float) -> int:
-    """Returns how many of the last samples are held out for validation (at least one)."""
-    return max(1, round(samples * fraction))
 
 
 def as_datasets(data: Dataset | Sequence[Dataset]) -> list[Dataset]:
@@ -161,6 +102,7 @@ def dataset_identity(data: Dataset) -> dict:
 
 def optimiser(config: Config, steps_per_epoch: int) -> optax.GradientTransformation:
     """Returns Adam with a linear warm-up and a cosine decay over the whole run."""
+    assert config.epochs is not None, "Config.check refused None"
     total = config.epochs * steps_per_epoch
     schedule = optax.warmup_cosine_decay_schedule(
         init_value=0.0,
@@ -170,34 +112,6 @@ def optimiser(config: Config, steps_per_epoch: int) -> optax.GradientTransformat
         end_value=config.learning_rate * 0.01,
     )
     return optax.adam(schedule)
-
-
-def linear_residual(prediction: jax.Array, linear: jax.Array) -> jax.Array:
-    """Returns the decoder's residual against a linear target, in sRGB units and with no gradient.
-
-    (linear - decode(prediction)) times the sRGB curve's slope at the prediction, clipped to
-    +-RESIDUAL_CLIP: to first order the sRGB error, but zero on average where the prediction
-    encodes the mean linear render. The plain sRGB loss's optimum is the mean of the encoded
-    renders instead, which a 16-spp render's noise darkens (the curve is concave and clips at 1):
-    most inside media (docs/training.md#training). The slope is
-    the prediction's, not the target's, so that the noise does not bias it either.
-    """
-    prediction = jax.lax.stop_gradient(prediction)
-    decoded = models.srgb_decode(prediction)
-    # The curve's own slope, not its clip's: a prediction at 1 is still pulled down.
-    return jnp.clip(models.srgb_slope(decoded) * (linear - decoded), -RESIDUAL_CLIP, RESIDUAL_CLIP)
-
-
-def image_loss(prediction: jax.Array, target: jax.Array, loss: str = "srgb") -> jax.Array:
-    """Returns the L2 loss of predictions against targets; "linear": of decoded images against linear renders.
-
-    "linear"'s value is the mean square of `linear_residual`, its gradient -2 residual / n: an L2
-    loss on a target that lies `residual` away from the prediction.
-    """
-    if loss == "linear":
-        residual = linear_residual(prediction, target)
-        return jnp.mean((prediction - jax.lax.stop_gradient(prediction + residual)) ** 2)
-    return jnp.mean((prediction - target) ** 2)
 
 
 def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool, loss: str = "srgb"):
@@ -230,122 +144,6 @@ def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool, 
     return train_step
 
 
-def validation_metrics(name: str, predictions: np.ndarray, targets: np.ndarray, inputs: np.ndarray) -> dict:
-    """Returns the validation figures of a network: image RMSE (0-255 sRGB) or parameter RMSE.
-
-    The decoder's are also given for its transmissive samples alone (spec_trans >= 0.5, `inputs`
-    being its unit-cube parameters), so that the third of the space with glass and media is seen.
-    """
-    targets = np.asarray(targets, np.float64)
-    error = predictions.astype(np.float64) - targets
-    if name == models.DECODER:
-        per_image = images.rmse(predictions.astype(np.float64), targets)
-        transmissive = np.asarray(inputs)[:, params.INDEX["spec_trans"]] >= 0.5
-        return {
-            "validation_loss": float(np.mean(error**2)),
-            "validation_rmse": float(per_image.mean()),
-            "validation_rmse_transmissive": float(per_image[transmissive].mean()) if transmissive.any() else 0.0,
-        }
-    per_parameter = np.sqrt(np.mean(error**2, axis=0))
-    return {
-        "validation_loss": float(np.mean(error**2)),
-        "validation_parameter_rmse": float(np.sqrt(np.mean(error**2))),
-        "validation_parameter_rmse_by_name": dict(zip(params.NAMES, map(float, per_parameter), strict=True)),
-    }
-
-
-@dataclass
-class Checkpoint:
-    """The resumable state of a run after `epoch` finished epochs."""
-
-    epoch: int
-    weights: dict
-    opt_state: object
-    history: list = field(default_factory=list)
-    seconds: float = 0.0
-
-
-def checkpoint_path(out: str, name: str) -> str:
-    """Returns where run `name` keeps its checkpoint."""
-    return os.path.join(out, "checkpoints", name + ".ckpt")
-
-
-def save_checkpoint(
-    path: str,
-    name: str,
-    description: dict,
-    config: Config,
-    identity: dict | list,
-    state: Checkpoint,
-    start: str | None = None,
-) -> None:
-    """Writes the whole training state atomically (float32, exact)."""
-    document = {
-        "format": CHECKPOINT_FORMAT,
-        "version": models.WEIGHTS_VERSION,
-        "name": name,
-        "architecture": description,
-        "parameter_table": params.table_fingerprint(),
-        "config": asdict(config),
-        "dataset": identity,
-        "start_sha256": start,
-        "epoch": state.epoch,
-        "seconds": state.seconds,
-        "history": json.dumps(state.history),
-        "weights": serialization.to_state_dict(jax.device_get(state.weights)),
-        "opt_state": serialization.to_state_dict(jax.device_get(state.opt_state)),
-    }
-    files.write_bytes(path, serialization.msgpack_serialize(document))
-
-
-def load_checkpoint(
-    path: str,
-    name: str,
-    description: dict,
-    config: Config,
-    identity: dict | list,
-    template: Checkpoint,
-    start: str | None = None,
-) -> Checkpoint:
-    """Returns the checkpoint at `path` if it belongs to this very run; refuses any other."""
-    document = models.restore_document(path, CHECKPOINT_FORMAT, "checkpoint")
-    fix = f"delete {path} to start afresh, or pass the settings it was made with"
-    if document.get("name") != name or document.get("architecture") != description:
-        raise TrainingError(f"{path} is a checkpoint of another network or architecture: {fix}")
-    if document.get("config") != asdict(config):
-        stored = document.get("config") or {}
-        different = ", ".join(
-            f"{key} {stored.get(key)} (now {value})"
-            for key, value in asdict(config).items()
-            if stored.get(key) != value
-        )
-        raise TrainingError(f"{path} was made with other settings ({different}): {fix}")
-    if document.get("dataset") != identity:
-        stored = document.get("dataset") or {}
-        if isinstance(stored, dict) and isinstance(identity, dict):
-            different = ", ".join(
-                f"{key} {stored.get(key)!r}" for key, value in identity.items() if stored.get(key) != value
-            )
-        else:
-            different = "another list of datasets, or another content"
-        raise TrainingError(f"{path} was trained on other datasets ({different}): {fix}")
-    if document.get("start_sha256") != start:
-        raise TrainingError(
-            f"{path} started from other weights than {models.weights_path(str(config.start_from), name)} holds now: "
-            f"{fix}"
-        )
-    try:
-        weights = serialization.from_state_dict(template.weights, document["weights"])
-        opt_state = serialization.from_state_dict(template.opt_state, document["opt_state"])
-        history = json.loads(document["history"])
-        epoch = int(document["epoch"])
-    except (KeyError, ValueError, TypeError) as error:
-        raise TrainingError(f"{path} is damaged ({type(error).__name__}: {error}): delete it and train again") from None
-    weights = jax.tree_util.tree_map(jnp.asarray, weights)
-    opt_state = jax.tree_util.tree_map(jnp.asarray, opt_state)
-    return Checkpoint(epoch, weights, opt_state, history, float(document.get("seconds", 0.0)))
-
-
 class Reporter:
     """Receives progress (`progress.TrainingProgress` shows it); the default ignores it."""
 
@@ -368,7 +166,7 @@ class Run:
 
     name: str
     description: dict
-    module: object
+    module: nn.Module
     inputs: np.ndarray
     targets: np.ndarray
     training_samples: int
@@ -380,7 +178,7 @@ class Run:
     checkpoint_file: str
     weights_file: str
     constants: dict  # untrained variables: the refracting decoder's clear-glass and scattering bases, else none
-    start: models.Network | None = None  # the trained network the run starts from (Config.start_from), else none
+    start: weight_files.Network | None = None  # the trained network the run starts from (Config.start_from), else none
 
     def variables(self, weights: dict) -> dict:
         """Returns the module's whole variables for trained `weights`."""
@@ -402,7 +200,7 @@ def create_run(
     data: Dataset | Sequence[Dataset],
     out: str,
     config: Config,
-    decoder: models.Decoder | None = None,
+    decoder: architectures.Decoder | None = None,
     reporter: Reporter | None = None,
 ) -> Run:
     """Returns the run of network `name` on finished datasets; `decoder` replaces the decoder (a tiny one in tests).
@@ -411,7 +209,7 @@ def create_run(
     """
     datasets = as_datasets(data)
     description, start = check_run(name, datasets, out, config, decoder)
-    weights_file = models.weights_path(out, name)
+    weights_file = weight_files.weights_path(out, name)
     checkpoint_file = checkpoint_path(out, name)
     os.makedirs(os.path.dirname(checkpoint_file), exist_ok=True)
     files.check_writable(weights_file)
@@ -419,13 +217,13 @@ def create_run(
     inputs, targets, training_samples = split(name, datasets, config.validation_fraction, linear)
     steps = training_samples // config.batch_size
     root = jax.random.fold_in(jax.random.key(config.seed), NETWORKS.index(name))
-    module = models.build(description)
+    module = architectures.build(description)
     constants = {}
-    if name == models.DECODER and module.glass_grid:
+    if isinstance(module, architectures.Decoder) and module.glass_grid:
         progress = reporter.rendering if reporter else None
         glass = datasets[0].glass_basis(tuple(module.glass_grid), progress)
         medium = datasets[0].medium_basis(tuple(module.medium_grid), progress) if module.medium_grid else None
-        constants = models.with_bases(module, {}, glass, medium)
+        constants = architectures.with_bases(module, {}, glass, medium)
     return Run(
         name,
         description,
@@ -446,8 +244,8 @@ def create_run(
 
 
 def check_run(
-    name: str, datasets: list[Dataset], out: str, config: Config, decoder: models.Decoder | None = None
-) -> tuple[dict, models.Network | None]:
+    name: str, datasets: list[Dataset], out: str, config: Config, decoder: architectures.Decoder | None = None
+) -> tuple[dict, weight_files.Network | None]:
     """Returns (the architecture record, the starting network or None) of a run, having checked everything that
     can refuse it (datasets, settings, the start's weights) without writing anything."""
     if name not in NETWORKS:
@@ -455,11 +253,11 @@ def check_run(
     for each in datasets:
         pipeline.check_finished(each)
     config.check(sum(each.count for each in datasets))
-    description = models.architecture(name, datasets[0].resolution, decoder)
-    if models.architecture_problem(description) is not None:
+    description = architectures.architecture(name, datasets[0].resolution, decoder)
+    if architectures.architecture_problem(description) is not None:
         raise TrainingError(
             f"{datasets[0].path} holds {datasets[0].resolution} px images; networks are trained on "
-            f"{', '.join(map(str, models.RESOLUTIONS))} px: render a dataset of one of these resolutions",
+            f"{', '.join(map(str, architectures.RESOLUTIONS))} px: render a dataset of one of these resolutions",
             field="dataset",
         )
     return description, starting_network(name, config, out, description)
@@ -467,7 +265,7 @@ def check_run(
 
 def linear_targets(name: str, config: Config) -> bool:
     """Whether network `name` trains on linear renders: the decoder with `Config.loss` "linear"."""
-    return name == models.DECODER and config.loss == "linear"
+    return name == architectures.DECODER and config.loss == "linear"
 
 
 def start_path(name: str, config: Config, out: str) -> str | None:
@@ -479,7 +277,7 @@ def start_path(name: str, config: Config, out: str) -> str | None:
             f"start from {config.start_from} is the model directory being trained: train into another --out",
             field="start_from",
         )
-    path = models.weights_path(config.start_from, name)
+    path = weight_files.weights_path(config.start_from, name)
     if not os.path.exists(path):
         raise TrainingError(
             f"start from {config.start_from} has no {os.path.basename(path)}: train the {name} there first, "
@@ -489,15 +287,17 @@ def start_path(name: str, config: Config, out: str) -> str | None:
     return path
 
 
-def starting_network(name: str, config: Config, out: str, description: dict) -> models.Network | None:
+def starting_network(name: str, config: Config, out: str, description: dict) -> weight_files.Network | None:
     """Returns network `name` of the model directory `config.start_from`, checked to be of this run's architecture."""
     path = start_path(name, config, out)
     if path is None:
         return None
-    network = models.load(path, name=name)
+    network = weight_files.load(path, name=name)
     # Described again from its module: a file written before a field of the architecture existed
     # (the shipped decoder predates `absorption`) holds that field's default implicitly.
-    described = models.architecture(name, network.resolution, network.module if name == models.DECODER else None)
+    described = architectures.architecture(
+        name, network.resolution, network.module if isinstance(network.module, architectures.Decoder) else None
+    )
     # A layer that starts as (nearly) the identity may be added to trained weights: it starts fresh.
     grown = {field: description[field] for field in GROWABLE if description.get(field) and not described.get(field)}
     if {**described, **grown} != description:
@@ -526,7 +326,7 @@ def start_identity(run: Run) -> str | None:
 def create_train_state(run: Run) -> Checkpoint:
     """Returns the state to continue from: the run's checkpoint if there is one, else the starting network's
     weights (`Config.start_from`) or fresh ones, with a fresh optimiser."""
-    weights = models.initialise(run.module, run.root, models.input_shape(run.description))["params"]
+    weights = architectures.initialise(run.module, run.root, architectures.input_shape(run.description))["params"]
     if run.start is not None:
         weights = grafted(weights, run.start.variables["params"])
     state = Checkpoint(0, weights, run.tx.init(weights))
@@ -543,6 +343,7 @@ def train_epoch(run: Run, train_step, state: Checkpoint, reporter: Reporter) -> 
     Shuffling and dropout depend only on (seed, network, epoch, step), so an epoch gives the same
     weights whether or not the run was interrupted before it.
     """
+    assert run.config.epochs is not None, "Config.check refused None"
     epoch = state.epoch + 1
     batch_size = run.config.batch_size
     reporter.start_epoch(run.name, epoch, run.config.epochs, run.steps)
@@ -593,12 +394,12 @@ def finish(run: Run, state: Checkpoint) -> dict:
         "config": asdict(run.config),
         "start_sha256": start_identity(run),
         "weights_dtype": "float16",
-        "parameter_count": models.parameter_count({"params": shipped}),
+        "parameter_count": architectures.parameter_count({"params": shipped}),
         **validate(run, shipped),
         "history": state.history,
     }
-    network = models.Network(run.name, run.description, run.module, run.variables(shipped), {"metrics": metrics})
-    models.save(run.weights_file, network)
+    network = weight_files.Network(run.name, run.description, run.module, run.variables(shipped), {"metrics": metrics})
+    weight_files.save(run.weights_file, network)
     files.write_text(os.path.splitext(run.weights_file)[0] + ".json", documents.dumps(metrics))
     return metrics
 
@@ -609,7 +410,7 @@ def train_network(
     out: str,
     config: Config,
     reporter: Reporter | None = None,
-    decoder: models.Decoder | None = None,
+    decoder: architectures.Decoder | None = None,
 ) -> dict:
     """Trains (or resumes, or finds finished) network `name` and returns its final metrics.
 
@@ -618,10 +419,11 @@ def train_network(
     """
     reporter = reporter or Reporter()
     run = create_run(name, data, out, config, decoder, reporter)
+    assert config.epochs is not None, "Config.check (in create_run) refused None"
     state = create_train_state(run)
     if state.epoch == config.epochs and os.path.exists(run.weights_file):
-        return models.load(run.weights_file).info["metrics"]
-    train_step = make_train_step(run.module, run.tx, name != models.DECODER, config.loss)
+        return weight_files.load(run.weights_file).info["metrics"]
+    train_step = make_train_step(run.module, run.tx, name != architectures.DECODER, config.loss)
     while state.epoch < config.epochs:
         state = train_epoch(run, train_step, state, reporter)
         save_checkpoint(run.checkpoint_file, name, run.description, config, run.identity, state, start_identity(run))
@@ -639,13 +441,13 @@ def train_networks(
 ):
     """Trains the named networks one after another into model directory `out`; yields (name, metrics) for each.
 
-    With `coarse_absorption` the decoder has the coarse absorption layer (`models.trained_decoder`).
+    With `coarse_absorption` the decoder has the coarse absorption layer (`architectures.trained_decoder`).
     """
     if os.path.exists(out) and not os.path.isdir(out):
         raise files.OutputError(f"model directory {out} is a file: give a directory for the model", field="out")
     files.check_folder(out)  # read-only, or under a file: refused with the fix, as `fit` does
     datasets = as_datasets(data)
-    decoder = models.trained_decoder(datasets[0].resolution, coarse_absorption)
+    decoder = architectures.trained_decoder(datasets[0].resolution, coarse_absorption)
     for name in names:  # everything checked before the model directory is made: a refusal leaves no folder
         check_run(name, datasets, out, config.for_network(name), decoder)
     os.makedirs(out, exist_ok=True)
@@ -660,38 +462,3 @@ def summary(name: str, metrics: dict) -> str:
     else:
         figure = f"validation parameter RMSE {metrics['validation_parameter_rmse']:.4f} (unit cube)"
     return f"{name}: {metrics['epochs']} epochs, {figure}, {metrics['wall_time_s']:.0f} s"
-
-
-def parse_arch(text: str) -> list[str]:
-    """Returns the networks named by --arch: "decoder", "N" (1..9), "A..B", "all" or a comma list."""
-    names: list[str] = []
-    for part in text.split(","):
-        part = part.strip().lower()
-        if part == "decoder":
-            names.append(models.DECODER)
-        elif part == "all":
-            names.extend(NETWORKS)
-        elif ".." in part:
-            low, high = (_arch_number(end) for end in part.split("..", 1))
-            if low > high:
-                raise TrainingError(
-                    f"arch {part} is an empty range: give it from low to high ({high}..{low})", field="arch"
-                )
-            names.extend(f"encoder-{arch}" for arch in range(low, high + 1))
-        else:
-            names.append(f"encoder-{_arch_number(part)}")
-    return list(dict.fromkeys(names))
-
-
-def _arch_number(text: str) -> int:
-    try:
-        arch = int(text)
-    except ValueError:
-        raise TrainingError(
-            f"arch {text!r} is not an architecture: use decoder, 1 to 9, 1..9 or all", field="arch"
-        ) from None
-    if arch not in models.ENCODERS:
-        raise TrainingError(
-            f"arch {arch} does not exist: the paper's encoders are 1 to 9 (or use decoder)", field="arch"
-        )
-    return arch

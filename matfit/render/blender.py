@@ -96,6 +96,7 @@ def render_scripts(
                 text=True,
                 env={**os.environ, "PYTHONNOUSERSITE": "1"},
             ) as process:
+                assert process.stdout is not None  # stdout=PIPE
                 for line in process.stdout:
                     tail.append(line.rstrip())
                     if progress is not None and line.startswith(PROGRESS_PREFIX):
@@ -166,13 +167,13 @@ def compare(
     scripts = [export.blender_script(values) for values in materials]
     cycles = render_scripts(scripts, resolution, spp, blender=setup.blender, progress=progress)
     renderer = Renderer(resolution, spp, setup.variant)
-    mitsuba, again = [], []
+    first, second = [], []
     for index, values in enumerate(materials):
-        mitsuba.append(renderer.render(values, seed=0))
-        again.append(renderer.render(values, seed=1))
+        first.append(renderer.render(values, seed=0))
+        second.append(renderer.render(values, seed=1))
         if progress is not None:
             progress(f"matfit-mitsuba: rendered {index + 1}/{len(materials)} (twice, seeds 0 and 1)")
-    mitsuba, again = np.stack(mitsuba), np.stack(again)
+    mitsuba, again = np.stack(first), np.stack(second)
     mask = sphere_mask(resolution)
     exposure = float(mitsuba[:, ~mask].mean() / max(cycles[:, ~mask].mean(), 1e-12))
     cycles = cycles * exposure

@@ -45,6 +45,7 @@ if __package__ in (None, ""):  # run as a file (`blender -P`, `python blender_sc
         os.path.join(os.path.dirname(_here), "__init__.py"),
         submodule_search_locations=[os.path.dirname(_here)],
     )
+    assert _spec is not None and _spec.loader is not None
     sys.modules["matfit"] = importlib.util.module_from_spec(_spec)
     _spec.loader.exec_module(sys.modules["matfit"])
 

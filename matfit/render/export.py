@@ -59,7 +59,7 @@ MATERIAL_ID = "matfit-material"
 MEDIUM_ID = "matfit-interior"
 
 
-def _value_element(parent: ElementTree.Element, name: str, value: object) -> None:
+def _value_element(parent: ElementTree.Element, name: str, value: dict | float) -> None:
     if isinstance(value, dict) and value.get("type") == "rgb":
         ElementTree.SubElement(parent, "rgb", name=name, value=" ".join(repr(float(v)) for v in value["value"]))
     elif isinstance(value, dict):

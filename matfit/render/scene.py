@@ -13,6 +13,7 @@ reflections, so that roughness, index of refraction and interior absorption are 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -124,7 +125,7 @@ def medium(values: np.ndarray) -> dict:
 GLASS_GRID = (17, 6)
 
 
-def glass_grid_values(shape: tuple[int, int] = GLASS_GRID) -> tuple[np.ndarray, np.ndarray]:
+def glass_grid_values(shape: Sequence[int] = GLASS_GRID) -> tuple[np.ndarray, np.ndarray]:
     """Returns the (specular, roughness) values of the glass basis grid: (S,) and (G,)."""
     specular_count, roughness_count = shape
     if specular_count < 2 or roughness_count < 2:
@@ -141,7 +142,7 @@ def clear_glass_grid(shape: tuple[int, int]) -> np.ndarray:
     return np.repeat(np.repeat(clear[None, None], shape[0], 0), shape[1], 1)
 
 
-def glass_basis_materials(shape: tuple[int, int] = GLASS_GRID) -> np.ndarray:
+def glass_basis_materials(shape: Sequence[int] = GLASS_GRID) -> np.ndarray:
     """Returns the physical parameter vectors of the glass basis, (S, G, 19): clear glass at each grid point."""
     specular, roughness = glass_grid_values(shape)
     materials = clear_glass_grid((len(specular), len(roughness)))
@@ -166,7 +167,7 @@ THICKNESS_SCALE = 8.0  # the grid is uniform in log2(1 + THICKNESS_SCALE x tau),
 LARGEST_COORDINATE = float(np.log2(1.0 + THICKNESS_SCALE * MEDIUM_SCALE))
 
 
-def medium_grid_values(shape: tuple[int, int] = MEDIUM_GRID) -> tuple[np.ndarray, np.ndarray]:
+def medium_grid_values(shape: Sequence[int] = MEDIUM_GRID) -> tuple[np.ndarray, np.ndarray]:
     """Returns the (thickness tau, albedo) values of the scattering basis grid: (T,) from 0, (A,) from 1 down to 0."""
     thickness_count, albedo_count = shape
     if thickness_count < 2 or albedo_count < 2:
@@ -176,7 +177,7 @@ def medium_grid_values(shape: tuple[int, int] = MEDIUM_GRID) -> tuple[np.ndarray
     return (2.0**coordinate - 1.0) / THICKNESS_SCALE, 1.0 - similarity**2
 
 
-def medium_basis_materials(shape: tuple[int, int] = MEDIUM_GRID) -> np.ndarray:
+def medium_basis_materials(shape: Sequence[int] = MEDIUM_GRID) -> np.ndarray:
     """Returns the physical parameter vectors of the scattering basis, (T, A, 19): a grey medium at each grid point.
 
     The thickness comes from the colour at the largest density (colour = exp(-tau / density)), so

@@ -27,12 +27,14 @@ def default_configurations(evaluations: int) -> dict[str, search.Settings]:
     """Returns the compared configurations: the paper's three methods and our variations."""
     return {
         "nn (best-of-n)": search.Settings(method=search.Method.nn),
-        f"optimize {evaluations} (random start)": search.Settings(method="optimize", evaluations=evaluations),
+        f"optimize {evaluations} (random start)": search.Settings(
+            method=search.Method.optimize, evaluations=evaluations
+        ),
         "hybrid 50": search.Settings(method=search.Method.hybrid, evaluations=50),
         "hybrid 300": search.Settings(method=search.Method.hybrid, evaluations=300),
         f"hybrid {evaluations}": search.Settings(method=search.Method.hybrid, evaluations=evaluations),
         f"hybrid {evaluations}, paper's barrier": search.Settings(
-            method=search.Method.hybrid, evaluations=evaluations, box="barrier"
+            method=search.Method.hybrid, evaluations=evaluations, box=search.Box.barrier
         ),
         f"hybrid {evaluations}, fixed coefficients": search.Settings(
             method=search.Method.hybrid, evaluations=evaluations, adaptive=False
@@ -83,7 +85,9 @@ def verification_table(renderer, results: list[search.Result], targets: Targets,
     """Returns how verification's spp decides (Markdown): per spp, its renders' seconds, the Mitsuba RMSE of the
     candidate it keeps as an independent JUDGE_SPP render sees it, and how often it keeps what the highest spp keeps.
     """
-    judged, kept, seconds = [], {spp: [] for spp in spps}, {spp: [] for spp in spps}
+    kept: dict[int, list[str]] = {spp: [] for spp in spps}
+    seconds: dict[int, list[float]] = {spp: [] for spp in spps}
+    judged = []
     for k, (result, target) in enumerate(zip(results, targets.images, strict=True)):
         judge = {
             name: rendered_rmse(renderer, unit, target, JUDGE_SEED + k, JUDGE_SPP)

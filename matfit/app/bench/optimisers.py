@@ -45,7 +45,7 @@ def compare_optimisers(model: models.Model, target: np.ndarray, evaluations: int
         "random": np.random.default_rng(0).uniform(0.0, 1.0, params.COUNT).astype(np.float32),
         "best-of-9": best.start,
     }
-    row = {}
+    row: dict[str, float] = {}
     for start_name, x0 in starts.items():
         for solver_name, solve in solvers.items():
             solve(np.asarray(x0, np.float64))  # compile outside the timing

@@ -7,6 +7,7 @@ import base64
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -41,7 +42,7 @@ class Job:
 
     def answer(self) -> dict:
         """Returns what the page is told about the job (strict JSON: a figure that is not finite is null)."""
-        answer = {"job": self.id, "kind": self.kind, "state": self.state, "stage": self.stage}
+        answer: dict[str, Any] = {"job": self.id, "kind": self.kind, "state": self.state, "stage": self.stage}
         answer["progress"] = round(self.progress, 3)
         if self.error is not None:
             answer["error"] = self.error
@@ -65,6 +66,7 @@ def fit_result(outcome: fitfile.Outcome) -> dict:
     from matfit.fit import report
 
     result, document = outcome.result, outcome.document
+    assert outcome.rendered is not None, "the page's fits are verified: the answer is rendered"
     return {
         "neural_rmse": round(outcome.neural_rmse, 3),
         "mitsuba_rmse": document.get("mitsuba_rmse"),

@@ -147,7 +147,7 @@ class Api:
             return error("that fit has no result (yet): wait for it to finish", 404)
         if name not in FILES:
             return error(f"no file {name!r}: ask for one of {', '.join(FILES)}", 404)
-        content = await asyncio.to_thread(lambda: fit_files(job.outcome)[name])
+        content = (await asyncio.to_thread(fit_files, job.outcome))[name]
         disposition = {"Content-Disposition": f'attachment; filename="{name}"'}
         return Response(content, media_type=FILES[name], headers=disposition)
 

@@ -84,7 +84,7 @@ def serve(
             if server.started:
                 ready(f"http://{host}:{port}/")
 
-        server.startup = startup
+        server.startup = startup  # type: ignore[method-assign]  # uvicorn has no hook for "listening"
     try:
         server.run()
     finally:

@@ -116,6 +116,7 @@ class Watcher:
         from watchfiles import awatch
 
         watch = self.watch
+        assert watch is not None  # followed only when there is a file to watch
         folder = watch if os.path.isdir(watch) else os.path.dirname(os.path.abspath(watch))
         async for changes in awatch(folder, debounce=50, step=20, stop_event=self.stopping):
             picture = watched_picture(watch, {path for _, path in changes})

@@ -1,0 +1,330 @@
+"""Renderers that work beside the caller: on a thread (`Background`) or in a child process (`Process`).
+
+`Background` loads a `Renderer` and renders on one thread of this process while the caller computes;
+`Process` runs one in a child interpreter started at once, so Mitsuba's import and variant choice
+take another core while the caller imports JAX. The child's main (`serve_requests`) answers the
+requests it reads from one pipe on another. `start_child` starts such a child (a dataset's render
+workers too, `dataset_workers`); the messages on both pipes are data only
+(`write_message`, `read_message`: a JSON header and a float array), so reading one runs no code.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+import struct
+import subprocess
+import sys
+import threading
+from concurrent.futures import Future, ThreadPoolExecutor, wait
+from typing import TYPE_CHECKING, BinaryIO, NoReturn
+
+import numpy as np
+
+from matfit import params, shipped
+from matfit.errors import RenderError
+from matfit.render.engine import Renderer, choose_variant, mitsuba
+
+if TYPE_CHECKING:
+    from jaxtyping import Float
+
+
+class Background:
+    """A `Renderer` loaded, and renders made, on one background thread while the caller computes.
+
+    Importing Mitsuba, loading the scene, the first `update()` of its parameters and the first
+    render's kernels take time that a fit need not wait for (XLA releases the interpreter), and a
+    render asked for early (`prefetch`, such as the fit's start as soon as best-of-n has chosen it)
+    runs during the fit's next stage. One thread does it all, so the scene is never used by two
+    renders at once; `render` waits for it before rendering itself, and answers a prefetched
+    (values, seed, spp) with that image (each render is seeded, so it is the same picture). A
+    failure to load is raised by `renderer()` and `render`. Its thread finishes its jobs before
+    the interpreter exits (Ctrl-C included), so Mitsuba is never torn down mid-render.
+    """
+
+    def __init__(self, resolution: int, spp: int, variant: str | None = None):
+        self._executor = ThreadPoolExecutor(1, thread_name_prefix="matfit-renderer")
+        self._loaded = self._executor.submit(self._load, resolution, spp, variant)
+        self._prefetched: dict[tuple, Future] = {}
+
+    @staticmethod
+    def _load(resolution: int, spp: int, variant: str | None) -> Renderer:
+        renderer = Renderer(resolution, spp, variant, threads=1)  # its renders decide: bit-identical run to run
+        renderer.render(params.DEFAULTS, spp=1)  # warms the kernels; changes no later (seeded) render
+        return renderer
+
+    @staticmethod
+    def _key(values: np.ndarray, seed: int, spp: int | None) -> tuple:
+        return np.asarray(values, np.float64).tobytes(), int(seed), spp
+
+    def prefetch(self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None) -> None:
+        """Starts rendering a material in the background, for a later `render` of the same arguments."""
+        key = self._key(values, seed, spp)
+        if key not in self._prefetched:
+            self._prefetched[key] = self._executor.submit(lambda: self._loaded.result().render(values, seed, spp))
+
+    def renderer(self) -> Renderer:
+        """Returns the loaded renderer once every background render is done (raises a failure to load)."""
+        wait(self._prefetched.values())
+        return self._loaded.result()
+
+    def render(
+        self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None
+    ) -> Float[np.ndarray, "R R 3"]:
+        """Returns what `Renderer.render` returns: the prefetched image of these arguments, or a new render."""
+        renderer = self.renderer()
+        job = self._prefetched.get(self._key(values, seed, spp))
+        return job.result() if job is not None else renderer.render(values, seed, spp)
+
+
+def start_child(
+    module: str, function: str, *arguments: object, pipe_bytes: int | None = None
+) -> tuple[subprocess.Popen, BinaryIO, BinaryIO]:
+    """Returns (the child, the file to write its requests to, the file to read its replies from): a new interpreter of
+    this very matfit that runs `module.function(requests, replies, *arguments)`, the first two the file descriptors
+    of its ends of two pipes.
+
+    The child imports the matfit this process runs, wherever it lies (clone or site-packages), whatever the working
+    directory holds. It runs in a session of its own, so the terminal's Ctrl-C reaches only this process, which
+    stops it. It holds only its own ends of the pipes, so it sees its requests end as soon as this process ends,
+    however it ends (`kill -9` included). Nothing of multiprocessing is used, so no semaphore or resource tracker
+    outlives a killed parent either. `arguments` are written into its command line by `repr` (numbers, strings,
+    None). `pipe_bytes`: room asked for in the replies pipe (Linux), so that the child need not wait for a read.
+    Both ends of both pipes are closed here if the child cannot start.
+    """
+    requests_read, requests_write = os.pipe()
+    replies_read, replies_write = os.pipe()
+    if pipe_bytes is not None:
+        with contextlib.suppress(ImportError, AttributeError, OSError):  # Linux: a pipe holds more than 64 KiB if asked
+            import fcntl
+
+            fcntl.fcntl(replies_write, fcntl.F_SETPIPE_SZ, pipe_bytes)
+    package = str(shipped.PACKAGE.parent)
+    parent, _, name = module.rpartition(".")
+    call = ", ".join(repr(value) for value in (requests_read, replies_write, *arguments))
+    code = f"import sys; sys.path.insert(0, {package!r}); from {parent} import {name}; {name}.{function}({call})"
+    try:
+        child = subprocess.Popen(
+            [sys.executable, "-c", code], pass_fds=(requests_read, replies_write), start_new_session=True
+        )
+    except BaseException:
+        os.close(requests_write)
+        os.close(replies_read)
+        raise
+    finally:
+        os.close(requests_read)
+        os.close(replies_write)
+    return child, os.fdopen(requests_write, "wb"), os.fdopen(replies_read, "rb")
+
+
+class Process:
+    """A `Renderer` in a child process, which imports Mitsuba as soon as it is made, beside whatever the caller loads.
+
+    A cold `matfit fit` spends its first second importing JAX on one core; Mitsuba's import and the
+    choice of its variant then take the other, where on a thread they would wait for the
+    interpreter, which both imports hold. Made at once, before the caller's own heavy imports,
+    `load(resolution, spp)` then loads the scene, and `prefetch` and `render` behave as
+    `Background`'s: requests are answered in order, a prefetched (values, seed, spp) is rendered
+    once, and the images are those of `Renderer.render` in this process, seed for seed (up to the
+    last bits, as two renders in one process are). A failure in the child (no usable variant, a bad
+    material) is raised here as its RenderError. The child ignores Ctrl-C (it is in a session of its
+    own) and ends when this side closes its requests (`close`, or this process ending any way,
+    `kill -9` included): it never outlives the caller for longer than the render in hand.
+    """
+
+    PIPE_BYTES = 1 << 20  # room for the replies of every prefetched render, so the child never waits for a read
+
+    def __init__(self, variant: str | None = None):
+        self._child, self._requests, self._replies = start_child(
+            "matfit.render.process", "serve_requests", variant, pipe_bytes=self.PIPE_BYTES
+        )
+        self._ready: tuple | None = None  # the child's first reply: (variant, notice)
+        self._pending: list[tuple] = []  # keys of the renders asked for and not yet read, in order
+        self._answers: dict[tuple, np.ndarray | RenderError] = {}  # key -> image, or the RenderError of its render
+        self._resolution: int | None = None
+        self._failure: RenderError | None = None  # the child's reason for not starting, raised again at every use
+
+    @property
+    def variant(self) -> str:
+        """The variant the child renders with (waits until it has imported Mitsuba)."""
+        return self._started()[0]
+
+    @property
+    def notice(self) -> str | None:
+        """The child's notice about its variant (the scalar fallback), if any."""
+        return self._started()[1]
+
+    def load(self, resolution: int, spp: int) -> None:
+        """Has the child load the scene at `resolution` (and warm its kernels) before the first render."""
+        self._resolution = resolution
+        self._send({"load": [int(resolution), int(spp)]})
+        self._pending.append(("load", resolution))
+
+    def prefetch(self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None) -> None:
+        """Asks for a render now, for a later `render` of the same arguments."""
+        key = Background._key(values, seed, spp)
+        if key not in self._answers and key not in self._pending:
+            self._send({"seed": int(seed), "spp": spp}, np.asarray(values, np.float64))
+            self._pending.append(key)
+
+    def render(
+        self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None
+    ) -> Float[np.ndarray, "R R 3"]:
+        """Returns what `Renderer.render` returns: the linear float32 (H, W, 3) image of a material."""
+        if self._resolution is None:
+            raise RenderError("the render process has no scene yet: call load(resolution, spp) first")
+        key = Background._key(values, seed, spp)
+        self.prefetch(values, seed, spp)
+        while key not in self._answers:
+            self._receive()
+        answer = self._answers.pop(key)
+        if isinstance(answer, RenderError):
+            raise answer
+        return answer
+
+    def renderer(self) -> Process:
+        """Returns this process once the child has started (raises its failure to start): as `Background.renderer`."""
+        self._started()
+        return self
+
+    def close(self) -> None:
+        """Ends the child: it sees its requests end and exits by itself once its render in hand is done (nobody waits
+        for it: the caller may be about to exit). A child never asked for anything (the caller failed first) is
+        killed at once: it holds nothing but Mitsuba's import."""
+        with contextlib.suppress(OSError):
+            self._requests.close()
+        if self._ready is None and not self._pending and self._failure is None:
+            self._child.kill()
+        with contextlib.suppress(OSError):
+            self._replies.close()
+        threading.Thread(target=self._child.wait, name="matfit-render-reaper", daemon=True).start()
+
+    def __enter__(self) -> Process:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _started(self) -> tuple:
+        while self._ready is None:
+            self._receive()
+        return self._ready
+
+    def _send(self, header: dict, array: np.ndarray | None = None) -> None:
+        try:
+            write_message(self._requests, header, array)
+        except (BrokenPipeError, ValueError):  # ended, or closed: the reason is the child's
+            self._failed()
+
+    def _receive(self) -> None:
+        """Reads the child's next reply and files it: its start, a load, or the oldest pending render."""
+        if self._failure is not None:
+            raise self._failure
+        try:
+            header, image = read_message(self._replies)
+        except (EOFError, OSError, ValueError):
+            self._failed()
+        if "ready" in header:
+            self._ready = (header["ready"], header["notice"])
+            return
+        if "failed" in header:  # it could not start, and has ended: every later use fails the same way
+            self._failure = RenderError(header["failed"])
+            raise self._failure
+        key = self._pending.pop(0)
+        answer = RenderError(header["error"]) if "error" in header else image
+        if key[0] == "load":
+            if isinstance(answer, RenderError):
+                raise answer
+            return
+        self._answers[key] = answer if answer is not None else RenderError("the render process sent no image")
+
+    def _failed(self) -> NoReturn:
+        code = self._child.poll()
+        raise RenderError(
+            f"the render process ended unexpectedly (exit code {code}): run `matfit render` on a preset to see "
+            "Mitsuba's own message"
+        )
+
+
+def serve_requests(requests: int, replies: int, variant: str | None) -> None:
+    """The child of `Process`: imports Mitsuba, then answers its requests, read from the file descriptor `requests`, on
+    `replies`, until they end."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        answer_requests(requests, replies, variant)
+    except BrokenPipeError:  # the caller ended (Ctrl-C, kill -9) while this answered: nobody is left to tell
+        os._exit(0)  # not sys.exit: the interpreter's own final flush would hit the same closed pipe
+
+
+def answer_requests(requests: int, replies: int, variant: str | None) -> None:
+    """`serve_requests`'s loop: starts Mitsuba, then answers each request on `replies` until `requests` ends."""
+    with os.fdopen(requests, "rb") as incoming, os.fdopen(replies, "wb") as outgoing:
+        try:
+            chosen, notice = choose_variant(variant)
+            mitsuba(chosen)
+        except Exception as error:  # RenderError, or Mitsuba failing to import
+            failure = str(error) if isinstance(error, RenderError) else f"Mitsuba could not start: {error}"
+            write_message(outgoing, {"failed": failure})
+            return
+        write_message(outgoing, {"ready": chosen, "notice": notice})
+        renderer = None
+        while True:
+            try:
+                request, values = read_message(incoming)
+            except (EOFError, OSError, ValueError):  # the caller closed its end, or ended
+                return
+            try:
+                if "load" in request:
+                    resolution, spp = request["load"]
+                    renderer = Renderer(resolution, spp, chosen, threads=1)  # its renders decide: bit-identical
+                    renderer.render(params.DEFAULTS, spp=1)  # warms the kernels, as Background does
+                    write_message(outgoing, {"done": True})
+                else:
+                    if renderer is None or values is None:  # `Process` loads first and sends values with a render
+                        raise RenderError("a render request came before the scene, or without parameters")
+                    image = renderer.render(values, request["seed"], request["spp"])
+                    write_message(outgoing, {"done": True}, image)
+            except RenderError as error:
+                write_message(outgoing, {"error": str(error)})
+            except Exception as error:  # anything else Mitsuba raises: the caller reports it in one line
+                write_message(outgoing, {"error": f"Mitsuba failed: {type(error).__name__}: {error}"})
+
+
+FRAME = struct.Struct("<II")  # a message's header length, then its array's length (0: none)
+
+
+def write_message(file, header: dict, array: np.ndarray | None = None) -> None:
+    """Writes one message of `Process`'s pipes: a JSON header and, if given, a float array (its dtype and shape
+    named in the header). Data only: reading a message runs no code."""
+    data = b""
+    if array is not None:
+        array = np.ascontiguousarray(array)
+        header = {**header, "dtype": array.dtype.str, "shape": list(array.shape)}
+        data = array.tobytes()
+    text = json.dumps(header).encode()
+    file.write(FRAME.pack(len(text), len(data)) + text + data)
+    file.flush()
+
+
+def read_message(file) -> tuple[dict, np.ndarray | None]:
+    """Returns (header, array or None) of the next message `write_message` wrote; EOFError when the pipe ended."""
+
+    def exactly(size: int) -> bytes:
+        data = file.read(size)
+        if len(data) != size:
+            raise EOFError("the pipe ended inside a message")
+        return data
+
+    sizes = file.read(FRAME.size)
+    if not sizes:
+        raise EOFError("the pipe ended")
+    if len(sizes) != FRAME.size:
+        raise EOFError("the pipe ended inside a message")
+    text_size, data_size = FRAME.unpack(sizes)
+    header = json.loads(exactly(text_size))
+    if not data_size:
+        return header, None
+    array = np.frombuffer(bytearray(exactly(data_size)), dtype=np.dtype(header["dtype"])).reshape(header["shape"])
+    return header, array
