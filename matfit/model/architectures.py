@@ -26,7 +26,7 @@ import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import flax.linen as nn
 import jax
@@ -288,7 +288,14 @@ def parameter_count(variables: dict) -> int:
 
 def initialise(model: nn.Module, key: jax.Array, input_shape: tuple[int, ...]) -> dict:
     """Returns freshly initialised variables of `model` for one input of `input_shape`."""
-    return jax.jit(model.init)(key, jnp.zeros((1, *input_shape), jnp.float32))  # compiled: faster than op by op
+    return _initialise(model, key, jnp.zeros((1, *input_shape), jnp.float32))
+
+
+@partial(jax.jit, static_argnames=("model",))
+def _initialise(model: nn.Module, key: jax.Array, x: jax.Array) -> Any:  # flax types init as a FrozenDict or dict
+    # Compiled, which is faster than op by op, and once per architecture and input shape in a process: modules are
+    # frozen dataclasses that compare by their settings, so every model of one architecture shares the program.
+    return model.init(key, x)
 
 
 # The coarse absorption layer's path length at initialisation when trained from scratch, in radii:
