@@ -22,6 +22,7 @@ directory, in the Flax examples' steps: `create_run` (module, data split, optimi
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import time
@@ -101,21 +102,33 @@ def dataset_identity(data: Dataset) -> dict:
 
 
 def optimiser(config: Config, steps_per_epoch: int) -> optax.GradientTransformation:
-    """Returns Adam with a linear warm-up and a cosine decay over the whole run."""
+    """Returns Adam with a linear warm-up and a cosine decay over the whole run.
+
+    One object per learning rate and run length in a process, so that runs of the same network and settings (a run
+    resumed, or trained again) find their compiled train step (`make_train_step`) instead of compiling it again.
+    """
     assert config.epochs is not None, "Config.check refused None"
-    total = config.epochs * steps_per_epoch
+    return _adam(config.learning_rate, config.epochs * steps_per_epoch)
+
+
+@functools.cache
+def _adam(learning_rate: float, total: int) -> optax.GradientTransformation:
     schedule = optax.warmup_cosine_decay_schedule(
         init_value=0.0,
-        peak_value=config.learning_rate,
+        peak_value=learning_rate,
         warmup_steps=min(500, max(1, total // 10)),
         decay_steps=total,
-        end_value=config.learning_rate * 0.01,
+        end_value=learning_rate * 0.01,
     )
     return optax.adam(schedule)
 
 
+@functools.cache
 def make_train_step(module, tx: optax.GradientTransformation, is_encoder: bool, loss: str = "srgb"):
     """Returns the jitted train_step(state, constants, x, y, key) -> (state, loss) of a module.
+
+    One per module, optimiser, kind and loss in a process: the modules are frozen dataclasses that compare by their
+    settings, so a second run of the same network with the same settings reuses the compiled step.
 
     state = (weights, optimiser state); constants: the module's untrained variables (the refracting
     decoder's bases), passed in rather than captured so that they are not compiled in. With `loss`
