@@ -363,6 +363,7 @@ def test_fit_writes_params_and_report(trained, target, tmp_path):
     assert run("render", out, "-o", tmp_path / "again.png", "--size", 16, "--spp", 4).exit_code == 0
 
 
+@pytest.mark.slow
 def test_two_fits_of_one_picture_write_the_same_params_json_but_for_the_timings(tmp_path):
     # the default fit of a shipped example with the shipped model: gradient stage, two rounds of correction (which
     # carry a render's last bits into the answer), verification's renders in a render process

@@ -174,6 +174,7 @@ def test_a_full_disk_fails_every_kind_of_write_cleanly(tmp_path):
     assert left == []
 
 
+@pytest.mark.slow
 def test_a_full_disk_during_a_fit_leaves_no_output(model_dir, tmp_path):
     """params.json fits on the disk, the report does not: neither is left, nor any temporary file."""
     full = tmp_path / "full"

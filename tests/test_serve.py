@@ -359,6 +359,7 @@ def test_the_page_follows_the_watched_file(browser, url, watched):
     page.close()
 
 
+@pytest.mark.slow
 def test_a_broken_upload_shows_its_message_and_the_next_one_works(browser, url, tmp_path):
     page = open_page(browser, url)
     broken = tmp_path / "broken.png"
@@ -371,6 +372,7 @@ def test_a_broken_upload_shows_its_message_and_the_next_one_works(browser, url, 
     page.close()
 
 
+@pytest.mark.slow
 def test_two_pages_fitting_at_once_each_show_their_own(browser, url):
     pages = [open_page(browser, url), open_page(browser, url)]
     pages[0].set_input_files("#picture", EXAMPLE)
