@@ -16,17 +16,9 @@ import sys
 import time
 
 import bpy
+from blender_inspect import mesh_object  # beside this script (on sys.path as its folder)
 
 MODULE = "bl_ext.user_default.matfit"
-
-
-def mesh_object(name, mesh=None):
-    if mesh is None:
-        mesh = bpy.data.meshes.new(name)
-        mesh.from_pydata([(0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)], [], [(0, 1, 2)])
-    obj = bpy.data.objects.new(name, mesh)
-    bpy.context.scene.collection.objects.link(obj)
-    return obj
 
 
 def build_scene():
