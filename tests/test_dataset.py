@@ -117,11 +117,16 @@ def test_two_runs_of_one_command_give_byte_identical_folders(tmp_path):
     assert [path for path in first if first[path] != second[path]] == []
 
 
+# Eight chunks (`dataset_workers.CHUNK`): a run is stopped once its first chunk is written, with at most one chunk per
+# worker (two) in flight, so several chunks are still left to resume.
+LONG_COUNT = 8 * dataset_workers.CHUNK
+
+
 @pytest.fixture(scope="module")
 def long_reference(tmp_path_factory, settings):
-    """A 300-sample dataset: long enough to be stopped part-way by a signal."""
+    """A `LONG_COUNT`-sample dataset: long enough to be stopped part-way by a signal."""
     path = tmp_path_factory.mktemp("long")
-    make(path, Settings(16, 8, 3, settings.variant), 300)
+    make(path, Settings(16, 8, 3, settings.variant), LONG_COUNT)
     return path
 
 
@@ -142,7 +147,7 @@ def long_reference(tmp_path_factory, settings):
 def test_stopped_command_resumes_to_identical_bytes(tmp_path, long_reference, stop, code, first, again):
     """kill -9 or Ctrl-C: nothing finished is lost, and the same command completes the dataset."""
     target = tmp_path / "data"
-    settings = ["--count", "300", "--resolution", "16", "--spp", "8", "--seed", "3", "--workers", "2"]
+    settings = ["--count", str(LONG_COUNT), "--resolution", "16", "--spp", "8", "--seed", "3", "--workers", "2"]
     command = [sys.executable, "-m", "matfit", "render-dataset", str(target), *settings]
     process = subprocess.Popen([*command, *first], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
@@ -163,7 +168,7 @@ def test_stopped_command_resumes_to_identical_bytes(tmp_path, long_reference, st
     if stop == signal.SIGINT:
         assert "run the same command to resume" in error
     finished = int(np.load(target / "done.npy").sum())
-    assert finished < 300, "the run finished before it could be stopped; the test needs a slower render"
+    assert finished < LONG_COUNT, "the run finished before it could be stopped; the test needs a slower render"
     result = subprocess.run([*command, *again], capture_output=True, text=True, check=False)
     assert result.returncode == 0, result.stderr
     assert array_bytes(target) == array_bytes(long_reference)
@@ -333,7 +338,7 @@ def test_killed_ray_worker_loses_nothing(tmp_path, long_reference, settings, loc
                 killed.append(busy[0])
 
     long_settings = Settings(16, 8, 3, settings.variant)
-    data = dataset_writing.prepare(str(tmp_path), long_settings, 300, VERSIONS)
+    data = dataset_writing.prepare(str(tmp_path), long_settings, LONG_COUNT, VERSIONS)
     try:
         dataset_writing.render_missing(data, 2, kill_a_busy_worker, ray_address="local")
     except DatasetError as error:
