@@ -49,26 +49,53 @@ def scipy_iterates(fn, x0, initial, adaptive, maxfev):
     return trace
 
 
+def stepped(fn, y0, args, evaluations, solver):
+    """Returns [(evaluations so far, best point)] after every step of `solver` within `evaluations`.
+
+    The solver's own `init` and `step`, as `optx.minimise` runs them, with the step compiled once: a `minimise` per
+    budget would compile a loop per budget (optimistix takes `max_steps` as a Python int).
+    """
+
+    def wrapped(y, args):
+        return fn(y, args), None
+
+    state = jax.jit(lambda y0: solver.init(wrapped, y0, args, {}, jax.eval_shape(fn, y0, args), None, frozenset()))(y0)
+
+    @jax.jit
+    def step(y, state):
+        y, state, _ = solver.step(wrapped, y, args, {}, state, frozenset())
+        return y, state, state.evaluations
+
+    y, trace = y0, []
+    for _ in range(simplex.steps_for_budget(evaluations, y0.shape[0])):
+        y, state, spent = step(y, state)
+        trace.append((int(spent), np.asarray(y)))
+    return trace
+
+
 @pytest.mark.parametrize("adaptive", [True, False])
 def test_follows_scipy_step_for_step(adaptive):
     with jax.enable_x64(True):
         centre = jnp.asarray(problem(0)[0])
         x0 = jnp.full(N, 0.5)
         initial = np.asarray(simplex.initial_simplex(x0, 0.1, 0.0, 1.0))
+        solver = simplex.NelderMead(adaptive=adaptive)
 
         def fn(x, args):
             return shifted_rosenbrock(x, args)
 
         trace = scipy_iterates(lambda x: float(fn(jnp.asarray(x), centre)), np.asarray(x0), initial, adaptive, 700)
-        checked = 0
-        for evaluations, expected in trace[:: max(1, len(trace) // 8)]:
-            if evaluations < N + 2:
-                continue
-            solution = simplex.minimise(fn, x0, centre, evaluations, simplex.NelderMead(adaptive=adaptive))
-            assert int(solution.stats["evaluations"]) == evaluations
-            np.testing.assert_allclose(solution.value, expected, rtol=0, atol=1e-9)
-            checked += 1
-        assert checked >= 5
+        checkpoints = [(evaluations, x) for evaluations, x in trace[:: max(1, len(trace) // 8)] if evaluations >= N + 2]
+        ours = dict(stepped(fn, x0, centre, checkpoints[-1][0], solver))
+        for evaluations, expected in checkpoints:
+            np.testing.assert_allclose(ours[evaluations], expected, rtol=0, atol=1e-9)
+        assert len(checkpoints) >= 5
+        # `minimise` with the last budget runs those same steps: exactly that many evaluations, the same point.
+        evaluations, expected = checkpoints[-1]
+        solution = simplex.minimise(fn, x0, centre, evaluations, solver)
+        assert int(solution.stats["evaluations"]) == evaluations
+        np.testing.assert_allclose(solution.value, expected, rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(solution.value, ours[evaluations])
 
 
 @pytest.mark.parametrize("seed", [1, 2])
