@@ -97,26 +97,30 @@ def test_the_decoder_folds_its_upsampling_without_changing_its_weights_or_what_i
     names = sorted(variables["params"])
     assert names == ["Conv_0", "Conv_1", "Conv_2", "Conv_3", "Conv_4", "Dense_0", "Dense_1", "Dense_2", "background"]
     assert variables["params"]["Conv_0"]["kernel"].shape == (3, 3, 16, 8)  # a plain 3x3 kernel on the source
-    # the same network written out with explicit upsampling and plain convolutions
-    p = variables["params"]
+    # the same network written out with explicit upsampling and plain convolutions (compiled as one program)
     y = jax.random.uniform(jax.random.key(1), (3, 19))
-    x = y
-    for k in range(3):
-        x = jax.nn.gelu(x @ p[f"Dense_{k}"]["kernel"] + p[f"Dense_{k}"]["bias"][None])
-    x = x.reshape(-1, 4, 4, 16)
 
-    def conv(x, name):
-        return (
-            jax.lax.conv_general_dilated(
-                x, p[name]["kernel"], (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+    @jax.jit
+    def written_out(p, y):
+        x = y
+        for k in range(3):
+            x = jax.nn.gelu(x @ p[f"Dense_{k}"]["kernel"] + p[f"Dense_{k}"]["bias"][None])
+        x = x.reshape(-1, 4, 4, 16)
+
+        def conv(x, name):
+            return (
+                jax.lax.conv_general_dilated(
+                    x, p[name]["kernel"], (1, 1), "SAME", dimension_numbers=("NHWC", "HWIO", "NHWC")
+                )
+                + p[name]["bias"][None, None, None]
             )
-            + p[name]["bias"][None, None, None]
-        )
 
-    for stage in range(2):
-        x = jax.nn.gelu(conv(layers.upsample(x), f"Conv_{2 * stage}"))
-        x = jax.nn.gelu(conv(x, f"Conv_{2 * stage + 1}"))
-    expected = jax.nn.sigmoid(layers.depth_to_space(conv(x, "Conv_4")) + p["background"][None])
+        for stage in range(2):
+            x = jax.nn.gelu(conv(layers.upsample(x), f"Conv_{2 * stage}"))
+            x = jax.nn.gelu(conv(x, f"Conv_{2 * stage + 1}"))
+        return jax.nn.sigmoid(layers.depth_to_space(conv(x, "Conv_4")) + p["background"][None])
+
+    expected = written_out(variables["params"], y)
     np.testing.assert_allclose(models.apply(decoder, variables, y), expected, atol=1e-5)
 
 
