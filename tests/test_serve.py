@@ -116,25 +116,36 @@ def url(studio, watched):
         yield address
 
 
-def test_a_fit_through_the_api_is_the_fit_the_library_makes(url, studio):
-    status, answer = start_fit(url, EXAMPLE)
+@pytest.fixture(scope="module")
+def alone(url):
+    """Returns {picture: (status, job id, (status, finished job))} of one fit through the API of each example picture,
+    one after the other: what a fit of the same picture at the same time as another, or of the watched file, must give.
+    Each fit is verified in Mitsuba (seconds), so the tests share these."""
+    fits = {}
+    for path in (EXAMPLE, OTHER):
+        status, answer = start_fit(url, path)
+        fits[path] = (status, answer["job"], wait(url, answer["job"]))
+    return fits
+
+
+def test_a_fit_through_the_api_is_the_fit_the_library_makes(url, studio, alone):
+    status, job, (status_done, done) = alone[EXAMPLE]
     assert status == 202
-    status, done = wait(url, answer["job"])
-    assert status == 200 and done["state"] == "done", done
+    assert status_done == 200 and done["state"] == "done", done
     result = done["result"]
     assert set(result["pictures"]) == {"target", "start", "neural", "mitsuba", "difference"}
     assert all(picture.startswith("data:image/png;base64,") for picture in result["pictures"].values())
     expected = search.neural_search(studio.model, studio_target(studio), settings=studio.settings)
     assert result["start"] == expected.chosen and result["start_rmse"] == pytest.approx(expected.start_rmse, abs=1e-3)
     assert result["mitsuba_rmse"] <= result["start_rmse"] + 50  # a figure, not a placeholder
-    document = json.loads(request(f"{url}api/jobs/{answer['job']}/files/params.json")[1])
+    document = json.loads(request(f"{url}api/jobs/{job}/files/params.json")[1])
     np.testing.assert_allclose(params.from_mapping(document["params"]), result["values"], atol=1e-6)
     assert document["target"] == "recoloured.png" and document["model"] == "memory"
-    status, xml = request(f"{url}api/jobs/{answer['job']}/files/material.xml")
+    status, xml = request(f"{url}api/jobs/{job}/files/material.xml")
     assert status == 200 and b"matfit-material" in xml
-    status, script = request(f"{url}api/jobs/{answer['job']}/files/material.py")
+    status, script = request(f"{url}api/jobs/{job}/files/material.py")
     assert status == 200 and b"bpy" in script
-    status, report = request(f"{url}api/jobs/{answer['job']}/files/report.png")
+    status, report = request(f"{url}api/jobs/{job}/files/report.png")
     assert status == 200 and report.startswith(b"\x89PNG")
 
 
@@ -213,7 +224,7 @@ def test_a_mitsuba_render_reports_progress_and_can_be_cancelled(url):
     assert code == 400 and "render size 5000 is out of range" in answer["error"]
 
 
-def test_two_fits_at_once_each_get_their_own_result(url):
+def test_two_fits_at_once_each_get_their_own_result(url, alone):
     answers = [{}, {}]
 
     def run(k, path):
@@ -224,8 +235,7 @@ def test_two_fits_at_once_each_get_their_own_result(url):
         thread.start()
     for thread in threads:
         thread.join()
-    alone = [wait(url, start_fit(url, path)[1]["job"])[1] for path in (EXAMPLE, OTHER)]
-    for together, single in zip(answers, alone, strict=True):
+    for together, single in zip(answers, [alone[path][2][1] for path in (EXAMPLE, OTHER)], strict=True):
         assert together["state"] == "done"
         assert together["result"]["values"] == single["result"]["values"]
         assert together["result"]["pictures"]["target"] == single["result"]["pictures"]["target"]
@@ -241,7 +251,7 @@ def watch_events(url: str, received: list, stop: threading.Event) -> None:
                 received.append(json.loads(line[6:]))
 
 
-def test_saving_the_watched_file_refits_it_and_deleting_it_is_a_410(url, watched):
+def test_saving_the_watched_file_refits_it_and_deleting_it_is_a_410(url, watched, alone):
     received, stop = [], threading.Event()
     threading.Thread(target=watch_events, args=(url, received, stop), daemon=True).start()
     time.sleep(0.5)
@@ -251,7 +261,7 @@ def test_saving_the_watched_file_refits_it_and_deleting_it_is_a_410(url, watched
         time.sleep(0.05)
     assert received and received[0]["file"] == "edit.png"
     _, done = wait(url, received[0]["job"])
-    expected = wait(url, start_fit(url, OTHER, name="edit.png")[1]["job"])[1]
+    expected = alone[OTHER][2][1]  # the same picture uploaded (under its own name: the values do not depend on it)
     assert done["state"] == "done" and done["result"]["values"] == expected["result"]["values"]
     os.unlink(watched)
     deadline = time.monotonic() + 30
