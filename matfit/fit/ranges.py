@@ -1,0 +1,302 @@
+"""What the picture decides: per parameter, how far it can move before the picture changes visibly.
+
+Given a decoder phi (unit-cube parameters -> sRGB images), an answer x0, mask weights w and a
+threshold tau (RMSE on 0-255 sRGB, the report's unit), the *range* of parameter i is the set of
+values v for which some material with x_i = v, the other parameters free to adjust inside the box,
+decodes within tau of the answer's picture:
+
+    D(x) = RMSE_w(phi(x), phi(x0)) <= tau.
+
+Linearised (Gauss-Newton), D(x0 + z)^2 ~ z^T H z with H = 255^2 J^T W J / (3 sum w), J the
+decoder's Jacobian at x0. Each end of each range is then a small convex problem: the largest
+t >= 0 such that min { z^T H z : z_i = +-t, x0 + z in the box } <= tau^2, found by bisection on t
+with the box-constrained quadratic solved by coordinate descent (`_box_quadratic`). So a parameter
+that the picture does not see reaches both faces of the box, and one that other parameters can
+compensate gets the range that compensation allows.
+
+The linear answer is then checked against the decoder itself: each end point (the moved parameter
+and the others as the quadratic left them) is decoded; where D exceeds tau the move shrinks, where
+it stays below it grows (by 0.9 tau / D, within [1/4, 2], up to the box and below the smallest
+move refused), and the others are re-optimised by a Gauss-Newton step with the answer's Jacobian
+(the chord method) before the next decode. An end is reported only where a decode found it within
+tau (`CHECKS` rounds): the range is the widest move the decoder confirmed, never the linear guess.
+
+Verdicts (docs/fitting.md#what-the-picture-decides): *free* when the range reaches both faces of the
+box (moving the parameter to either end, others adjusted, stays within tau), *decided* when it
+spans at most DECIDED_WIDTH of the parameter's range, *partly* otherwise.
+
+Look-alikes: the confirmed end points that moved the material furthest (unit-cube distance), one
+per parameter, parameters the picture leaves free last: materials that decode within tau of the
+answer yet differ from it most.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from matfit import images, params, programs
+
+DECIDED_WIDTH = 0.25  # a range spanning at most a quarter of the parameter's box is "decided"
+FACE = 1e-6  # how close (unit cube) a confirmed end must lie to a face of the box for "free"
+BISECTIONS = 14  # halvings of the linear end: 1e-4 of the box (the decoder's check refines it)
+SWEEPS = 10  # coordinate-descent sweeps of each box-constrained quadratic
+CHECKS = 3  # decodes of every end point, with a correction between them
+GROWTH = 0.9  # the next try aims at this share of tau, the response assumed linear in the move
+LOOK_ALIKES = 4
+VERDICTS = ("decided", "partly", "free")
+
+
+@dataclass(frozen=True)
+class Decoding:
+    """phi for one decoder module as a function of (unit (n, 19), variables): the static part of `measure`.
+
+    A frozen dataclass rather than a closure, like `search.DecodedObjective`: equal for equal modules, so the
+    compiled program is reused, and with a faithful repr, so it can be stored (`programs.py`).
+    """
+
+    module: Any
+
+    def __call__(self, unit: jax.Array, variables: Any) -> jax.Array:
+        return self.module.apply(variables, unit)
+
+
+@dataclass
+class Ranges:
+    """What the picture decides about each parameter of an answer (see the module docstring)."""
+
+    low: np.ndarray  # unit cube (19,): the lowest confirmed value of each parameter
+    high: np.ndarray  # unit cube (19,): the highest
+    verdicts: tuple[str, ...]  # per parameter: "decided", "partly" or "free"
+    threshold: float  # tau, RMSE on 0-255 sRGB
+    source: str  # where tau comes from, in words
+    ends: np.ndarray  # unit cube (19, 2, 19): the confirmed material at each parameter's low and high end
+    end_rmse: np.ndarray  # (19, 2): D at those materials
+    linear_low: np.ndarray  # unit cube (19,): the linearised answer's ends, before the decoder's check
+    linear_high: np.ndarray
+    look_alikes: np.ndarray  # unit cube (k, 19)
+    look_alike_rmse: np.ndarray  # (k,): their D
+    look_alike_moves: tuple[str, ...]  # which end each is, e.g. "roughness high"
+
+    @property
+    def physical_low(self) -> np.ndarray:
+        """Returns the low ends in physical units (19,)."""
+        return params.from_unit(self.low)
+
+    @property
+    def physical_high(self) -> np.ndarray:
+        """Returns the high ends in physical units (19,)."""
+        return params.from_unit(self.high)
+
+    def named(self, verdict: str) -> list[str]:
+        """Returns the names of the parameters with `verdict`."""
+        return [name for name, v in zip(params.NAMES, self.verdicts, strict=True) if v == verdict]
+
+    def summary(self) -> str:
+        """Returns "decided: a, b; free: c, d" (the parameters the picture fixes and those it leaves free)."""
+        parts = [
+            f"{verdict}: {', '.join(self.named(verdict))}" for verdict in ("decided", "free") if self.named(verdict)
+        ]
+        return "; ".join(parts) or "every parameter partly decided"
+
+    def document(self) -> dict:
+        """Returns the params.json section: per parameter its range in physical units and verdict, the threshold,
+        the look-alikes in physical units."""
+        low, high = self.physical_low, self.physical_high
+        return {
+            "threshold_rmse": round(self.threshold, 3),
+            "threshold_source": self.source,
+            "parameters": {
+                p.name: {
+                    "low": round(float(low[i]), 6),
+                    "high": round(float(high[i]), 6),
+                    "unit": p.unit,
+                    "verdict": self.verdicts[i],
+                }
+                for i, p in enumerate(params.PARAMETERS)
+            },
+            "look_alikes": [
+                {"move": move, "rmse": round(float(rmse), 3), "params": params.to_mapping(params.from_unit(unit))}
+                for move, rmse, unit in zip(self.look_alike_moves, self.look_alike_rmse, self.look_alikes, strict=True)
+            ],
+        }
+
+
+def verdicts_of(low: np.ndarray, high: np.ndarray) -> tuple[str, ...]:
+    """Returns each parameter's verdict from its unit-cube range (module docstring)."""
+    out = []
+    for lo, hi in zip(np.asarray(low), np.asarray(high), strict=True):
+        if lo <= FACE and hi >= 1.0 - FACE:
+            out.append("free")
+        elif hi - lo <= DECIDED_WIDTH:
+            out.append("decided")
+        else:
+            out.append("partly")
+    return tuple(out)
+
+
+def _box_quadratic(hessian, linear, z, low, high, fixed):
+    """Returns z minimising z^T H z + 2 b^T z over low <= z <= high with z_fixed held, by coordinate descent from z.
+
+    A coordinate the quadratic does not see (H_jj = 0) stays where it is.
+    """
+
+    def sweep(_, z):
+        for j in range(z.shape[0]):  # unrolled: one loop iteration per sweep costs far less than one per coordinate
+            curvature = hessian[j, j]
+            slope = hessian[j] @ z + linear[j]
+            moved = jnp.clip(z[j] - slope / jnp.where(curvature > 0, curvature, 1.0), low[j], high[j])
+            keep = (fixed == j) | (curvature <= 0)
+            z = z.at[j].set(jnp.where(keep, z[j], moved))
+        return z
+
+    return jax.lax.fori_loop(0, SWEEPS, sweep, z)
+
+
+def _linear_end(hessian, low, high, index, sign, threshold):
+    """Returns the point z (relative to the answer) at the linearised end of parameter `index` in direction `sign`."""
+    count = low.shape[0]
+    bound = jnp.where(sign > 0, high[index], -low[index])
+    zero = jnp.zeros(count, hessian.dtype)
+
+    def profile(t, z):
+        z = z.at[index].set(sign * t)
+        z = _box_quadratic(hessian, zero, z, low, high, index)
+        return z, z @ hessian @ z
+
+    z_full, cost_full = profile(bound, zero)
+
+    def halve(_, carry):
+        below, above, z_below = carry
+        middle = 0.5 * (below + above)
+        z, cost = profile(middle, z_below)
+        inside = cost <= threshold**2
+        return jnp.where(inside, middle, below), jnp.where(inside, above, middle), jnp.where(inside, z, z_below)
+
+    _, _, z_bisected = jax.lax.fori_loop(0, BISECTIONS, halve, (jnp.zeros((), hessian.dtype), bound, zero))
+    return jnp.where(cost_full <= threshold**2, z_full, z_bisected)
+
+
+@programs.jit(static_argnames=("decode",))
+def _measure(decode, variables, answer, weights, threshold):
+    count = answer.shape[0]
+    picture = decode(answer[None], variables)[0]
+    jacobian = jax.jacfwd(lambda x: decode(x[None], variables)[0])(answer)  # (R, R, 3, 19)
+    scale = 255.0**2 / (3.0 * jnp.sum(weights))
+    weighted = jacobian * weights[:, :, None, None]
+    hessian = scale * jnp.einsum("hwcj,hwck->jk", weighted, jacobian)
+    low, high = -answer, 1.0 - answer
+    indices = jnp.repeat(jnp.arange(count), 2)
+    signs = jnp.tile(jnp.array([-1.0, 1.0], answer.dtype), count)
+    ends = jax.vmap(lambda i, s: _linear_end(hessian, low, high, i, s, threshold))(indices, signs)
+    linear = ends[jnp.arange(2 * count), indices]
+    moves = jnp.abs(linear)  # how far each direction's parameter moves, >= 0
+    bounds = jnp.where(signs > 0, high[indices], -low[indices])
+    best_move = jnp.zeros_like(moves)
+    best_point = jnp.zeros_like(ends)
+    best_rmse = jnp.zeros_like(moves)
+    refused = jnp.full_like(moves, jnp.inf)
+    for check in range(CHECKS):  # unrolled: a decoder inside a loop body runs slowly on XLA's CPU backend
+        decoded = decode(answer[None] + ends, variables)
+        rmse = images.rmse(decoded, picture[None], weights)
+        inside = rmse <= threshold
+        better = inside & (moves >= best_move)
+        refused = jnp.where(inside, refused, jnp.minimum(refused, moves))
+        best_move = jnp.where(better, moves, best_move)
+        best_point = jnp.where(better[:, None], ends, best_point)
+        best_rmse = jnp.where(better, rmse, best_rmse)
+        if check == CHECKS - 1:
+            break
+        ratio = jnp.clip(GROWTH * threshold / jnp.maximum(rmse, 1e-6), 1.0 / 4.0, 2.0)
+        # the next try lies between the widest confirmed move and the narrowest refused one
+        new_moves = jnp.clip(moves * ratio, best_move, jnp.minimum(refused, bounds))
+        new_moves = jnp.where(new_moves >= refused, 0.5 * (best_move + refused), new_moves)
+        residual = (decoded - picture[None]) * weights[None, :, :, None]
+        gradients = scale * jnp.einsum("nhwc,hwcj->nj", residual, jacobian)
+
+        def correct(z, gradient, index, sign, move):
+            step = jnp.zeros_like(z).at[index].set(sign * move - z[index])
+            linear_term = gradient + hessian @ step  # the chord model of the residual after the parameter's move
+            step = step + _box_quadratic(
+                hessian, linear_term, jnp.zeros_like(z), low - z - step, high - z - step, index
+            )
+            return z + step
+
+        ends = jax.vmap(correct)(ends, gradients, indices, signs, new_moves)
+        moves = new_moves
+    return {
+        "moves": best_move.reshape(count, 2),
+        "points": (answer[None] + best_point).reshape(count, 2, count),
+        "rmse": best_rmse.reshape(count, 2),
+        "linear": jnp.abs(linear).reshape(count, 2),
+    }
+
+
+def measure(
+    decode,
+    variables: Any,
+    answer: np.ndarray,
+    weights: np.ndarray | None,
+    threshold: float,
+    source: str = "given",
+) -> Ranges:
+    """Returns what the picture decides about each parameter of `answer` (unit cube (19,)), by the module docstring.
+
+    `decode(unit (n, 19), variables)` returns sRGB images (n, R, R, 3) (`Decoding` for a model's decoder);
+    `weights`: the fit's mask (R, R), or None; `threshold`: tau, RMSE on 0-255 sRGB; `source`: where tau comes
+    from, recorded with it.
+    """
+    answer = np.clip(np.asarray(answer, np.float32), 0.0, 1.0)
+    if answer.shape != (params.COUNT,):
+        raise ValueError(f"Shape mismatch: got {answer.shape}, expected ({params.COUNT},).")
+    if not threshold > 0:
+        raise ValueError(f"the threshold {threshold} must be > 0")
+    if weights is None:
+        side = int(np.asarray(decode(jnp.asarray(answer[None]), variables)).shape[1])
+        weights = np.ones((side, side), np.float32)
+    out = jax.device_get(_measure(decode, variables, answer, np.asarray(weights, np.float32), np.float32(threshold)))
+    moves = np.asarray(out["moves"], np.float64)
+    low, high = answer - moves[:, 0], answer + moves[:, 1]
+    low, high = np.clip(low, 0.0, 1.0), np.clip(high, 0.0, 1.0)
+    low[answer - moves[:, 0] <= FACE] = 0.0
+    high[answer + moves[:, 1] >= 1.0 - FACE] = 1.0
+    verdicts = verdicts_of(low, high)
+    points = np.clip(np.asarray(out["points"], np.float64), 0.0, 1.0)
+    linear = np.asarray(out["linear"], np.float64)
+    chosen = look_alikes(points, np.asarray(answer, np.float64), verdicts)
+    return Ranges(
+        low=low,
+        high=high,
+        verdicts=verdicts,
+        threshold=float(threshold),
+        source=source,
+        ends=points,
+        end_rmse=np.asarray(out["rmse"], np.float64),
+        linear_low=np.clip(answer - linear[:, 0], 0.0, 1.0),
+        linear_high=np.clip(answer + linear[:, 1], 0.0, 1.0),
+        look_alikes=np.array([points[i, side] for i, side in chosen]).reshape(-1, params.COUNT),
+        look_alike_rmse=np.array([out["rmse"][i][side] for i, side in chosen], np.float64),
+        look_alike_moves=tuple(f"{params.NAMES[i]} {('low', 'high')[side]}" for i, side in chosen),
+    )
+
+
+def look_alikes(points: np.ndarray, answer: np.ndarray, verdicts: tuple[str, ...], count: int = LOOK_ALIKES):
+    """Returns [(parameter, 0 low / 1 high)] of the `count` end points furthest from the answer (unit cube),
+    one per parameter, parameters the picture leaves free after the others."""
+    distance = np.linalg.norm(points - answer[None, None], axis=-1)  # (19, 2)
+    order = sorted(
+        ((i, side) for i in range(len(verdicts)) for side in (0, 1) if distance[i, side] > FACE),
+        key=lambda end: (verdicts[end[0]] == "free", -distance[end]),
+    )
+    chosen, seen = [], set()
+    for i, side in order:
+        if i not in seen:
+            chosen.append((i, side))
+            seen.add(i)
+        if len(chosen) == count:
+            break
+    return chosen

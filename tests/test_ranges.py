@@ -1,0 +1,107 @@
+"""What the picture decides, on synthetic decoders whose ranges are known in closed form."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from matfit import params
+from matfit.fit import ranges
+
+SIDE = 4
+THRESHOLD = 2.0
+
+
+def flat(value: jnp.ndarray) -> jnp.ndarray:
+    """Returns images (n, SIDE, SIDE, 3) of one grey value per material (n,)."""
+    return jnp.broadcast_to(value[:, None, None, None], (value.shape[0], SIDE, SIDE, 3))
+
+
+def only_base_red(unit, variables):
+    # The image is one grey that only base_color_r sets: every other input has no effect.
+    return flat(0.3 + variables * unit[:, 0])
+
+
+def red_plus_green(unit, variables):
+    # base_color_r and base_color_g trade off exactly: only their sum shows.
+    return flat(0.3 + variables * (unit[:, 0] + unit[:, 1]))
+
+
+def fourth_power(unit, variables):
+    return flat(0.2 + variables * unit[:, 0] ** 4)
+
+
+def answer(**values: float) -> np.ndarray:
+    x = np.full(params.COUNT, 0.5)
+    for name, value in values.items():
+        x[params.INDEX[name]] = value
+    return x
+
+
+def test_an_input_without_effect_is_free_over_the_whole_range_and_one_that_sets_the_image_is_decided():
+    slope = 0.4
+    found = ranges.measure(only_base_red, jnp.float32(slope), answer(), None, THRESHOLD)
+    half_width = THRESHOLD / (255.0 * slope)  # RMSE = 255 * slope * |move|
+    red = params.INDEX["base_color_r"]
+    assert found.verdicts[red] == "decided"
+    assert found.low[red] == pytest.approx(0.5 - half_width, abs=2e-4)
+    assert found.high[red] == pytest.approx(0.5 + half_width, abs=2e-4)
+    others = [i for i in range(params.COUNT) if i != red]
+    assert all(found.verdicts[i] == "free" for i in others)
+    np.testing.assert_array_equal(found.low[others], 0.0)
+    np.testing.assert_array_equal(found.high[others], 1.0)
+    assert found.summary().startswith("decided: base_color_r; free: base_color_g, base_color_b, metallic")
+    # the physical ranges come from params.py: density's box is [0, 4], phase_g's [-0.9, 0.9]
+    assert found.physical_high[params.INDEX["density"]] == 4.0
+    assert found.physical_low[params.INDEX["phase_g"]] == pytest.approx(-0.9)
+    assert np.all(found.end_rmse <= THRESHOLD + 1e-4)
+
+
+def test_box_faces_are_respected():
+    slope = 0.4
+    found = ranges.measure(only_base_red, jnp.float32(slope), answer(base_color_r=0.0), None, THRESHOLD)
+    red = params.INDEX["base_color_r"]
+    assert found.low[red] == 0.0
+    assert found.high[red] == pytest.approx(THRESHOLD / (255.0 * slope), abs=2e-4)
+    assert np.all((found.ends >= 0.0) & (found.ends <= 1.0))
+
+
+def test_compensating_inputs_move_until_the_other_one_meets_its_face():
+    slope = 0.2
+    found = ranges.measure(
+        red_plus_green, jnp.float32(slope), answer(base_color_r=0.2, base_color_g=0.3), None, THRESHOLD
+    )
+    red, green = params.INDEX["base_color_r"], params.INDEX["base_color_g"]
+    slack = THRESHOLD / (255.0 * slope)
+    # red up: green falls to 0 and the rest is the threshold's slack; red down: green rises to 0.5 and red reaches 0
+    assert found.high[red] == pytest.approx(0.5 + slack, abs=2e-4)
+    assert found.low[red] == 0.0
+    assert found.high[green] == pytest.approx(0.5 + slack, abs=2e-4)
+    assert found.low[green] == 0.0
+    assert found.verdicts[red] == found.verdicts[green] == "partly"
+    high_end = found.ends[red, 1]
+    assert high_end[green] == pytest.approx(0.0, abs=1e-4)
+    # the look-alikes are the ends of the parameters that are not free first, then free ones, each within the threshold
+    assert {move.split()[0] for move in found.look_alike_moves[:2]} == {"base_color_r", "base_color_g"}
+    assert len(found.look_alikes) == ranges.LOOK_ALIKES
+    assert np.all(found.look_alike_rmse <= THRESHOLD + 1e-4)
+
+
+def test_the_decoder_corrects_the_linear_end_of_a_curved_response():
+    slope = 0.5
+    found = ranges.measure(fourth_power, jnp.float32(slope), answer(), None, THRESHOLD)
+    red = params.INDEX["base_color_r"]
+    # exact: 255 * slope * |x^4 - 0.5^4| = threshold
+    exact_high = (0.5**4 + THRESHOLD / (255.0 * slope)) ** 0.25
+    exact_low = (0.5**4 - THRESHOLD / (255.0 * slope)) ** 0.25
+    assert found.linear_high[red] > exact_high  # the tangent underestimates the curve's rise
+    assert exact_high * 0.97 <= found.high[red] <= exact_high + 1e-4
+    assert exact_low - 1e-4 <= found.low[red] <= exact_low * 1.05
+    assert found.end_rmse[red, 1] <= THRESHOLD + 1e-4
+
+
+def test_the_document_has_physical_units_and_every_parameter():
+    found = ranges.measure(only_base_red, jnp.float32(0.4), answer(density=0.25), None, THRESHOLD, source="stated")
+    document = found.document()
+    assert document["threshold_rmse"] == THRESHOLD and document["threshold_source"] == "stated"
+    assert list(document["parameters"]) == list(params.NAMES)
+    assert document["parameters"]["density"] == {"low": 0.0, "high": 4.0, "unit": "multiplier", "verdict": "free"}
