@@ -137,6 +137,24 @@ PARAMETERS: tuple[Parameter, ...] = (
     ),
 )
 
+# The shader's optional features and the values that turn each one off (with the parameters that only matter while it
+# is on at their defaults): the clean answer sets a feature the picture does not decide to these values
+# (docs/fitting.md#what-the-picture-decides). The first parameter of each is the one whose verdict decides.
+FEATURES: dict[str, dict[str, float]] = {
+    "anisotropy": {"anisotropic": 0.0},
+    "sheen": {"sheen": 0.0, "sheen_tint": 0.5},
+    "clearcoat": {"clearcoat": 0.0, "clearcoat_gloss": 1.0},
+    "medium": {
+        "density": 0.0,
+        "medium_color_r": 1.0,
+        "medium_color_g": 1.0,
+        "medium_color_b": 1.0,
+        "scattering": 0.0,
+        "phase_g": 0.0,
+    },
+    "transmission": {"spec_trans": 0.0},
+}
+
 NAMES: tuple[str, ...] = tuple(p.name for p in PARAMETERS)
 COUNT = len(PARAMETERS)
 LOW = np.array([p.low for p in PARAMETERS], dtype=np.float64)

@@ -13,7 +13,7 @@ import functools
 import os
 from importlib import metadata
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import typer
 
@@ -205,6 +205,10 @@ def fit_command(
     refine: options.Refine = 0,
     corrections: options.Corrections = None,
     variant: options.Variant = None,
+    answer: Annotated[
+        Literal["clean", "best"],
+        typer.Option(help="clean: the simplest material within the threshold of the best fit; best: the fit's own."),
+    ] = "clean",
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
     from matfit.render import engine as render_module
@@ -238,6 +242,7 @@ def fit_command(
             refine_steps=refine,
             variant=variant,
             outputs=outputs,
+            answer=answer,
         )
         outcome = fitfile.run(request, str(model_path), renderer=renderer)
     echo_lines(outcome.notices)

@@ -18,7 +18,7 @@ import numpy as np
 
 from matfit import documents, files, images, params, programs, shipped
 from matfit.errors import FitError
-from matfit.fit import refine, search, verify
+from matfit.fit import clean, ranges, refine, search, verify
 from matfit.fit.request import Outputs, Request
 from matfit.model import models
 from matfit.render import engine as render
@@ -51,6 +51,8 @@ class Outcome:
     refined: refine.Refined | None = None
     rendered: np.ndarray | None = None  # sRGB Mitsuba render of the answer at the model's resolution
     variant: str | None = None  # the Mitsuba variant that verified, refined or rendered the answer; None: no Mitsuba
+    ranges: ranges.Ranges | None = None  # what the picture decides about the fit's answer
+    cleaned: clean.Cleaned | None = None  # the clean answer and how it was chosen (`answer="clean"`)
     document: dict = field(default_factory=dict)
     notices: list[str] = field(default_factory=list)
 
@@ -74,10 +76,21 @@ class Outcome:
             mitsuba += (
                 f"; refined {refined.steps} steps: {refined.rmse_before:.2f} -> {refined.rmse_after:.2f} ({kept})"
             )
-        return (
+        if self.cleaned is not None and self.cleaned.dropped:
+            cleaned = self.cleaned
+            mitsuba += f"; clean answer without {', '.join(cleaned.dropped)}"
+            if cleaned.figures:
+                mitsuba += (
+                    f": Mitsuba {cleaned.figures['clean']:.2f} against {cleaned.figures['best']:.2f} "
+                    f"(noise {cleaned.noise:.2f}), {cleaned.chosen} kept"
+                )
+        line = (
             f"{output}: {document['method']}, {result.evaluations} evaluations, neural RMSE {self.neural_rmse:.2f} "
             f"(start {result.chosen} {result.start_rmse:.2f}){mitsuba}, {document['wall_time_s']:.1f} s"
         )
+        if self.ranges is not None:
+            line += f"; {self.ranges.summary()}"
+        return line
 
 
 def load_model(path: str) -> models.Model:
@@ -150,6 +163,7 @@ def _fit_checked(
     if renderer is not None:
         outcome.variant = renderer.variant
     mitsuba_stages(outcome, request, model, weights, verifier=background or renderer, renderer=renderer)
+    decide(outcome, model, model_path, weights, (background or renderer) if request.verified else None, request.answer)
     outcome.document = document(outcome, request, model_path)
     return outcome, renderer
 
@@ -221,6 +235,26 @@ def verification_stage(request: Request, model, result, target, weights, rendere
     return verify.verify_candidates(renderer, result, target, weights=weights)
 
 
+def decide(outcome: Outcome, model: models.Model, model_path: str, weights, renderer, answer: str) -> None:
+    """Sets `outcome.ranges` (what the picture decides about the answer, `ranges.py`) and, with `answer="clean"`,
+    replaces the answer by the clean one (`clean.py`; judged against it in Mitsuba by `renderer`, if given)."""
+    decoding = ranges.Decoding(model.decoder.module)
+    tau, source = ranges.threshold(model_path, outcome.unit)
+    outcome.ranges = ranges.measure(decoding, model.decoder.variables, outcome.unit, weights, tau, source)
+    if answer != "clean":
+        return
+    cleaned = clean.clean(
+        decoding, model.decoder.variables, outcome.unit, outcome.target, weights, outcome.ranges, renderer
+    )
+    outcome.cleaned = cleaned
+    if cleaned.chosen == "clean" and cleaned.dropped:
+        outcome.unit = cleaned.unit
+        outcome.image = model.decode(cleaned.unit)[0]
+        outcome.neural_rmse = float(images.rmse(outcome.image, outcome.target, weights))
+        if cleaned.rendered is not None:
+            outcome.rendered = cleaned.rendered
+
+
 def params_text(outcome: Outcome) -> str:
     """Returns the params.json of a fit, as written."""
     return documents.dumps(outcome.document)
@@ -257,6 +291,22 @@ def document(outcome: Outcome, request: Request, model_path: str) -> dict:
             "mitsuba_rmse_after": round(refined.rmse_after, 3),
             "seconds": round(refined.seconds, 3),
         }
+    if outcome.cleaned is not None:
+        cleaned = outcome.cleaned
+        if cleaned.figures:
+            mitsuba["mitsuba_rmse"] = round(cleaned.figures[cleaned.chosen], 3)
+        mitsuba["answer"] = {
+            "kind": "clean",
+            "kept": cleaned.chosen,
+            "features_off": list(cleaned.dropped),
+            "mitsuba_rmse": {name: round(value, 3) for name, value in cleaned.figures.items()},
+            "render_noise": round(cleaned.noise, 3),
+            "free_not_neutral": {"best": cleaned.free_before, "answer": cleaned.free_after},
+            "best": params.to_mapping(params.from_unit(outcome.ranges.answer)),
+            "seconds": round(cleaned.seconds, 3),
+        }
+    if outcome.ranges is not None:
+        mitsuba["ranges"] = outcome.ranges.document()
     return params.params_document(
         outcome.values,
         method=request.settings.method.value,
@@ -291,6 +341,10 @@ def report_picture(outcome: Outcome) -> np.ndarray:
         (outcome.rendered, f"fit (Mitsuba) {outcome.document['mitsuba_rmse']:.2f}"),
         (report.difference(outcome.rendered, outcome.target), "|Mitsuba - target| x4"),
     ]
+    if outcome.ranges is not None:
+        found = outcome.ranges
+        panel = report.ranges_panel(params.NAMES, outcome.unit, found.low, found.high, found.verdicts)
+        panels.append((panel, f"ranges within {found.threshold:.2f}"))
     return report.compose(panels)
 
 

@@ -10,7 +10,7 @@ decodes within tau of the answer's picture:
 Linearised (Gauss-Newton), D(x0 + z)^2 ~ z^T H z with H = 255^2 J^T W J / (3 sum w), J the
 decoder's Jacobian at x0. Each end of each range is then a small convex problem: the largest
 t >= 0 such that min { z^T H z : z_i = +-t, x0 + z in the box } <= tau^2, found by bisection on t
-with the box-constrained quadratic solved by coordinate descent (`_box_quadratic`). So a parameter
+with the box-constrained quadratic solved by coordinate descent (`box_quadratic`). So a parameter
 that the picture does not see reaches both faces of the box, and one that other parameters can
 compensate gets the range that compensation allows.
 
@@ -32,6 +32,8 @@ answer yet differ from it most.
 
 from __future__ import annotations
 
+import json
+import os
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from matfit import images, params, programs
+from matfit import images, params, programs, shipped
 
 DECIDED_WIDTH = 0.25  # a range spanning at most a quarter of the parameter's box is "decided"
 FACE = 1e-6  # how close (unit cube) a confirmed end must lie to a face of the box for "free"
@@ -69,6 +71,7 @@ class Decoding:
 class Ranges:
     """What the picture decides about each parameter of an answer (see the module docstring)."""
 
+    answer: np.ndarray  # unit cube (19,): the answer measured
     low: np.ndarray  # unit cube (19,): the lowest confirmed value of each parameter
     high: np.ndarray  # unit cube (19,): the highest
     verdicts: tuple[str, ...]  # per parameter: "decided", "partly" or "free"
@@ -139,8 +142,9 @@ def verdicts_of(low: np.ndarray, high: np.ndarray) -> tuple[str, ...]:
     return tuple(out)
 
 
-def _box_quadratic(hessian, linear, z, low, high, fixed):
-    """Returns z minimising z^T H z + 2 b^T z over low <= z <= high with z_fixed held, by coordinate descent from z.
+def box_quadratic(hessian, linear, z, low, high, fixed):
+    """Returns z minimising z^T H z + 2 b^T z over low <= z <= high, the coordinates where `fixed` (bool (19,)) is
+    true held, by coordinate descent from z.
 
     A coordinate the quadratic does not see (H_jj = 0) stays where it is.
     """
@@ -150,7 +154,7 @@ def _box_quadratic(hessian, linear, z, low, high, fixed):
             curvature = hessian[j, j]
             slope = hessian[j] @ z + linear[j]
             moved = jnp.clip(z[j] - slope / jnp.where(curvature > 0, curvature, 1.0), low[j], high[j])
-            keep = (fixed == j) | (curvature <= 0)
+            keep = fixed[j] | (curvature <= 0)
             z = z.at[j].set(jnp.where(keep, z[j], moved))
         return z
 
@@ -165,7 +169,7 @@ def _linear_end(hessian, low, high, index, sign, threshold):
 
     def profile(t, z):
         z = z.at[index].set(sign * t)
-        z = _box_quadratic(hessian, zero, z, low, high, index)
+        z = box_quadratic(hessian, zero, z, low, high, jnp.arange(count) == index)
         return z, z @ hessian @ z
 
     z_full, cost_full = profile(bound, zero)
@@ -221,9 +225,8 @@ def _measure(decode, variables, answer, weights, threshold):
         def correct(z, gradient, index, sign, move):
             step = jnp.zeros_like(z).at[index].set(sign * move - z[index])
             linear_term = gradient + hessian @ step  # the chord model of the residual after the parameter's move
-            step = step + _box_quadratic(
-                hessian, linear_term, jnp.zeros_like(z), low - z - step, high - z - step, index
-            )
+            held = jnp.arange(count) == index
+            step = step + box_quadratic(hessian, linear_term, jnp.zeros_like(z), low - z - step, high - z - step, held)
             return z + step
 
         ends = jax.vmap(correct)(ends, gradients, indices, signs, new_moves)
@@ -269,6 +272,7 @@ def measure(
     linear = np.asarray(out["linear"], np.float64)
     chosen = look_alikes(points, np.asarray(answer, np.float64), verdicts)
     return Ranges(
+        answer=np.asarray(answer, np.float64),
         low=low,
         high=high,
         verdicts=verdicts,
@@ -300,3 +304,31 @@ def look_alikes(points: np.ndarray, answer: np.ndarray, verdicts: tuple[str, ...
         if len(chosen) == count:
             break
     return chosen
+
+
+EVALUATION = "evaluation.json"  # a model directory's card (`model.evaluate`): the decoder's error against Mitsuba
+
+
+def threshold(model_directory: str, unit: np.ndarray) -> tuple[float, str]:
+    """Returns (tau, its source in words): the decoder's mean RMSE against Mitsuba references on the answer's kind of
+    material, from the model's evaluation.json (the shipped model's when the model has none).
+
+    The kinds are the card's: transmissive (spec_trans >= 0.5), scattering (transmissive with scattering >= 0.5
+    and density >= 1), opaque (the rest): a difference the decoder cannot tell from its own error is not visible
+    to the fit (docs/fitting.md#what-the-picture-decides).
+    """
+    values = params.from_unit(np.asarray(unit, np.float64))
+    kind = "opaque"
+    if values[params.INDEX["spec_trans"]] >= 0.5:
+        dense = values[params.INDEX["scattering"]] >= 0.5 and values[params.INDEX["density"]] >= 1.0
+        kind = "scattering" if dense else "transmissive"
+    path = os.path.join(model_directory, EVALUATION)
+    if not os.path.isfile(path):
+        path = os.path.join(str(shipped.MODEL), EVALUATION)
+    with open(path, encoding="utf-8") as file:
+        card = json.load(file)
+    if not card.get(f"decoder_rmse_{kind}"):  # a card without such references: every material's error
+        kind = "all"
+    figure = float(card["decoder_rmse" if kind == "all" else f"decoder_rmse_{kind}"]["mean"])
+    where = "this model's" if os.path.dirname(path) == os.path.normpath(model_directory) else "the shipped model's"
+    return figure, f"{where} mean decoder RMSE against Mitsuba on {kind} materials ({EVALUATION})"

@@ -57,6 +57,9 @@ class Outputs:
         return self.report is not None or self.render is not None
 
 
+ANSWERS = ("clean", "best")  # what a fit returns: the clean answer or the fit's own (docs/fitting.md)
+
+
 @dataclass(frozen=True)
 class Request:
     """One fit of a picture file: what to fit, how, and which files to write."""
@@ -74,6 +77,7 @@ class Request:
     refine_steps: int = 0  # steps through Mitsuba's differentiable renderer after verification (`refine`)
     variant: str | None = None  # the Mitsuba variant of a renderer made for the fit; None: `engine.choose_variant`'s
     outputs: Outputs | None = None  # None: nothing is written (`fitfile.fit_file`)
+    answer: str = "clean"  # "clean": the simplest material within the threshold of the fit's (`clean`); "best"
 
     @property
     def rounds(self) -> int:
@@ -92,6 +96,10 @@ class Request:
         if self.outputs is not None:
             self.outputs.check({"target": self.target, "mask": self.mask, "init": self.init})
         self.settings.check()
+        if self.answer not in ANSWERS:
+            raise FitError(
+                f"answer {self.answer!r} is not one of {', '.join(ANSWERS)}: use --answer clean or best", field="answer"
+            )
         if self.refine_steps < 0:
             raise FitError(f"refine steps {self.refine_steps} must be >= 0: use 0 to skip refinement", field="refine")
         if self.refine_steps and self.variant == engine.SCALAR_VARIANT:
