@@ -39,10 +39,10 @@ def ranges_panel(names, unit, low, high, verdicts, size: int = TILE) -> np.ndarr
     for name, x, lo, hi, verdict in zip(names, unit, low, high, verdicts, strict=True):
         row = images.label(np.zeros((0, size, 3), np.float32), name, height)
         row[1:-1, bar_start : bar_start + bar_width] = 0.15
-        a = bar_start + int(round(float(lo) * (bar_width - 1)))
-        b = bar_start + int(round(float(hi) * (bar_width - 1)))
+        a = bar_start + round(float(lo) * (bar_width - 1))
+        b = bar_start + round(float(hi) * (bar_width - 1))
         row[1:-1, a : b + 1] = VERDICT_COLOURS[verdict]
-        tick = bar_start + int(round(float(x) * (bar_width - 1)))
+        tick = bar_start + round(float(x) * (bar_width - 1))
         row[:, tick] = 1.0
         panel.append(row)
     out = np.zeros((size, size, 3), np.float32)
