@@ -358,7 +358,15 @@ def test_fit_writes_params_and_report(trained, target, tmp_path):
     assert document["mitsuba_variant"] == engine.choose_variant(None)[0]  # the variant that verified it
     values = params.parse_params_json(out.read_text())
     assert values.shape == (19,)
-    assert images.read(str(report)).shape[1] == 5 * 192
+    assert images.read(str(report)).shape[1] == 6 * 192  # the five pictures and the ranges
+    # what the picture decides: every parameter's range in physical units holds the parameter's box
+    decided = document["ranges"]["parameters"]
+    assert list(decided) == list(params.NAMES) and document["ranges"]["threshold_rmse"] > 0
+    for p in params.PARAMETERS:
+        assert p.low <= decided[p.name]["low"] <= decided[p.name]["high"] <= p.high
+        assert decided[p.name]["unit"] == p.unit and decided[p.name]["verdict"] in ("decided", "partly", "free")
+    assert document["answer"]["kind"] == "clean" and document["answer"]["kept"] in ("clean", "best")
+    assert set(document["answer"]["best"]) == set(params.NAMES)
     # params.json feeds `matfit render` directly
     assert run("render", out, "-o", tmp_path / "again.png", "--size", 16, "--spp", 4).exit_code == 0
 

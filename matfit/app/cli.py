@@ -417,6 +417,31 @@ def bench_fit(
 
 
 @command
+def bench_ranges(
+    model_path: options.Model = options.DEFAULT_MODEL,
+    count: Annotated[int, typer.Option(min=1, max=10_000, help="Reachable targets to calibrate on.")] = 100,
+    judged: Annotated[
+        int, typer.Option(min=0, max=10_000, help="Of them, how many also judge the clean answer at 1024 spp.")
+    ] = 20,
+    examples: Annotated[bool, typer.Option(help="Also judge the clean answer on the shipped example edits.")] = True,
+    results: Annotated[Path | None, typer.Option(help="JSON of every finished case, written as each one ends.")] = None,
+) -> None:
+    """Calibrate what the picture decides: true values inside the ranges, Mitsuba at their ends, the clean answer."""
+    from matfit import images, shipped
+    from matfit.app import bench_ranges
+    from matfit.fit import fitfile, search
+
+    model = fitfile.load_model(str(model_path))
+    pictures = []
+    if examples:
+        for path in sorted(shipped.EXAMPLES.glob("*.png")):
+            pictures.append((path.stem, search.prepare_target(images.load(str(path)).pixels, model.resolution, "")[0]))
+    typer.echo(
+        bench_ranges.table(bench_ranges.run(model, count, judged, pictures, log=log, results=options.text(results)))
+    )
+
+
+@command
 def bench_sequence(
     model_path: options.Model = options.DEFAULT_MODEL,
     frames: Annotated[int, typer.Option(min=2, max=100_000, help="Frames of the built-in black-level sequence.")] = 120,

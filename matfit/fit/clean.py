@@ -67,9 +67,9 @@ def free_away_from_neutral(unit: np.ndarray, verdicts: tuple[str, ...]) -> int:
 
 
 @programs.jit(static_argnames=("decode", "features"))
-def _simplest(decode, features, variables, answer, target, weights, threshold):
+def _simplest(decode, features, variables, answer, target, weights, threshold, allowed):
     """Returns (the simplest point, which of `features` were turned off (bool)); `features`: a tuple of
-    (index tuple, neutral unit values tuple) to try in order."""
+    (index tuple, neutral unit values tuple) in the order tried, `allowed` (bool, one per feature): which to try."""
     count = answer.shape[0]
     picture = decode(answer[None], variables)[0]
     jacobian = jax.jacfwd(lambda x: decode(x[None], variables)[0])(answer)
@@ -77,7 +77,7 @@ def _simplest(decode, features, variables, answer, target, weights, threshold):
     hessian = scale * jnp.einsum("hwcj,hwck->jk", jacobian * weights[:, :, None, None], jacobian)
     answer_error = images.rmse(picture, target, weights)
     x, held, dropped = answer, jnp.zeros(count, bool), []
-    for indices, values in features:
+    for k, (indices, values) in enumerate(features):
         idx = jnp.array(indices)
         trial = x.at[idx].set(jnp.array(values, x.dtype))
         trial_held = held.at[idx].set(True)
@@ -87,13 +87,14 @@ def _simplest(decode, features, variables, answer, target, weights, threshold):
             step = ranges.box_quadratic(hessian, gradient, jnp.zeros_like(x), -trial, 1.0 - trial, trial_held)
             trial = jnp.clip(trial + step, 0.0, 1.0)
         image = decode(trial[None], variables)[0]
-        accepted = (images.rmse(image, picture, weights) <= threshold) | (
+        within = (images.rmse(image, picture, weights) <= threshold) | (
             images.rmse(image, target, weights) <= answer_error
         )
+        accepted = allowed[k] & within
         x = jnp.where(accepted, trial, x)
         held = jnp.where(accepted, trial_held, held)
         dropped.append(accepted)
-    return x, jnp.stack(dropped) if dropped else jnp.zeros(0, bool)
+    return x, jnp.stack(dropped)
 
 
 def simplest(
@@ -103,16 +104,13 @@ def simplest(
     by the module docstring. `decode` as for `ranges.measure`; `found`: the answer's ranges."""
     answer = np.clip(np.asarray(answer, np.float32), 0.0, 1.0)
     neutral = neutral_values()
-    names, features = [], []
-    for name, feature in params.FEATURES.items():
+    features, allowed = [], []
+    for feature in params.FEATURES.values():
         indices = tuple(params.INDEX[p] for p in feature)
-        if found.verdicts[indices[0]] == "decided":
-            continue
-        if all(abs(answer[i] - neutral[i]) <= 1e-6 for i in indices):
-            continue
-        names.append(name)
         features.append((indices, tuple(float(neutral[i]) for i in indices)))
-    if not features:
+        decided = found.verdicts[indices[0]] == "decided"
+        allowed.append(not decided and any(abs(answer[i] - neutral[i]) > 1e-6 for i in indices))
+    if not any(allowed):
         return np.asarray(answer, np.float64), ()
     weights = np.ones(target.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
     unit, dropped = jax.device_get(
@@ -124,9 +122,11 @@ def simplest(
             np.asarray(target, np.float32),
             weights,
             np.float32(found.threshold),
+            np.array(allowed),
         )
     )
-    return np.asarray(unit, np.float64), tuple(name for name, off in zip(names, dropped, strict=True) if off)
+    off = tuple(name for name, turned_off in zip(params.FEATURES, dropped, strict=True) if turned_off)
+    return (np.asarray(unit, np.float64) if off else np.asarray(answer, np.float64)), off
 
 
 def render_noise(renders: list[np.ndarray], target: np.ndarray, weights: np.ndarray) -> float:

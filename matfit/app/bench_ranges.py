@@ -1,0 +1,229 @@
+"""What the picture decides, calibrated: ranges, verdicts and the clean answer on reachable targets.
+
+Each reachable target (`bench.reachable_targets`: the training distribution, a held-out seed,
+256-spp Mitsuba renders) is fitted as `matfit fit` does by default (`search.Settings()`,
+verification with `methods.CORRECTIONS` rounds of correction); the ranges of the kept answer
+(`ranges.measure`, tau from the model's evaluation.json) are then compared with the true
+parameters. Per parameter the table gives, by verdict, how often the true value lies inside the
+reported range and the mean width in physical units. Mitsuba checks the ranges' ends on a
+sample: CHECKED parameters per target (fixed seed), each end rendered in VERIFY batches with
+verification's seeds beside the answer's, and the noise-free RMSE between the two estimated
+without bias (`verify.squared_error` of the paired differences); for a "free" parameter that
+distance must stay below tau. The first `judged` targets also judge the clean answer against
+the fit's (`clean.clean`) by an independent `bench.JUDGE_SPP`-spp render each
+(docs/fitting.md#what-the-picture-decides).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+
+from matfit import files, images, params
+from matfit.app import bench
+from matfit.fit import clean, ranges, search, verify
+from matfit.fit.methods import CORRECTIONS
+from matfit.model import models
+
+CHECKED = 3  # parameters per target whose range ends Mitsuba renders
+CHECK_SEED = 4242
+VERIFY = verify.BATCHES  # batches of each end and of the answer
+
+
+def mitsuba_distance(renderer, a: np.ndarray, b: np.ndarray) -> float:
+    """Returns the estimated noise-free RMSE (0-255) between the Mitsuba renders of unit-cube materials a and b:
+    VERIFY batches of each with verification's seeds, the unbiased estimate of their paired differences."""
+    differences = []
+    for j in range(VERIFY):
+        seed = verify.BATCH_SEED + j
+        first = images.srgb_encode(renderer.render(params.from_unit(a), seed=seed, spp=verify.SPP))
+        second = images.srgb_encode(renderer.render(params.from_unit(b), seed=seed, spp=verify.SPP))
+        differences.append(first - second)
+    zero = np.zeros_like(differences[0])
+    estimate, _ = verify.squared_error(differences, zero, np.ones(zero.shape[:2], np.float32))
+    return 255.0 * float(np.sqrt(max(estimate, 0.0)))
+
+
+def fit_case(model: models.Model, renderer, target: np.ndarray) -> tuple[np.ndarray, float]:
+    """Returns (the default fit's kept answer (unit cube), its seconds: the fit and verification with correction)."""
+    started = time.perf_counter()
+    result = search.fit(model, target, search.Settings())
+    kept = verify.verify(renderer, result, target, corrections=CORRECTIONS, model=model)
+    return np.asarray(kept.unit, np.float64), time.perf_counter() - started
+
+
+def case(model: models.Model, renderer, target: np.ndarray, truth: np.ndarray | None, index: int, judge: bool) -> dict:
+    """Returns one target's figures (see the module docstring); `truth`: its unit-cube parameters, or None."""
+    answer, fit_seconds = fit_case(model, renderer, target)
+    decoding = ranges.Decoding(model.decoder.module)
+    tau, _ = ranges.threshold(model.path, answer)
+    started = time.perf_counter()
+    found = ranges.measure(decoding, model.decoder.variables, answer, None, tau)
+    range_seconds = time.perf_counter() - started
+    started = time.perf_counter()
+    _, dropped = clean.simplest(decoding, model.decoder.variables, answer, target, None, found)
+    simplest_seconds = time.perf_counter() - started
+    out = {
+        "threshold": tau,
+        "verdicts": list(found.verdicts),
+        "low": found.low.tolist(),
+        "high": found.high.tolist(),
+        "fit_seconds": fit_seconds,
+        "range_seconds": range_seconds,
+        "simplest_seconds": simplest_seconds,
+        "dropped": list(dropped),
+        "free_before": clean.free_away_from_neutral(answer, found.verdicts),
+    }
+    if truth is not None:
+        truth = np.asarray(truth, np.float64)
+        out["inside"] = ((truth >= found.low - 1e-6) & (truth <= found.high + 1e-6)).tolist()
+    checks = []
+    chosen = np.random.default_rng([CHECK_SEED, index]).choice(params.COUNT, CHECKED, replace=False)
+    for i in chosen:
+        for side in (0, 1):
+            end = found.ends[i, side]
+            if np.max(np.abs(end - answer)) <= ranges.FACE:
+                continue
+            checks.append(
+                {
+                    "parameter": params.NAMES[i],
+                    "verdict": found.verdicts[i],
+                    "neural": float(found.end_rmse[i, side]),
+                    "mitsuba": mitsuba_distance(renderer, end, answer),
+                }
+            )
+    out["checks"] = checks
+    if judge:
+        cleaned = clean.clean(decoding, model.decoder.variables, answer, target, None, found, renderer)
+        seed = bench.JUDGE_SEED + index
+        out["judged"] = {
+            "best": bench.rendered_rmse(renderer, answer, target, seed, bench.JUDGE_SPP),
+            "clean": bench.rendered_rmse(renderer, cleaned.unit, target, seed, bench.JUDGE_SPP),
+            "kept": cleaned.chosen,
+            "free_before": cleaned.free_before,
+            "free_after": cleaned.free_after,
+            "clean_seconds": cleaned.seconds,
+        }
+    return out
+
+
+def warm_up(model: models.Model, renderer, target: np.ndarray) -> None:
+    """Compiles every stage once (fit, verification, ranges, the clean answer), so that the timings are warm."""
+    answer, _ = fit_case(model, renderer, target)
+    decoding = ranges.Decoding(model.decoder.module)
+    found = ranges.measure(decoding, model.decoder.variables, answer, None, 2.0)
+    clean.simplest(decoding, model.decoder.variables, answer, target, None, found)
+
+
+def run(
+    model: models.Model,
+    count: int,
+    judged: int,
+    examples: list[tuple[str, np.ndarray]],
+    log=print,
+    results: str | None = None,
+) -> dict:
+    """Returns every case's figures: `count` reachable targets (the first `judged` also judged clean against best),
+    then the named sRGB `examples` (judged, no truth); each finished case is written to `results` (JSON) at once."""
+    from matfit.render.engine import Renderer
+
+    renderer = Renderer(model.resolution, verify.SPP)
+    targets = bench.reachable_targets(renderer, count)
+    warm_up(model, renderer, targets.images[0])
+    cases = []
+
+    def save() -> None:
+        if results is not None:
+            files.write_text(results, json.dumps({"cases": cases}))
+
+    for k, (truth, target) in enumerate(zip(targets.unit, targets.images, strict=True)):
+        cases.append({"name": f"reachable-{k}", **case(model, renderer, target, truth, k, k < judged)})
+        save()
+        log(f"reachable {k + 1}/{count}")
+    for k, (name, target) in enumerate(examples):
+        cases.append({"name": name, **case(model, renderer, target, None, count + k, True)})
+        save()
+        log(f"example {name}")
+    return {"cases": cases}
+
+
+def table(figures: dict) -> str:
+    """Returns the markdown tables of a run: per parameter, then the Mitsuba checks, the clean answer, the cost."""
+    cases = figures["cases"]
+    calibrated = [c for c in cases if "inside" in c]
+    lines = [
+        f"Calibration on {len(calibrated)} reachable targets (default fit, tau = the decoder's mean error on the "
+        "answer's kind of material): share of true values inside the range, by verdict (count), and mean width.",
+        "",
+        "| parameter | decided: inside | partly: inside | free: inside | mean width decided | mean width partly |",
+        "|---|---|---|---|---|---|",
+    ]
+    totals = {verdict: [0, 0] for verdict in ranges.VERDICTS}
+    for i, p in enumerate(params.PARAMETERS):
+        cells, widths = [], []
+        for verdict in ranges.VERDICTS:
+            hits = [c["inside"][i] for c in calibrated if c["verdicts"][i] == verdict]
+            totals[verdict][0] += sum(hits)
+            totals[verdict][1] += len(hits)
+            cells.append(f"{np.mean(hits):.0%} ({len(hits)})" if hits else "- (0)")
+        for verdict in ("decided", "partly"):
+            width = [(c["high"][i] - c["low"][i]) * (p.high - p.low) for c in calibrated if c["verdicts"][i] == verdict]
+            widths.append(f"{np.mean(width):.3g} {p.unit}" if width else "-")
+        lines.append(f"| {p.name} | {' | '.join(cells)} | {' | '.join(widths)} |")
+    overall = [f"{hit / total:.0%} ({total})" if total else "- (0)" for hit, total in totals.values()]
+    lines.append(f"| all | {' | '.join(overall)} | | |")
+    checks = [check for c in cases for check in c["checks"]]
+    lines += [
+        "",
+        f"Mitsuba at the ranges' ends ({len(checks)} ends of {CHECKED} parameters per target): the estimated "
+        "noise-free RMSE between the end's render and the answer's, against tau.",
+        "",
+        "| verdict | ends | neural RMSE (mean) | Mitsuba RMSE (mean) | Mitsuba within tau |",
+        "|---|---|---|---|---|",
+    ]
+    taus = {c["name"]: c["threshold"] for c in cases}
+    for verdict in ranges.VERDICTS:
+        chosen = [(check, taus[c["name"]]) for c in cases for check in c["checks"] if check["verdict"] == verdict]
+        if chosen:
+            within = np.mean([check["mitsuba"] <= tau for check, tau in chosen])
+            lines.append(
+                f"| {verdict} | {len(chosen)} | {np.mean([check['neural'] for check, _ in chosen]):.2f} | "
+                f"{np.mean([check['mitsuba'] for check, _ in chosen]):.2f} | {within:.0%} |"
+            )
+    judged = [c for c in cases if "judged" in c]
+    if judged:
+        best = np.array([c["judged"]["best"] for c in judged])
+        answer = np.array([c["judged"]["clean"] for c in judged])
+        lines += [
+            "",
+            f"The clean answer (the default) against the fit's own on {len(judged)} targets, each judged by an "
+            f"independent {bench.JUDGE_SPP}-spp render (seed {bench.JUDGE_SEED} + case):",
+            "",
+            "| answer | mean Mitsuba RMSE | worst difference to best | clean kept | free parameters not neutral |",
+            "|---|---|---|---|---|",
+            f"| best (--answer best) | {best.mean():.3f} | | | "
+            f"{np.mean([c['judged']['free_before'] for c in judged]):.2f} per answer |",
+            f"| clean (default) | {answer.mean():.3f} | {np.max(answer - best):+.3f} | "
+            f"{sum(c['judged']['kept'] == 'clean' for c in judged)}/{len(judged)} | "
+            f"{np.mean([c['judged']['free_after'] for c in judged]):.2f} per answer |",
+            "",
+            "| case | best | clean | kept | features off |",
+            "|---|---|---|---|---|",
+            *(
+                f"| {c['name']} | {c['judged']['best']:.3f} | {c['judged']['clean']:.3f} | {c['judged']['kept']} | "
+                f"{', '.join(c['dropped']) or '-'} |"
+                for c in judged
+            ),
+        ]
+    fit = np.mean([c["fit_seconds"] for c in cases])
+    extra = np.mean([c["range_seconds"] for c in cases])
+    simplest = np.mean([c["simplest_seconds"] for c in cases])
+    lines += [
+        "",
+        f"Cost (warm, mean per target): default fit with verification {fit:.2f} s; ranges {extra:.3f} s "
+        f"({extra / fit:.1%}); the clean answer's decoder search {simplest:.3f} s ({simplest / fit:.1%}), plus its "
+        "Mitsuba judgement where a feature was turned off.",
+    ]
+    return "\n".join(lines)
