@@ -428,7 +428,7 @@ def bench_ranges(
 ) -> None:
     """Calibrate what the picture decides: true values inside the ranges, Mitsuba at their ends, the clean answer."""
     from matfit import images, shipped
-    from matfit.app import bench_ranges
+    from matfit.app.bench import ranges
     from matfit.fit import fitfile, search
 
     model = fitfile.load_model(str(model_path))
@@ -436,9 +436,7 @@ def bench_ranges(
     if examples:
         for path in sorted(shipped.EXAMPLES.glob("*.png")):
             pictures.append((path.stem, search.prepare_target(images.load(str(path)).pixels, model.resolution, "")[0]))
-    typer.echo(
-        bench_ranges.table(bench_ranges.run(model, count, judged, pictures, log=log, results=options.text(results)))
-    )
+    typer.echo(ranges.table(ranges.run(model, count, judged, pictures, log=log, results=options.text(results))))
 
 
 @command

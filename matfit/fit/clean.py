@@ -37,6 +37,7 @@ class Cleaned:
 
     unit: np.ndarray  # the answer returned (unit cube): the clean one, or the fit's when Mitsuba preferred it
     simplest: np.ndarray  # the simplest material within the threshold (unit cube)
+    best: np.ndarray  # the fit's own answer it started from (unit cube)
     dropped: tuple[str, ...]  # the features turned off
     chosen: str  # "clean" or "best"
     figures: dict[str, float] = field(default_factory=dict)  # each one's estimated noise-free Mitsuba RMSE
@@ -198,6 +199,7 @@ def clean(
     out = Cleaned(
         unit=simple,
         simplest=simple,
+        best=answer,
         dropped=dropped,
         chosen="clean",
         free_before=free_away_from_neutral(answer, found.verdicts),

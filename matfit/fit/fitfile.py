@@ -302,7 +302,7 @@ def document(outcome: Outcome, request: Request, model_path: str) -> dict:
             "mitsuba_rmse": {name: round(value, 3) for name, value in cleaned.figures.items()},
             "render_noise": round(cleaned.noise, 3),
             "free_not_neutral": {"best": cleaned.free_before, "answer": cleaned.free_after},
-            "best": params.to_mapping(params.from_unit(outcome.ranges.answer)),
+            "best": params.to_mapping(params.from_unit(cleaned.best)),
             "seconds": round(cleaned.seconds, 3),
         }
     if outcome.ranges is not None:

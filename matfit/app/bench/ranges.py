@@ -1,6 +1,6 @@
 """What the picture decides, calibrated: ranges, verdicts and the clean answer on reachable targets.
 
-Each reachable target (`bench.reachable_targets`: the training distribution, a held-out seed,
+Each reachable target (`reachable.reachable_targets`: the training distribution, a held-out seed,
 256-spp Mitsuba renders) is fitted as `matfit fit` does by default (`search.Settings()`,
 verification with `methods.CORRECTIONS` rounds of correction); the ranges of the kept answer
 (`ranges.measure`, tau from the model's evaluation.json) are then compared with the true
@@ -10,7 +10,7 @@ sample: CHECKED parameters per target (fixed seed), each end rendered in VERIFY 
 verification's seeds beside the answer's, and the noise-free RMSE between the two estimated
 without bias (`verify.squared_error` of the paired differences); for a "free" parameter that
 distance must stay below tau. The first `judged` targets also judge the clean answer against
-the fit's (`clean.clean`) by an independent `bench.JUDGE_SPP`-spp render each
+the fit's (`clean.clean`) by an independent `reachable.JUDGE_SPP`-spp render each
 (docs/fitting.md#what-the-picture-decides).
 """
 
@@ -22,7 +22,7 @@ import time
 import numpy as np
 
 from matfit import files, images, params
-from matfit.app import bench
+from matfit.app.bench import reachable
 from matfit.fit import clean, ranges, search, verify
 from matfit.fit.methods import CORRECTIONS
 from matfit.model import models
@@ -97,10 +97,10 @@ def case(model: models.Model, renderer, target: np.ndarray, truth: np.ndarray | 
     out["checks"] = checks
     if judge:
         cleaned = clean.clean(decoding, model.decoder.variables, answer, target, None, found, renderer)
-        seed = bench.JUDGE_SEED + index
+        seed = reachable.JUDGE_SEED + index
         out["judged"] = {
-            "best": bench.rendered_rmse(renderer, answer, target, seed, bench.JUDGE_SPP),
-            "clean": bench.rendered_rmse(renderer, cleaned.unit, target, seed, bench.JUDGE_SPP),
+            "best": reachable.rendered_rmse(renderer, answer, target, seed, reachable.JUDGE_SPP),
+            "clean": reachable.rendered_rmse(renderer, cleaned.unit, target, seed, reachable.JUDGE_SPP),
             "kept": cleaned.chosen,
             "free_before": cleaned.free_before,
             "free_after": cleaned.free_after,
@@ -130,9 +130,9 @@ def run(
     from matfit.render.engine import Renderer
 
     renderer = Renderer(model.resolution, verify.SPP)
-    targets = bench.reachable_targets(renderer, count)
+    targets = reachable.reachable_targets(renderer, count)
     warm_up(model, renderer, targets.images[0])
-    cases = []
+    cases: list[dict] = []
 
     def save() -> None:
         if results is not None:
@@ -199,7 +199,7 @@ def table(figures: dict) -> str:
         lines += [
             "",
             f"The clean answer (the default) against the fit's own on {len(judged)} targets, each judged by an "
-            f"independent {bench.JUDGE_SPP}-spp render (seed {bench.JUDGE_SEED} + case):",
+            f"independent {reachable.JUDGE_SPP}-spp render (seed {reachable.JUDGE_SEED} + case):",
             "",
             "| answer | mean Mitsuba RMSE | worst difference to best | clean kept | free parameters not neutral |",
             "|---|---|---|---|---|",
