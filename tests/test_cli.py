@@ -367,6 +367,8 @@ def test_fit_writes_params_and_report(trained, target, tmp_path):
         assert decided[p.name]["unit"] == p.unit and decided[p.name]["verdict"] in ("decided", "partly", "free")
     assert document["answer"]["kind"] == "clean" and document["answer"]["kept"] in ("clean", "best")
     assert set(document["answer"]["best"]) == set(params.NAMES)
+    if document["answer"]["features_off"] and document["answer"]["kept"] == "clean":  # the answer's own figure
+        assert document["mitsuba_rmse"] == document["answer"]["mitsuba_rmse"]["clean"]
     # params.json feeds `matfit render` directly
     assert run("render", out, "-o", tmp_path / "again.png", "--size", 16, "--spp", 4).exit_code == 0
 
@@ -516,10 +518,12 @@ def test_fit_with_the_gradient_method_an_init_and_verification(trained, target, 
         10,
         "--init",
         source,
+        "--answer",
+        "best",  # verification's own answer, not the clean one it may give way to
     )
     assert result.exit_code == 0, result.output
     document = json.loads(out.read_text())
-    assert document["method"] == "lbfgsb" and document["init"] == str(source)
+    assert document["method"] == "lbfgsb" and document["init"] == str(source) and "answer" not in document
     verification = document["verification"]
     figures, kept, margins = verification["mitsuba_rmse"], verification["kept"], verification["margins"]
     # the default's two rounds of correction: the last round's point joins the start and the best end, and the
