@@ -49,8 +49,8 @@ def mitsuba_distance(renderer, a: np.ndarray, b: np.ndarray) -> float:
 def fit_case(model: models.Model, renderer, target: np.ndarray) -> tuple[np.ndarray, float]:
     """Returns (the default fit's kept answer (unit cube), its seconds: the fit and verification with correction)."""
     started = time.perf_counter()
-    result = search.fit(model, target, search.Settings())
-    kept = verify.verify(renderer, result, target, corrections=CORRECTIONS, model=model)
+    result = search.neural_search(model, target, settings=search.Settings())
+    kept = verify.correct_then_verify(renderer, result, target, model=model, corrections=CORRECTIONS)
     return np.asarray(kept.unit, np.float64), time.perf_counter() - started
 
 
