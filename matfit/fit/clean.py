@@ -11,8 +11,9 @@ threshold tau of the answer's picture, or no further from the target than the an
 
 Like every answer it is then judged in Mitsuba (`judge`), against the answer it would replace,
 by verification's estimates (`verify.decide`, common random numbers, the jackknife): the clean
-answer is kept unless the other one is better by more than LEAD standard errors and by more than
-the noise of its own Mitsuba render (`judge`), so it is never worse beyond the render's noise.
+answer is kept unless the other one is better by more than LEAD standard errors (`judge`), so it
+is never measurably worse. (Allowing the noise of the kept render as well kept every clean answer
+and made them worse on average by an independent judge: docs/fitting.md#what-the-picture-decides.)
 """
 
 from __future__ import annotations
@@ -142,8 +143,8 @@ def judge(renderer, best: np.ndarray, clean: np.ndarray, target: np.ndarray, wei
     """Returns {"chosen": "clean" or "best", "figures", "noise", "margins", "batches", "rendered"}: the two rendered
     in batches with verification's seeds and compared by its estimates (`verify.decide`, more batches while the
     difference is within LEAD standard errors, up to MAX_BATCHES). The clean one is kept unless the other is
-    better both by more than LEAD standard errors and by more than the render noise of the kept render (the mean
-    of the best's batches, `render_noise`): no worse than the fit's answer beyond the noise of its own render."""
+    better by more than LEAD standard errors: verification's own rule, the clean one in the start's place.
+    `noise`: the render noise of the best's mean render (`render_noise`), recorded beside the figures."""
     weights = np.ones(target.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
     pool = {"clean": clean, "best": best}
     batches: dict[str, list[np.ndarray]] = {name: [] for name in pool}
@@ -169,8 +170,7 @@ def judge(renderer, best: np.ndarray, clean: np.ndarray, target: np.ndarray, wei
         render_more(list(pool), len(batches["best"]) + 1)
     figures = {name: 255.0 * float(np.sqrt(max(value, 0.0))) for name, value in estimates.items()}
     noise = render_noise(batches["best"], target, weights)
-    worse = leader == "best" and margins["clean"] >= verify.LEAD and figures["clean"] - figures["best"] > noise
-    chosen = "best" if worse else "clean"
+    chosen = "best" if leader == "best" and margins["clean"] >= verify.LEAD else "clean"
     return {
         "chosen": chosen,
         "figures": figures,
