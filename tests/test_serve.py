@@ -149,6 +149,23 @@ def test_a_fit_through_the_api_is_the_fit_the_library_makes(url, studio, alone):
     assert status == 200 and report.startswith(b"\x89PNG")
 
 
+def test_a_fit_through_the_api_carries_what_the_picture_decides_as_its_params_json_says(url, alone):
+    _, job, (_, done) = alone[EXAMPLE]
+    found = done["result"]["ranges"]
+    section = json.loads(request(f"{url}api/jobs/{job}/files/params.json")[1])["ranges"]
+    assert found["threshold_rmse"] == section["threshold_rmse"] > 0
+    assert len(found["parameters"]) == params.COUNT
+    for p, shown in zip(params.PARAMETERS, found["parameters"], strict=True):
+        written = section["parameters"][p.name]
+        assert shown == {"low": written["low"], "high": written["high"], "verdict": written["verdict"]}
+        assert p.low <= shown["low"] <= shown["high"] <= p.high  # the sliders' physical units
+    assert found["look_alikes"] and len(found["look_alikes"]) == len(section["look_alikes"])
+    for shown, written in zip(found["look_alikes"], section["look_alikes"], strict=True):
+        assert shown["label"] == written["move"] and shown["rmse"] == written["rmse"] <= found["threshold_rmse"]
+        assert len(shown["values"]) == params.COUNT
+        np.testing.assert_array_equal(shown["values"], params.from_mapping(written["params"]))
+
+
 def studio_target(studio):
     target, _, _ = fitfile.read_target(EXAMPLE, studio.model.resolution)
     return target
@@ -345,6 +362,31 @@ def test_the_page_fits_an_upload_and_its_params_json_renders(browser, url, tmp_p
     finished = subprocess.run([*render, "-o", str(tmp_path / "r.png")], capture_output=True, text=True, check=False)
     assert finished.returncode == 0, finished.stderr
     assert images.read(str(tmp_path / "r.png")).shape == (16, 16, 3)
+    page.close()
+
+
+def test_the_page_draws_the_ranges_and_a_look_alike_sets_the_sliders_and_the_preview(browser, url):
+    page = open_page(browser, url)
+    fit_in_page(page, EXAMPLE)
+    bands = page.eval_on_selector_all(".band", "bands => bands.map(b => [b.hidden, b.dataset.verdict, b.offsetWidth])")
+    assert len(bands) == params.COUNT
+    assert all(
+        not hidden and verdict in ("decided", "partly", "free") and width > 0 for hidden, verdict, width in bands
+    )
+    for name, (_, verdict, _) in zip(params.NAMES, bands, strict=True):
+        assert page.get_attribute(f"#slider-{name}", "title").startswith(f"{verdict} by the picture")
+    job = page.get_attribute("#figures", "data-job")
+    alike = json.loads(request(f"{url}api/jobs/{job}")[1])["result"]["ranges"]["look_alikes"][0]
+    assert page.text_content("#look-alikes button") == alike["label"]
+    page.wait_for_function("Number(document.getElementById('preview').dataset.count || 0) >= 1")
+    count, before = int(page.get_attribute("#preview", "data-count")), page.get_attribute("#preview", "src")
+    page.click("#look-alikes button")
+    page.wait_for_function(f"Number(document.getElementById('preview').dataset.count) > {count}")
+    assert page.get_attribute("#preview", "src") != before
+    for p, value in zip(params.PARAMETERS, alike["values"], strict=True):
+        assert float(page.text_content(f"#value-{p.name}")) == pytest.approx(value, abs=5e-4 + 1e-9)  # toFixed(3)
+        slider = float(page.eval_on_selector(f"#slider-{p.name}", "s => s.value"))
+        assert slider == pytest.approx(value, abs=(p.high - p.low) / 1000)  # the slider's step
     page.close()
 
 

@@ -62,6 +62,33 @@ function showFit(job, result, name) {
   state.lastFit = result.values;
   setValues(result.values);
   addOption("last fit", "__last");
+  showRanges(result.ranges);
+}
+
+// What the picture decides (docs/fitting.md#what-the-picture-decides): each slider's range as a band under it,
+// coloured by verdict, and the look-alikes as buttons that set the sliders, as a preset does.
+function showRanges(ranges) {
+  state.parameters.forEach((p, i) => {
+    const band = $(`band-${p.name}`), slider = $(`slider-${p.name}`);
+    const range = ranges && ranges.parameters[i];
+    band.hidden = !range;
+    if (!range) { slider.title = ""; return; }
+    const at = (v) => (100 * (v - p.low)) / (p.high - p.low);
+    band.style.left = `${at(range.low)}%`;
+    band.style.width = `${Math.max(at(range.high) - at(range.low), 0.5)}%`;
+    band.dataset.verdict = range.verdict;
+    slider.title = `${range.verdict} by the picture: ${range.low} to ${range.high} ${p.unit} look the same (within ${ranges.threshold_rmse} RMSE)`;
+  });
+  const box = $("look-alikes");
+  box.replaceChildren();
+  for (const alike of (ranges && ranges.look_alikes) || []) {
+    const button = document.createElement("button");
+    button.textContent = alike.label;
+    button.title = `decodes within ${alike.rmse.toFixed(2)} RMSE of the fit: click to start from it`;
+    button.addEventListener("click", () => setValues(alike.values));
+    box.append(button);
+  }
+  $("look-alikes-row").hidden = !box.childElementCount;
 }
 
 // --- the mask: white = fit here, black = ignore; the size of the uploaded picture ----------------------------------
@@ -147,12 +174,17 @@ function buildSliders() {
     const slider = document.createElement("input");
     Object.assign(slider, { type: "range", id: `slider-${p.name}`, min: p.low, max: p.high, step: (p.high - p.low) / 1000 });
     slider.addEventListener("input", () => { state.values[i] = Number(slider.value); showValue(i); preview(); });
+    const track = document.createElement("span");
+    track.className = "track";
+    const band = document.createElement("span");
+    Object.assign(band, { className: "band", id: `band-${p.name}`, hidden: true });
+    track.append(slider, band);
     const output = document.createElement("output");
     output.id = `value-${p.name}`;
     const unit = document.createElement("span");
     unit.className = "unit";
     unit.textContent = p.unit;
-    box.append(label, slider, output, unit);
+    box.append(label, track, output, unit);
   });
 }
 

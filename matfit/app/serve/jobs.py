@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from matfit import documents, images
+from matfit import documents, images, params
 from matfit.fit import fitfile
 from matfit.render import export
 
@@ -85,6 +85,26 @@ def fit_result(outcome: fitfile.Outcome) -> dict:
         },
         "notices": outcome.notices,
         "mask": document.get("mask"),
+        "ranges": page_ranges(document.get("ranges")),
+    }
+
+
+def page_ranges(section: dict | None) -> dict | None:
+    """Returns params.json's `ranges` section (`ranges.Ranges.document`) as the sliders take it: per parameter, in
+    params.py's order and the sliders' physical units, its range and verdict; the look-alikes as 19 values each with
+    which end they are ("roughness high"). The page's figures are the file's (docs/fitting.md#what-the-picture-decides).
+    """
+    if section is None:
+        return None
+    return {
+        "threshold_rmse": section["threshold_rmse"],
+        "parameters": [
+            {key: section["parameters"][name][key] for key in ("low", "high", "verdict")} for name in params.NAMES
+        ],
+        "look_alikes": [
+            {"label": alike["move"], "rmse": alike["rmse"], "values": params.from_mapping(alike["params"]).tolist()}
+            for alike in section["look_alikes"]
+        ],
     }
 
 
