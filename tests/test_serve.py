@@ -387,6 +387,12 @@ def test_the_page_draws_the_ranges_and_a_look_alike_sets_the_sliders_and_the_pre
         assert float(page.text_content(f"#value-{p.name}")) == pytest.approx(value, abs=5e-4 + 1e-9)  # toFixed(3)
         slider = float(page.eval_on_selector(f"#slider-{p.name}", "s => s.value"))
         assert slider == pytest.approx(value, abs=(p.high - p.low) / 1000)  # the slider's step
+    # A starting point: the next fit sends the look-alike's values, which join its candidates.
+    assert page.text_content("#init-note").startswith(f"look-alike {alike['label']}")
+    page.set_input_files("#picture", EXAMPLE)
+    page.wait_for_function(f"(document.getElementById('figures').dataset.job || '{job}') !== '{job}'", timeout=60_000)
+    again = page.get_attribute("#figures", "data-job")
+    assert json.loads(request(f"{url}api/jobs/{again}/files/params.json")[1])["init"] == "uploaded params.json"
     page.close()
 
 

@@ -85,7 +85,11 @@ function showRanges(ranges) {
     const button = document.createElement("button");
     button.textContent = alike.label;
     button.title = `decodes within ${alike.rmse.toFixed(2)} RMSE of the fit: click to start from it`;
-    button.addEventListener("click", () => setValues(alike.values));
+    button.addEventListener("click", () => {
+      state.init = alike.values; // a starting point: it joins the candidates of the next fits, as a loaded params.json
+      $("init-note").textContent = `look-alike ${alike.label}: joins the candidates of the next fits`;
+      setValues(alike.values);
+    });
     box.append(button);
   }
   $("look-alikes-row").hidden = !box.childElementCount;
