@@ -164,6 +164,7 @@ def _fit_checked(
         outcome.variant = renderer.variant
     mitsuba_stages(outcome, request, model, weights, verifier=background or renderer, renderer=renderer)
     decide(outcome, model, model_path, weights, (background or renderer) if request.verified else None, request.answer)
+    refinement_stage(outcome, request, model, weights, renderer)
     outcome.document = document(outcome, request, model_path)
     return outcome, renderer
 
@@ -205,25 +206,38 @@ def search_stage(request: Request, model, target, weights, init_values, backgrou
 
 
 def mitsuba_stages(outcome: Outcome, request: Request, model, weights, *, verifier, renderer) -> None:
-    """Sets the answer of `outcome` after Mitsuba's stages: verification (after the rounds of correction), then
-    refinement; with neither, the render of the fit's answer when a renderer was made."""
+    """Sets the answer of `outcome` after verification (after the rounds of correction); without verification or
+    refinement, the render of the fit's answer when a renderer was made."""
     result, target = outcome.result, outcome.target
     if request.verified:
         outcome.verified = verification_stage(request, model, result, target, weights, verifier)
         outcome.unit, outcome.rendered = outcome.verified.unit, outcome.verified.rendered
+        answer_image(outcome, model, weights)
     elif renderer is not None and not request.refine_steps:
         outcome.rendered = images.srgb_encode(renderer.render(result.values, seed=verify.SEED))
-    if request.refine_steps:
-        outcome.refined = refine.refine(
-            outcome.unit, target, steps=request.refine_steps, weights=weights, renderer=renderer
-        )
-        outcome.unit, outcome.rendered = outcome.refined.unit, outcome.refined.rendered
-    if request.verified or request.refine_steps:
-        decoded = result.decoded(outcome.unit)  # verification keeps a point the fit decoded (or a round decoded)
-        if decoded is None and outcome.verified is not None:
-            decoded = outcome.verified.decoded.get(outcome.verified.chosen)
-        outcome.image = model.decode(outcome.unit)[0] if decoded is None else decoded
-        outcome.neural_rmse = float(images.rmse(outcome.image, target, weights))
+
+
+def refinement_stage(outcome: Outcome, request: Request, model, weights, renderer) -> None:
+    """Refines the answer (verification's, or the clean one) through Mitsuba's differentiable renderer, when asked:
+    the last stage, so the answer returned is the one refinement kept."""
+    if not request.refine_steps:
+        return
+    outcome.refined = refine.refine(
+        outcome.unit, outcome.target, steps=request.refine_steps, weights=weights, renderer=renderer
+    )
+    outcome.unit, outcome.rendered = outcome.refined.unit, outcome.refined.rendered
+    answer_image(outcome, model, weights)
+
+
+def answer_image(outcome: Outcome, model, weights) -> None:
+    """Sets the decoded image and neural RMSE of the answer: one the fit (or verification's rounds) decoded, else
+    decoded now."""
+    decoded = outcome.result.decoded(outcome.unit)
+    verified = outcome.verified
+    if decoded is None and verified is not None and np.array_equal(outcome.unit, verified.unit):
+        decoded = verified.decoded.get(verified.chosen)
+    outcome.image = model.decode(outcome.unit)[0] if decoded is None else decoded
+    outcome.neural_rmse = float(images.rmse(outcome.image, outcome.target, weights))
 
 
 def verification_stage(request: Request, model, result, target, weights, renderer) -> verify.Verified:
@@ -281,16 +295,6 @@ def document(outcome: Outcome, request: Request, model_path: str) -> dict:
         }
     elif outcome.rendered is not None:
         mitsuba = {"mitsuba_rmse": round(float(images.rmse(outcome.rendered, outcome.target)), 3)}
-    if outcome.refined is not None:
-        refined = outcome.refined
-        mitsuba["mitsuba_rmse"] = round(refined.rmse, 3)  # the kept point's acceptance render
-        mitsuba["refinement"] = {
-            "steps": refined.steps,
-            "kept": refined.accepted,
-            "mitsuba_rmse_before": round(refined.rmse_before, 3),
-            "mitsuba_rmse_after": round(refined.rmse_after, 3),
-            "seconds": round(refined.seconds, 3),
-        }
     if outcome.cleaned is not None:
         cleaned = outcome.cleaned
         if cleaned.figures:
@@ -304,6 +308,16 @@ def document(outcome: Outcome, request: Request, model_path: str) -> dict:
             "free_not_neutral": {"best": cleaned.free_before, "answer": cleaned.free_after},
             "best": params.to_mapping(params.from_unit(cleaned.best)),
             "seconds": round(cleaned.seconds, 3),
+        }
+    if outcome.refined is not None:
+        refined = outcome.refined
+        mitsuba["mitsuba_rmse"] = round(refined.rmse, 3)  # the kept point's acceptance render
+        mitsuba["refinement"] = {
+            "steps": refined.steps,
+            "kept": refined.accepted,
+            "mitsuba_rmse_before": round(refined.rmse_before, 3),
+            "mitsuba_rmse_after": round(refined.rmse_after, 3),
+            "seconds": round(refined.seconds, 3),
         }
     if outcome.ranges is not None:
         mitsuba["ranges"] = outcome.ranges.document()
