@@ -145,29 +145,15 @@ def judge(renderer, best: np.ndarray, clean: np.ndarray, target: np.ndarray, wei
     difference is within LEAD standard errors, up to MAX_BATCHES). The clean one is kept unless the other is
     better by more than LEAD standard errors: verification's own rule, the clean one in the start's place.
     `noise`: the render noise of the best's mean render (`render_noise`), recorded beside the figures."""
-    weights = np.ones(target.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
+    weights = verify.as_weights(target, weights)
     pool = {"clean": clean, "best": best}
     batches: dict[str, list[np.ndarray]] = {name: [] for name in pool}
-
-    def render_more(names, count):
-        for name in names:
-            for j in range(len(batches[name]), count):
-                renderer.prefetch(params.from_unit(pool[name]), verify.BATCH_SEED + j, verify.SPP)
-        for name in names:
-            done = batches[name]
-            done.extend(
-                images.srgb_encode(
-                    renderer.render(params.from_unit(pool[name]), seed=verify.BATCH_SEED + j, spp=verify.SPP)
-                )
-                for j in range(len(done), count)
-            )
-
-    render_more(list(pool), verify.BATCHES)
+    verify.render_batches(renderer, pool, batches, list(pool), count=verify.BATCHES, spp=verify.SPP)
     while True:
         leader, estimates, margins = verify.decide(batches, target, weights)
         if leader == "clean" or margins["clean"] >= verify.LEAD or len(batches["best"]) >= verify.MAX_BATCHES:
             break
-        render_more(list(pool), len(batches["best"]) + 1)
+        verify.render_batches(renderer, pool, batches, list(pool), count=len(batches["best"]) + 1, spp=verify.SPP)
     figures = {name: 255.0 * float(np.sqrt(max(value, 0.0))) for name, value in estimates.items()}
     noise = render_noise(batches["best"], target, weights)
     chosen = "best" if leader == "best" and margins["clean"] >= verify.LEAD else "clean"
