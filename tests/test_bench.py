@@ -78,3 +78,53 @@ def test_budget_plot_is_a_readable_picture(tmp_path):
 def test_an_answer_judged_again_counts_as_no_worse_than_itself_despite_render_jitter():
     # two renders of one material with one seed differ in the sixth decimal of their RMSE (threads sum in any order)
     np.testing.assert_array_equal(reachable.no_worse([1.000002, 0.9, 1.2], [1.0, 1.0, 1.1]), [True, True, False])
+
+
+def calibrated_case(name: str, truth: np.ndarray) -> dict:
+    """A finished case of `bench-ranges` as its results file holds it: every parameter decided on [0.4, 0.6] with
+    the mean as tau, and with the 95th percentile on [0.3, 0.7] but parameter 0 partly, on [0.1, 0.9]."""
+    from matfit import params
+    from matfit.app.bench import ranges
+    from matfit.fit import ranges as fit_ranges
+
+    def ranges_of(low: float, high: float, tau: float) -> dict:
+        lows, highs = np.full(params.COUNT, low), np.full(params.COUNT, high)
+        if tau > 2:
+            lows[0], highs[0] = 0.1, 0.9
+        verdicts = ["partly" if tau > 2 and i == 0 else "decided" for i in range(params.COUNT)]
+        inside = (truth >= lows) & (truth <= highs)
+        return {"threshold": tau, "verdicts": verdicts, "low": lows.tolist(), "high": highs.tolist(),
+                "inside": inside.tolist(), "seconds": 0.1}  # fmt: skip
+
+    calibration = {"mean": ranges_of(0.4, 0.6, 1.8), "p95": ranges_of(0.3, 0.7, 2.9)}
+    assert set(calibration) == set(ranges.STATISTICS)
+    return {"name": name, "answer": [0.5] * params.COUNT, "truth": truth.tolist(), **calibration[fit_ranges.STATISTIC],
+            "calibration": calibration, "fit_seconds": 2.0, "range_seconds": 0.1, "simplest_seconds": 0.01,
+            "dropped": [], "free_before": 0, "checks": [{"parameter": "sheen", "verdict": "decided", "neural": 1.0,
+            "mitsuba": 2.0}]}  # fmt: skip
+
+
+def test_bench_ranges_goes_on_from_its_results_file_and_tabulates_each_tau(tmp_path, monkeypatch, model):
+    import json
+
+    from matfit.app.bench import ranges
+
+    truth = np.full(19, 0.65)  # inside every p95 range, outside every mean one
+    results = tmp_path / "ranges.json"
+    results.write_text(json.dumps({"cases": [calibrated_case("reachable-0", truth), {"name": "reachable-1"}]}))
+
+    def refit(*args, **kwargs):
+        raise AssertionError("a finished case was fitted again")
+
+    monkeypatch.setattr(ranges, "case", refit)
+    assert list(ranges.finished(str(results))) == ["reachable-0"]  # a case of another format is fitted again
+    figures = ranges.run(model, 1, 0, [], log=lambda line: None, results=str(results))
+    assert figures["cases"] == [calibrated_case("reachable-0", truth)]
+    text = ranges.table(figures)
+    first, second = text.index("95th-percentile"), text.index("tau = the decoder's mean")
+    assert first < second  # the default tau's table comes first
+    assert "| base_color_r | - (0) | 100% (1) | - (0) | - | 0.8 reflectance |" in text[first:second]
+    assert "| base_color_g | 100% (1) | - (0) | - (0) | 0.4 reflectance | - |" in text[first:second]
+    assert "| all | 100% (18) | 100% (1) | - (0) | | |" in text[first:second]
+    assert "| all | 0% (19) | - (0) | - (0) | | |" in text[second:]
+    assert "| decided | 1 | 1.00 | 2.00 | 100% |" in text  # Mitsuba 2.0 within the default tau, 2.9

@@ -134,3 +134,22 @@ def test_the_clean_answer_turns_off_what_the_picture_leaves_free_and_keeps_what_
     # density and scattering (phase_g 0 and sheen_tint 0.5 are neutral already)
     assert clean.free_away_from_neutral(x, found.verdicts) == 9
     assert clean.free_away_from_neutral(simple, found.verdicts) == 0
+
+
+def test_the_threshold_is_the_shipped_cards_figure_for_the_answers_kind_of_material(tmp_path):
+    import json
+
+    from matfit import shipped
+
+    with open(shipped.MODEL / ranges.EVALUATION, encoding="utf-8") as file:
+        card = json.load(file)
+    opaque = params.to_unit(params.DEFAULTS)
+    tau, source = ranges.threshold(str(tmp_path), opaque)  # a model directory without a card: the shipped one's
+    assert tau == card["decoder_rmse_opaque"]["p95"] and "shipped model's 95th-percentile" in source
+    assert "opaque" in source
+    glass = params.from_unit(opaque)
+    glass[params.INDEX["spec_trans"]] = 1.0
+    tau, source = ranges.threshold(str(tmp_path), params.to_unit(glass), statistic="mean")
+    assert tau == card["decoder_rmse_transmissive"]["mean"] and "transmissive" in source
+    with pytest.raises(ValueError, match="unknown statistic 'p99'"):
+        ranges.threshold(str(tmp_path), opaque, statistic="p99")

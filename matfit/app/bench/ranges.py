@@ -5,18 +5,22 @@ Each reachable target (`reachable.reachable_targets`: the training distribution,
 verification with `methods.CORRECTIONS` rounds of correction); the ranges of the kept answer
 (`ranges.measure`, tau from the model's evaluation.json) are then compared with the true
 parameters. Per parameter the table gives, by verdict, how often the true value lies inside the
-reported range and the mean width in physical units. Mitsuba checks the ranges' ends on a
+reported range and the mean width in physical units, with tau each of the card's STATISTICS (the
+ranges of the same answer measured again: the default, `ranges.STATISTIC`, and the mean the
+calibration started from). Mitsuba checks the ranges' ends on a
 sample: CHECKED parameters per target (fixed seed), each end rendered in VERIFY batches with
 verification's seeds beside the answer's, and the noise-free RMSE between the two estimated
 without bias (`verify.squared_error` of the paired differences); for a "free" parameter that
 distance must stay below tau. The first `judged` targets also judge the clean answer against
 the fit's (`clean.clean`) by an independent `reachable.JUDGE_SPP`-spp render each
-(docs/fitting.md#what-the-picture-decides).
+(docs/fitting.md#what-the-picture-decides). Each case is written to the results file as it ends
+and a run given the same file goes on from the cases it holds.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import time
 
 import numpy as np
@@ -30,6 +34,7 @@ from matfit.model import models
 CHECKED = 3  # parameters per target whose range ends Mitsuba renders
 CHECK_SEED = 4242
 VERIFY = verify.BATCHES  # batches of each end and of the answer
+STATISTICS = ("mean", ranges.STATISTIC)  # the card's figures the ranges are calibrated with, as tau
 
 
 def mitsuba_distance(renderer, a: np.ndarray, b: np.ndarray) -> float:
@@ -55,30 +60,42 @@ def fit_case(model: models.Model, renderer, target: np.ndarray) -> tuple[np.ndar
 
 
 def case(model: models.Model, renderer, target: np.ndarray, truth: np.ndarray | None, index: int, judge: bool) -> dict:
-    """Returns one target's figures (see the module docstring); `truth`: its unit-cube parameters, or None."""
+    """Returns one target's figures (see the module docstring); `truth`: its unit-cube parameters, or None. The
+    top-level range figures are those of `ranges.STATISTIC`; `calibration` has them for each of STATISTICS."""
+    truth = None if truth is None else np.asarray(truth, np.float64)
     answer, fit_seconds = fit_case(model, renderer, target)
     decoding = ranges.Decoding(model.decoder.module)
-    tau, _ = ranges.threshold(model.path, answer)
-    started = time.perf_counter()
-    found = ranges.measure(decoding, model.decoder.variables, answer, None, tau)
-    range_seconds = time.perf_counter() - started
+    calibration, measured_by = {}, {}
+    for statistic in STATISTICS:
+        tau, _ = ranges.threshold(model.path, answer, statistic=statistic)
+        started = time.perf_counter()
+        measured = ranges.measure(decoding, model.decoder.variables, answer, None, tau)
+        calibration[statistic] = {
+            "threshold": tau,
+            "verdicts": list(measured.verdicts),
+            "low": measured.low.tolist(),
+            "high": measured.high.tolist(),
+            "seconds": time.perf_counter() - started,
+        }
+        if truth is not None:
+            inside = (truth >= measured.low - 1e-6) & (truth <= measured.high + 1e-6)
+            calibration[statistic]["inside"] = inside.tolist()
+        measured_by[statistic] = measured
+    found = measured_by[ranges.STATISTIC]
     started = time.perf_counter()
     _, dropped = clean.simplest(decoding, model.decoder.variables, answer, target, None, found)
     simplest_seconds = time.perf_counter() - started
     out = {
-        "threshold": tau,
-        "verdicts": list(found.verdicts),
-        "low": found.low.tolist(),
-        "high": found.high.tolist(),
+        "answer": answer.tolist(),
+        "truth": None if truth is None else truth.tolist(),
+        **calibration[ranges.STATISTIC],
+        "calibration": calibration,
         "fit_seconds": fit_seconds,
-        "range_seconds": range_seconds,
+        "range_seconds": calibration[ranges.STATISTIC]["seconds"],
         "simplest_seconds": simplest_seconds,
         "dropped": list(dropped),
         "free_before": clean.free_away_from_neutral(answer, found.verdicts),
     }
-    if truth is not None:
-        truth = np.asarray(truth, np.float64)
-        out["inside"] = ((truth >= found.low - 1e-6) & (truth <= found.high + 1e-6)).tolist()
     checks = []
     chosen = np.random.default_rng([CHECK_SEED, index]).choice(params.COUNT, CHECKED, replace=False)
     for i in chosen:
@@ -117,6 +134,16 @@ def warm_up(model: models.Model, renderer, target: np.ndarray) -> None:
     clean.simplest(decoding, model.decoder.variables, answer, target, None, found)
 
 
+def finished(results: str | None) -> dict[str, dict]:
+    """Returns {case name: its figures} of a results file written by `run` in this format (cases with the answer
+    and every statistic's calibration); {} when there is none."""
+    if results is None or not os.path.isfile(results):
+        return {}
+    with open(results, encoding="utf-8") as file:
+        cases = json.load(file).get("cases", [])
+    return {c["name"]: c for c in cases if "answer" in c and set(STATISTICS) <= set(c.get("calibration", {}))}
+
+
 def run(
     model: models.Model,
     count: int,
@@ -126,36 +153,47 @@ def run(
     results: str | None = None,
 ) -> dict:
     """Returns every case's figures: `count` reachable targets (the first `judged` also judged clean against best),
-    then the named sRGB `examples` (judged, no truth); each finished case is written to `results` (JSON) at once."""
+    then the named sRGB `examples` (judged, no truth); each finished case is written to `results` (JSON) at once,
+    and the cases `results` already holds (`finished`, judged where they must be) are taken from it."""
     from matfit.render.engine import Renderer
 
     renderer = Renderer(model.resolution, verify.SPP)
     targets = reachable.reachable_targets(renderer, count)
-    warm_up(model, renderer, targets.images[0])
+    done = finished(results)
     cases: list[dict] = []
+    warm = False
 
     def save() -> None:
         if results is not None:
             files.write_text(results, json.dumps({"cases": cases}))
 
-    for k, (truth, target) in enumerate(zip(targets.unit, targets.images, strict=True)):
-        cases.append({"name": f"reachable-{k}", **case(model, renderer, target, truth, k, k < judged)})
-        save()
-        log(f"reachable {k + 1}/{count}")
-    for k, (name, target) in enumerate(examples):
-        cases.append({"name": name, **case(model, renderer, target, None, count + k, True)})
-        save()
-        log(f"example {name}")
+    work = [
+        (f"reachable-{k}", target, truth, k < judged)
+        for k, (truth, target) in enumerate(zip(targets.unit, targets.images, strict=True))
+    ]
+    work += [(name, target, None, True) for name, target in examples]
+    for k, (name, target, truth, judge) in enumerate(work):
+        if name in done and (not judge or "judged" in done[name]):
+            cases.append(done[name])
+        else:
+            if not warm:
+                warm_up(model, renderer, target)
+                warm = True
+            cases.append({"name": name, **case(model, renderer, target, truth, k, judge)})
+            save()
+        log(f"{name} ({k + 1}/{len(work)})")
     return {"cases": cases}
 
 
-def table(figures: dict) -> str:
-    """Returns the markdown tables of a run: per parameter, then the Mitsuba checks, the clean answer, the cost."""
-    cases = figures["cases"]
-    calibrated = [c for c in cases if "inside" in c]
+def calibration_table(cases: list[dict], statistic: str) -> list[str]:
+    """Returns the markdown lines of the calibration with tau the card's `statistic`: per parameter, by verdict,
+    the share of true values inside the range (count) and the mean width in physical units."""
+    calibrated = [c["calibration"][statistic] for c in cases if c.get("truth") is not None]
+    taus = sorted({round(c["threshold"], 2) for c in calibrated})
     lines = [
-        f"Calibration on {len(calibrated)} reachable targets (default fit, tau = the decoder's mean error on the "
-        "answer's kind of material): share of true values inside the range, by verdict (count), and mean width.",
+        f"Calibration on {len(calibrated)} reachable targets (default fit, tau = the decoder's "
+        f"{ranges.STATISTICS[statistic]} error on the answer's kind of material: {', '.join(map(str, taus))}): share "
+        "of true values inside the range, by verdict (count), and mean width.",
         "",
         "| parameter | decided: inside | partly: inside | free: inside | mean width decided | mean width partly |",
         "|---|---|---|---|---|---|",
@@ -174,9 +212,18 @@ def table(figures: dict) -> str:
         lines.append(f"| {p.name} | {' | '.join(cells)} | {' | '.join(widths)} |")
     overall = [f"{hit / total:.0%} ({total})" if total else "- (0)" for hit, total in totals.values()]
     lines.append(f"| all | {' | '.join(overall)} | | |")
+    return lines
+
+
+def table(figures: dict) -> str:
+    """Returns the markdown tables of a run: the calibration (the default tau first, then the other STATISTICS),
+    the Mitsuba checks, the clean answer, the cost."""
+    cases = figures["cases"]
+    lines = []
+    for statistic in sorted(STATISTICS, key=lambda s: s != ranges.STATISTIC):
+        lines += [*calibration_table(cases, statistic), ""]
     checks = [check for c in cases for check in c["checks"]]
     lines += [
-        "",
         f"Mitsuba at the ranges' ends ({len(checks)} ends of {CHECKED} parameters per target): the estimated "
         "noise-free RMSE between the end's render and the answer's, against tau.",
         "",
