@@ -85,7 +85,6 @@ def calibrated_case(name: str, truth: np.ndarray) -> dict:
     the mean as tau, and with the 95th percentile on [0.3, 0.7] but parameter 0 partly, on [0.1, 0.9]."""
     from matfit import params
     from matfit.app.bench import ranges
-    from matfit.fit import ranges as fit_ranges
 
     def ranges_of(low: float, high: float, tau: float) -> dict:
         lows, highs = np.full(params.COUNT, low), np.full(params.COUNT, high)
@@ -98,10 +97,10 @@ def calibrated_case(name: str, truth: np.ndarray) -> dict:
 
     calibration = {"mean": ranges_of(0.4, 0.6, 1.8), "p95": ranges_of(0.3, 0.7, 2.9)}
     assert set(calibration) == set(ranges.STATISTICS)
-    return {"name": name, "answer": [0.5] * params.COUNT, "truth": truth.tolist(), **calibration[fit_ranges.STATISTIC],
-            "calibration": calibration, "fit_seconds": 2.0, "range_seconds": 0.1, "simplest_seconds": 0.01,
-            "dropped": [], "free_before": 0, "checks": [{"parameter": "sheen", "verdict": "decided", "neural": 1.0,
-            "mitsuba": 2.0}]}  # fmt: skip
+    return {"name": name, "answer": [0.5] * params.COUNT, "settings": ranges.settings(), "truth": truth.tolist(),
+            **calibration["mean"], "calibration": calibration, "fit_seconds": 2.0, "range_seconds": 0.1,
+            "simplest_seconds": 0.01, "dropped": [], "free_before": 0, "checks": [{"parameter": "sheen",
+            "verdict": "decided", "neural": 1.0, "mitsuba": 1.5}]}  # fmt: skip
 
 
 def test_bench_ranges_goes_on_from_its_results_file_and_tabulates_each_tau(tmp_path, monkeypatch, model):
@@ -110,21 +109,34 @@ def test_bench_ranges_goes_on_from_its_results_file_and_tabulates_each_tau(tmp_p
     from matfit.app.bench import ranges
 
     truth = np.full(19, 0.65)  # inside every p95 range, outside every mean one
+    stale = {**calibrated_case("reachable-1", truth), "settings": {"checks": 3}, "answer": [0.25] * 19}
     results = tmp_path / "ranges.json"
-    results.write_text(json.dumps({"cases": [calibrated_case("reachable-0", truth), {"name": "reachable-1"}]}))
+    cases = [calibrated_case("reachable-0", truth), stale, {"name": "reachable-2"}]
+    results.write_text(json.dumps({"cases": cases}))
+    measured = []
 
-    def refit(*args, **kwargs):
-        raise AssertionError("a finished case was fitted again")
+    def measure(model, renderer, target, truth, index, judge, fitted=None):
+        measured.append((index, fitted))
+        return {key: value for key, value in calibrated_case("", truth).items() if key != "name"}
 
-    monkeypatch.setattr(ranges, "case", refit)
-    assert list(ranges.finished(str(results))) == ["reachable-0"]  # a case of another format is fitted again
-    figures = ranges.run(model, 1, 0, [], log=lambda line: None, results=str(results))
-    assert figures["cases"] == [calibrated_case("reachable-0", truth)]
-    text = ranges.table(figures)
-    first, second = text.index("95th-percentile"), text.index("tau = the decoder's mean")
+    monkeypatch.setattr(ranges, "case", measure)
+    assert list(ranges.finished(str(results))) == ["reachable-0", "reachable-1"]  # reachable-2 holds no answer
+    monkeypatch.setattr(ranges, "warm_up", lambda *args: None)
+    figures = ranges.run(model, 3, 0, [], log=lambda line: None, results=str(results))
+    assert figures["cases"][0] == calibrated_case("reachable-0", truth)  # measured with today's settings: kept
+    # measured with other settings: measured again from its stored answer; never fitted: fitted now
+    assert [(index, fitted and (fitted[0].tolist(), fitted[1])) for index, fitted in measured] == [
+        (1, ([0.25] * 19, 2.0)),
+        (2, None),
+    ]
+    assert [c["name"] for c in figures["cases"]] == ["reachable-0", "reachable-1", "reachable-2"]
+    assert json.loads(results.read_text()) == figures
+    text = ranges.table({"cases": figures["cases"][:1]})
+    first, second = text.index("tau = the decoder's mean"), text.index("95th-percentile")
     assert first < second  # the default tau's table comes first
-    assert "| base_color_r | - (0) | 100% (1) | - (0) | - | 0.8 reflectance |" in text[first:second]
-    assert "| base_color_g | 100% (1) | - (0) | - (0) | 0.4 reflectance | - |" in text[first:second]
-    assert "| all | 100% (18) | 100% (1) | - (0) | | |" in text[first:second]
-    assert "| all | 0% (19) | - (0) | - (0) | | |" in text[second:]
-    assert "| decided | 1 | 1.00 | 2.00 | 100% |" in text  # Mitsuba 2.0 within the default tau, 2.9
+    assert "| base_color_r | 0% (1) | - (0) | - (0) | 0.2 reflectance | - |" in text[first:second]
+    assert "| all | 0% (19) | - (0) | - (0) | | |" in text[first:second]
+    assert "| base_color_r | - (0) | 100% (1) | - (0) | - | 0.8 reflectance |" in text[second:]
+    assert "| base_color_g | 100% (1) | - (0) | - (0) | 0.4 reflectance | - |" in text[second:]
+    assert "| all | 100% (18) | 100% (1) | - (0) | | |" in text[second:]
+    assert "| decided | 1 | 1.00 | 1.50 | 100% |" in text  # Mitsuba 1.5 within the default tau, 1.8

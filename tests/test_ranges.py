@@ -145,11 +145,11 @@ def test_the_threshold_is_the_shipped_cards_figure_for_the_answers_kind_of_mater
         card = json.load(file)
     opaque = params.to_unit(params.DEFAULTS)
     tau, source = ranges.threshold(str(tmp_path), opaque)  # a model directory without a card: the shipped one's
-    assert tau == card["decoder_rmse_opaque"]["p95"] and "shipped model's 95th-percentile" in source
+    assert tau == card["decoder_rmse_opaque"]["mean"] and "shipped model's mean" in source
     assert "opaque" in source
     glass = params.from_unit(opaque)
     glass[params.INDEX["spec_trans"]] = 1.0
-    tau, source = ranges.threshold(str(tmp_path), params.to_unit(glass), statistic="mean")
-    assert tau == card["decoder_rmse_transmissive"]["mean"] and "transmissive" in source
+    tau, source = ranges.threshold(str(tmp_path), params.to_unit(glass), statistic="p95")
+    assert tau == card["decoder_rmse_transmissive"]["p95"] and "95th-percentile" in source and "transmissive" in source
     with pytest.raises(ValueError, match="unknown statistic 'p99'"):
         ranges.threshold(str(tmp_path), opaque, statistic="p99")

@@ -6,15 +6,16 @@ verification with `methods.CORRECTIONS` rounds of correction); the ranges of the
 (`ranges.measure`, tau from the model's evaluation.json) are then compared with the true
 parameters. Per parameter the table gives, by verdict, how often the true value lies inside the
 reported range and the mean width in physical units, with tau each of the card's STATISTICS (the
-ranges of the same answer measured again: the default, `ranges.STATISTIC`, and the mean the
-calibration started from). Mitsuba checks the ranges' ends on a
+ranges of the same answer measured again with the mean, the default `ranges.STATISTIC`, and with
+the 95th percentile). Mitsuba checks the ranges' ends on a
 sample: CHECKED parameters per target (fixed seed), each end rendered in VERIFY batches with
 verification's seeds beside the answer's, and the noise-free RMSE between the two estimated
 without bias (`verify.squared_error` of the paired differences); for a "free" parameter that
 distance must stay below tau. The first `judged` targets also judge the clean answer against
 the fit's (`clean.clean`) by an independent `reachable.JUDGE_SPP`-spp render each
 (docs/fitting.md#what-the-picture-decides). Each case is written to the results file as it ends
-and a run given the same file goes on from the cases it holds.
+and a run given the same file goes on from the cases it holds (measuring their stored answers again
+when the ranges' settings changed since).
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from matfit.model import models
 CHECKED = 3  # parameters per target whose range ends Mitsuba renders
 CHECK_SEED = 4242
 VERIFY = verify.BATCHES  # batches of each end and of the answer
-STATISTICS = ("mean", ranges.STATISTIC)  # the card's figures the ranges are calibrated with, as tau
+STATISTICS = ("mean", "p95")  # the card's figures the ranges are calibrated with as tau, `ranges.STATISTIC` among them
 
 
 def mitsuba_distance(renderer, a: np.ndarray, b: np.ndarray) -> float:
@@ -59,11 +60,31 @@ def fit_case(model: models.Model, renderer, target: np.ndarray) -> tuple[np.ndar
     return np.asarray(kept.unit, np.float64), time.perf_counter() - started
 
 
-def case(model: models.Model, renderer, target: np.ndarray, truth: np.ndarray | None, index: int, judge: bool) -> dict:
-    """Returns one target's figures (see the module docstring); `truth`: its unit-cube parameters, or None. The
-    top-level range figures are those of `ranges.STATISTIC`; `calibration` has them for each of STATISTICS."""
+def settings() -> dict:
+    """Returns what the ranges of a case depend on besides its answer: `ranges`' settings and the statistics."""
+    return {
+        "checks": ranges.CHECKS,
+        "bisections": ranges.BISECTIONS,
+        "sweeps": ranges.SWEEPS,
+        "growth": ranges.GROWTH,
+        "statistics": list(STATISTICS),
+    }
+
+
+def case(
+    model: models.Model,
+    renderer,
+    target: np.ndarray,
+    truth: np.ndarray | None,
+    index: int,
+    judge: bool,
+    fitted: tuple[np.ndarray, float] | None = None,
+) -> dict:
+    """Returns one target's figures (see the module docstring); `truth`: its unit-cube parameters, or None;
+    `fitted`: (the answer, the fit's seconds) of an earlier run of this case, or None to fit it. The top-level range
+    figures are those of `ranges.STATISTIC`; `calibration` has them for each of STATISTICS."""
     truth = None if truth is None else np.asarray(truth, np.float64)
-    answer, fit_seconds = fit_case(model, renderer, target)
+    answer, fit_seconds = fit_case(model, renderer, target) if fitted is None else fitted
     decoding = ranges.Decoding(model.decoder.module)
     calibration, measured_by = {}, {}
     for statistic in STATISTICS:
@@ -87,6 +108,7 @@ def case(model: models.Model, renderer, target: np.ndarray, truth: np.ndarray | 
     simplest_seconds = time.perf_counter() - started
     out = {
         "answer": answer.tolist(),
+        "settings": settings(),
         "truth": None if truth is None else truth.tolist(),
         **calibration[ranges.STATISTIC],
         "calibration": calibration,
@@ -135,13 +157,13 @@ def warm_up(model: models.Model, renderer, target: np.ndarray) -> None:
 
 
 def finished(results: str | None) -> dict[str, dict]:
-    """Returns {case name: its figures} of a results file written by `run` in this format (cases with the answer
-    and every statistic's calibration); {} when there is none."""
+    """Returns {case name: its figures} of the cases of a results file written by `run` that hold their answer; {}
+    when there is none."""
     if results is None or not os.path.isfile(results):
         return {}
     with open(results, encoding="utf-8") as file:
         cases = json.load(file).get("cases", [])
-    return {c["name"]: c for c in cases if "answer" in c and set(STATISTICS) <= set(c.get("calibration", {}))}
+    return {c["name"]: c for c in cases if "answer" in c}
 
 
 def run(
@@ -153,8 +175,9 @@ def run(
     results: str | None = None,
 ) -> dict:
     """Returns every case's figures: `count` reachable targets (the first `judged` also judged clean against best),
-    then the named sRGB `examples` (judged, no truth); each finished case is written to `results` (JSON) at once,
-    and the cases `results` already holds (`finished`, judged where they must be) are taken from it."""
+    then the named sRGB `examples` (judged, no truth); each finished case is written to `results` (JSON) at once.
+    A case `results` already holds is taken from it when it was measured with today's `settings` (and judged if
+    it must be), else measured again from its stored answer without fitting again."""
     from matfit.render.engine import Renderer
 
     renderer = Renderer(model.resolution, verify.SPP)
@@ -173,13 +196,16 @@ def run(
     ]
     work += [(name, target, None, True) for name, target in examples]
     for k, (name, target, truth, judge) in enumerate(work):
-        if name in done and (not judge or "judged" in done[name]):
-            cases.append(done[name])
+        earlier = done.get(name)
+        if earlier is not None and earlier.get("settings") == settings() and (not judge or "judged" in earlier):
+            cases.append(earlier)
         else:
             if not warm:
                 warm_up(model, renderer, target)
                 warm = True
-            cases.append({"name": name, **case(model, renderer, target, truth, k, judge)})
+            # a case fitted before keeps its answer: only what follows the fit is measured again
+            fitted = None if earlier is None else (np.asarray(earlier["answer"]), earlier["fit_seconds"])
+            cases.append({"name": name, **case(model, renderer, target, truth, k, judge, fitted)})
             save()
         log(f"{name} ({k + 1}/{len(work)})")
     return {"cases": cases}
