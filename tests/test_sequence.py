@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 from helpers import decode, random_model, true_point
 
-from matfit import files, images
-from matfit.errors import OutputError
-from matfit.fit import search, sequence
+from matfit import files, images, params
+from matfit.errors import FitError, ImageError, OutputError
+from matfit.fit import fitfile, search, sequence
+from matfit.fit.request import Outputs, Request
 from matfit.fit.sequence import SequenceError
 
 
@@ -48,15 +49,17 @@ def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, mod
     whole = sequence.fit_sequence(model, frames, out=str(tmp_path / "whole"), settings=settings)
     assert len(whole) == 4
     seen = []
-    original = search.neural_search
+    original = fitfile.fit_neural
 
-    def spy(model_, target, *, settings, extra=None):
-        result = original(model_, target, settings=settings, extra=extra)
-        seen.append((extra, result.candidate_rmse))
+    def spy(request, model_):  # every frame is fitted through one Request on the fit path
+        result = original(request, model_)
+        seen.append((request.candidates, result.candidate_rmse))
+        assert request.target in frames and request.pixels.shape == (model.resolution, model.resolution, 3)
+        assert not request.verified and request.outputs is None and request.settings == settings
         return result
 
     with monkeypatch.context() as patch:
-        patch.setattr(search, "neural_search", spy)
+        patch.setattr(fitfile, "fit_neural", spy)
         partial = sequence.fit_sequence(model, frames[:2], out=str(tmp_path / "parts"), settings=settings)
         resumed = sequence.fit_sequence(model, frames, out=str(tmp_path / "parts"), settings=settings)
     assert seen[0][0] is None and "extra-1" not in seen[0][1]
@@ -69,6 +72,46 @@ def test_reinit_pool_holds_the_previous_optimum_and_resume_matches(tmp_path, mod
         assert a.rmse == pytest.approx(b.rmse, abs=1e-4)
     document = json.loads((tmp_path / "parts" / "f3.json").read_text())
     assert document["sequence"]["index"] == 3 and document["sequence"]["settings"]["reinit"] is True
+
+
+def test_a_frame_request_fits_as_the_direct_search_and_a_bad_one_is_refused(tmp_path, model, frames):
+    """A frame's Request (the frame as read, the previous optimum a candidate) gives what neural_search gives."""
+    settings = search.Settings(method="hybrid", evaluations=40)
+    target = sequence.load_frame(frames[1], model.resolution)
+    previous = search.neural_search(model, sequence.load_frame(frames[0], model.resolution), settings=settings).unit
+    candidates = previous.astype(np.float32)[None]
+    direct = search.neural_search(model, target, settings=settings, extra=candidates)
+    frame = dict(settings=settings, verified=False, answer="best", candidates=candidates)
+    read = fitfile.fit_neural(Request(frames[1], pixels=target, **frame), model)
+    from_file = fitfile.fit_neural(Request(frames[1], **frame), model)  # the same picture, read from its file
+    for result in (read, from_file):
+        np.testing.assert_array_equal(result.unit, direct.unit)
+        assert (result.rmse, result.chosen, result.evaluations) == (direct.rmse, direct.chosen, direct.evaluations)
+    assert "extra-1" in read.candidate_rmse  # the previous optimum was among the candidates
+    # The source material's physical values come first, the unit-cube candidates after them, unconverted.
+    init = params.from_unit(np.full(params.COUNT, 0.25))
+    both = Request(frames[1], init_values=init, **frame).extra_candidates()
+    np.testing.assert_array_equal(both[1], candidates[0])
+    np.testing.assert_allclose(both[0], 0.25, atol=1e-12)
+    # A mask weighs the picture as read just as it weighs the one read from its file.
+    mask = str(tmp_path / "mask.png")
+    images.write(mask, np.tile(np.linspace(0, 1, 32, dtype=np.float32)[None, :, None], (32, 1, 3)))
+    masked = [
+        fitfile.fit_neural(Request(frames[1], mask=mask, pixels=pixels, **frame), model) for pixels in (target, None)
+    ]
+    np.testing.assert_array_equal(masked[0].unit, masked[1].unit)
+    assert masked[0].rmse != read.rmse
+    with pytest.raises(ValueError, match="not verification, the clean answer: call fit_file"):
+        fitfile.fit_neural(Request(frames[1], pixels=target), model)
+    with pytest.raises(ValueError, match="not refinement, outputs"):
+        fitfile.fit_neural(
+            Request(frames[1], refine_steps=2, outputs=Outputs(str(tmp_path / "p.json")), **frame), model
+        )
+    with pytest.raises(ImageError, match=r"target .*gone\.png is not a file"):
+        fitfile.fit_neural(Request(str(tmp_path / "gone.png"), pixels=target, **frame), model)
+    bad = dict(frame, settings=search.Settings(method="hybrid", evaluations=40, starts=0))
+    with pytest.raises(FitError, match="starts 0 is out of range"):
+        fitfile.fit_neural(Request(frames[1], pixels=target, **bad), model)
 
 
 def test_no_reinit_never_offers_the_previous_frame(tmp_path, model, frames):

@@ -4,7 +4,8 @@ This is what `matfit fit` does, as a library function: `run(request, model)` (a 
 reads and checks the inputs, fits (`search.neural_search`), lets Mitsuba choose among the fit's final
 candidates (`verify.verify_candidates`, or `verify.correct_then_verify` after rounds of correction; on
 by default), and writes params.json, the report, the render and the exports under temporary names,
-renaming them into place only once all of them were written.
+renaming them into place only once all of them were written. `fit_neural(request, model)` runs the
+neural search alone for a request that asks for nothing after it (each frame of `sequence`).
 """
 
 from __future__ import annotations
@@ -150,12 +151,12 @@ def _fit_checked(
     request: Request, model: models.Model | str, renderer: render.Renderer | Process | None
 ) -> tuple[Outcome, render.Renderer | Process | None]:
     """Returns `fit_file`'s answer to a checked request: the search, then Mitsuba's stages, then the document."""
-    init_values = request.initial_values()
+    extra = request.extra_candidates()
     model_path = model if isinstance(model, str) else model.path
     model = load_model(model) if isinstance(model, str) else model
-    target, weights, notices = read_target(request.target, model.resolution, mask=request.mask)
+    target, weights, notices = request_target(request, model.resolution)
     background, renderer = start_renderer(request, model.resolution, renderer)
-    result = search_stage(request, model, target, weights, init_values, background)
+    result = search_stage(request, model, target, weights, extra, background)
     outcome = Outcome(result, target, result.unit, result.image, result.rmse, notices=notices)
     if background is not None:
         renderer = background.renderer()
@@ -187,16 +188,55 @@ def start_renderer(
     return None, renderer
 
 
-def search_stage(request: Request, model, target, weights, init_values, background) -> search.Result:
+def fit_neural(request: Request, model: models.Model) -> search.Result:
+    """Returns the neural search's result for a request that asks for nothing after it (a sequence's frame).
+
+    The request must say so: no verification, refinement or outputs, and `answer="best"` (ValueError
+    otherwise: call `fit_file`). Its picture is `request.pixels` when given, else read from its file.
+    Unlike `fit_file`, a result whose RMSE is not finite is returned as it is: the caller records it.
+    """
+    asked = {
+        "verification": request.verified,
+        "refinement": bool(request.refine_steps),
+        "outputs": request.outputs is not None,
+        "the clean answer": request.answer == "clean",
+    }
+    if any(asked.values()):
+        named = ", ".join(name for name, on in asked.items() if on)
+        raise ValueError(f"fit_neural runs the neural search alone, not {named}: call fit_file for those")
+    request.check()
+    extra = request.extra_candidates()
+    target, weights, _ = request_target(request, model.resolution)
+    return neural_stage(request, model, target, weights, extra)
+
+
+def request_target(request: Request, resolution: int) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
+    """Returns `read_target`'s (target, mask weights or None, notices) for a request: its `pixels` when the picture
+    was read already (the mask sized by the picture file's header), else read from its file."""
+    if request.pixels is None:
+        return read_target(request.target, resolution, mask=request.mask)
+    weights = None
+    if request.mask is not None:
+        width, height = images.header(request.target)[:2]
+        weights = search.prepare_mask(images.load(request.mask).pixels, (height, width), resolution, request.mask)
+    return np.asarray(request.pixels), weights, []
+
+
+def neural_stage(request: Request, model, target, weights, extra, *, on_start=None) -> search.Result:
+    """Returns `search.neural_search`'s result with the request's settings and seed, from `extra` candidates
+    (`Request.extra_candidates`) besides the encoders' guesses."""
+    return search.neural_search(
+        model, target, settings=request.settings, weights=weights, extra=extra, seed=request.seed, on_start=on_start
+    )
+
+
+def search_stage(request: Request, model, target, weights, extra, background) -> search.Result:
     """Returns the search's result (best-of-n, then the request's method); verification's renders of its start
     begin on `background` meanwhile. Raises FitError for a model whose decoded images are not finite."""
-    extra = params.to_unit(init_values)[None] if init_values is not None else None
     on_start = None
     if background is not None and request.verified:
         on_start = functools.partial(verify.prefetch_start, background, corrections=request.rounds)
-    result = search.neural_search(
-        model, target, settings=request.settings, weights=weights, extra=extra, seed=request.seed, on_start=on_start
-    )
+    result = neural_stage(request, model, target, weights, extra, on_start=on_start)
     if not np.isfinite(result.rmse):  # the decoder's images hold NaN: no figure and no answer can be trusted
         raise FitError(
             f"the model {model.path} decodes images that are not finite (neural RMSE {result.rmse}): "

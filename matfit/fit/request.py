@@ -1,9 +1,10 @@
 """What one fit of a picture file is asked to do: what to fit, how, and which outputs, as one frozen object.
 
 `matfit fit`, the page's fit job and the bench each build one `Request` and hand it to `fitfile.run`
-(which writes its `outputs`) or `fitfile.fit_file` (which writes nothing). `Request.check` raises the
-one-line error of a bad value before any work: no picture is read and no model loaded for a request
-that cannot run.
+(which writes its `outputs`) or `fitfile.fit_file` (which writes nothing); `matfit sequence` builds one
+per frame (its picture already read, the previous frame's optimum among its candidates) and hands it
+to `fitfile.fit_neural` (the neural search alone). `Request.check` raises the one-line error of a bad
+value before any work: no picture is read and no model loaded for a request that cannot run.
 """
 
 from __future__ import annotations
@@ -78,6 +79,11 @@ class Request:
     variant: str | None = None  # the Mitsuba variant of a renderer made for the fit; None: `engine.choose_variant`'s
     outputs: Outputs | None = None  # None: nothing is written (`fitfile.fit_file`)
     answer: str = "clean"  # "clean": the simplest material within the threshold of the fit's (`clean`); "best"
+    # The picture as the model's sRGB target (R, R, 3) when it was read already (a sequence's frame); `target` then
+    # only names it.
+    pixels: np.ndarray | None = field(default=None, compare=False)
+    # Unit-cube candidates (k, 19) that join best-of-n after the source material's (a sequence's previous optimum).
+    candidates: np.ndarray | None = field(default=None, compare=False)
 
     @property
     def rounds(self) -> int:
@@ -123,3 +129,12 @@ class Request:
         if self.init_values is not None:
             return np.asarray(self.init_values)
         return params.read_file(self.init) if self.init is not None else None
+
+    def extra_candidates(self) -> np.ndarray | None:
+        """Returns the unit-cube candidates (k, 19) the request adds to best-of-n, or None: the source material's
+        (`initial_values`), then `candidates`, each as given (a unit-cube candidate is never converted)."""
+        values = self.initial_values()
+        parts = [] if values is None else [params.to_unit(values)[None]]
+        if self.candidates is not None:
+            parts.append(np.asarray(self.candidates).reshape(-1, params.COUNT))
+        return np.concatenate(parts) if parts else None

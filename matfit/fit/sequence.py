@@ -3,6 +3,8 @@
 For frames t_0..t_k (say, a slider dragged in an editor), frame i's best-of-n pool is the
 encoders' guesses plus, from the second frame on, the previous frame's optimum; Nelder-Mead
 refines the winner within the budget. `reinit=False` fits every frame alone, for comparison.
+Each frame is one `request.Request` (the frame as read, that optimum as a unit-cube candidate, no
+Mitsuba stage) fitted by `fitfile.fit_neural`.
 
 Each finished frame is written at once to `<out>/<frame stem>.json` (params.json format, plus how
 it was found), so an interrupted run resumes after the last finished frame, reading that frame's
@@ -33,7 +35,8 @@ import numpy as np
 
 from matfit import documents, files, images, params
 from matfit.errors import SequenceError
-from matfit.fit import search
+from matfit.fit import fitfile, search
+from matfit.fit.request import Request
 from matfit.model import models
 
 FRAME_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr")
@@ -240,8 +243,11 @@ def _fit_frames(model, frames, out, settings, reinit, progress, init) -> list[Fr
             frame.target = target
             results.append(frame)
         else:
-            extra = np.asarray(previous, np.float32)[None] if previous is not None else None
-            result = search.neural_search(model, target, settings=settings, extra=extra)
+            candidates = np.asarray(previous, np.float32)[None] if previous is not None else None
+            request = Request(
+                path, settings=settings, verified=False, answer="best", pixels=target, candidates=candidates
+            )
+            result = fitfile.fit_neural(request, model)
             start = (INIT if index == 0 else PREVIOUS) if result.chosen == "extra-1" else result.chosen
             frame = Frame(
                 path,
@@ -338,8 +344,6 @@ def run(
         )
     check_outputs(frames, out, rendered=render is not None, init=init)
     if isinstance(model, str):
-        from matfit.fit import fitfile
-
         model = fitfile.load_model(model)
     started = time.perf_counter()
 
