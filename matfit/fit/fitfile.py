@@ -207,7 +207,7 @@ def fit_neural(request: Request, model: models.Model) -> search.Result:
     request.check()
     extra = request.extra_candidates()
     target, weights, _ = request_target(request, model.resolution)
-    return neural_stage(request, model, target, weights, extra)
+    return neural_stage(request, model, target, weights=weights, extra=extra)
 
 
 def request_target(request: Request, resolution: int) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
@@ -222,7 +222,7 @@ def request_target(request: Request, resolution: int) -> tuple[np.ndarray, np.nd
     return np.asarray(request.pixels), weights, []
 
 
-def neural_stage(request: Request, model, target, weights, extra, *, on_start=None) -> search.Result:
+def neural_stage(request: Request, model, target, *, weights, extra, on_start=None) -> search.Result:
     """Returns `search.neural_search`'s result with the request's settings and seed, from `extra` candidates
     (`Request.extra_candidates`) besides the encoders' guesses."""
     return search.neural_search(
@@ -236,7 +236,7 @@ def search_stage(request: Request, model, target, weights, extra, background) ->
     on_start = None
     if background is not None and request.verified:
         on_start = functools.partial(verify.prefetch_start, background, corrections=request.rounds)
-    result = neural_stage(request, model, target, weights, extra, on_start=on_start)
+    result = neural_stage(request, model, target, weights=weights, extra=extra, on_start=on_start)
     if not np.isfinite(result.rmse):  # the decoder's images hold NaN: no figure and no answer can be trusted
         raise FitError(
             f"the model {model.path} decodes images that are not finite (neural RMSE {result.rmse}): "
