@@ -107,35 +107,6 @@ def test_the_document_has_physical_units_and_every_parameter():
     assert document["parameters"]["density"] == {"low": 0.0, "high": 4.0, "unit": "multiplier", "verdict": "free"}
 
 
-def red_and_sheen(unit, variables):
-    # base_color_r and sheen brighten the image together: base_color_r can make up for part of the sheen only
-    return flat(0.2 + variables * (unit[:, params.INDEX["base_color_r"]] + unit[:, params.INDEX["sheen"]]))
-
-
-def test_the_clean_answer_turns_off_what_the_picture_leaves_free_and_keeps_what_it_needs():
-    from matfit.fit import clean
-
-    x = answer(sheen=0.7, clearcoat=0.4, anisotropic=0.3, spec_trans=0.2, density=0.5)
-    slope = jnp.float32(0.3)
-    target = np.asarray(red_and_sheen(jnp.asarray(x[None], jnp.float32), slope))[0]
-    found = ranges.measure(red_and_sheen, slope, x, None, THRESHOLD)
-    sheen = params.INDEX["sheen"]
-    # sheen can fall to 0.2 while base_color_r rises to its face, 1.0 (plus the threshold's slack)
-    assert found.verdicts[sheen] == "partly"
-    assert found.low[sheen] == pytest.approx(0.2 - THRESHOLD / (255.0 * 0.3), abs=2e-3)
-    simple, dropped = clean.simplest(red_and_sheen, slope, x, target, None, found)
-    assert dropped == ("anisotropy", "clearcoat", "medium", "transmission")
-    assert simple[sheen] == pytest.approx(0.7, abs=1e-6)
-    for name, feature in params.FEATURES.items():
-        for parameter, value in feature.items():
-            if name != "sheen":
-                assert params.from_unit(simple)[params.INDEX[parameter]] == pytest.approx(value, abs=1e-6)
-    # free and away from neutral: anisotropic, clearcoat, clearcoat_gloss, spec_trans, the medium's colours,
-    # density and scattering (phase_g 0 and sheen_tint 0.5 are neutral already)
-    assert clean.free_away_from_neutral(x, found.verdicts) == 9
-    assert clean.free_away_from_neutral(simple, found.verdicts) == 0
-
-
 def test_the_threshold_is_the_shipped_cards_figure_for_the_answers_kind_of_material(tmp_path):
     import json
 

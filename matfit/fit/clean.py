@@ -1,19 +1,29 @@
-"""The clean answer: among the materials that decode within the threshold of the fit's answer, the simplest.
+"""The clean answer: the simplest material that Mitsuba cannot tell apart from the fit's answer, or the answer.
 
 Simplest means: the shader's optional features (`params.FEATURES`: anisotropy, sheen, clearcoat,
-the interior medium, transmission) turned off unless the picture decides them. Greedily, in that
-order, each feature whose leading parameter the picture does not decide (`ranges.Ranges.verdicts`)
-and that is not already off is set to its neutral values; the other parameters that are still
-free to move are re-fitted to the target by Gauss-Newton steps with the answer's Jacobian (the
-chord method, `STEPS` decodes); the feature stays off when the result decodes within the
-threshold tau of the answer's picture, or no further from the target than the answer
+the interior medium, transmission) turned off unless the picture decides them
 (docs/fitting.md#what-the-picture-decides).
 
-Like every answer it is then judged in Mitsuba (`judge`), against the answer it would replace,
-by verification's estimates (`verify.decide`, common random numbers, the jackknife): the clean
-answer is kept unless the other one is better by more than LEAD standard errors (`judge`), so it
-is never measurably worse. (Allowing the noise of the kept render as well kept every clean answer
-and made them worse on average by an independent judge: docs/fitting.md#what-the-picture-decides.)
+Candidates (`candidates`). A feature is tried when its leading parameter is not decided
+(`ranges.Ranges.verdicts`) and it is not already off. Turned off alone (its parameters at their
+neutral values), the other parameters are re-fitted by STEPS Gauss-Newton steps, each linearised
+afresh at the current point (a Jacobian and a decode), the box respected, each step the best of
+a full, a half and a quarter step (a step that does not lower the error is not taken). They are
+re-fitted to the answer's own decoded picture, not to the target: the answer is Mitsuba's choice,
+corrected for the decoder's error (`correct.py`), and a re-fit to the target would undo that
+correction; the distance to the answer's picture (D, RMSE on 0-255 sRGB) is what the decoder
+predicts of the Mitsuba difference between the two. The features whose re-fit keeps D within
+CLOSE (and within the ranges' tau) are then turned off together in order of their D, smallest
+first, re-fitting after each; every prefix that still decodes within CLOSE is a candidate, so the
+candidates are nested, the last the simplest.
+
+Judgement (`judge`), like every answer: the answer and the candidates are rendered with
+verification's seeds (common random numbers) and compared by its estimates (`verify.decide` of
+each candidate against the answer). The simplest candidate that the answer does not beat by more
+than LEAD standard errors is returned: verification's rule, so the clean answer is never
+measurably worse. While that candidate trails the answer within LEAD standard errors, it and the
+answer get one more batch each, up to MAX_BATCHES; a candidate the answer beats by more is passed
+over for the next less simple one. At most (len(FEATURES) + 1) * MAX_BATCHES renders.
 """
 
 from __future__ import annotations
@@ -28,7 +38,9 @@ import numpy as np
 from matfit import images, params, programs
 from matfit.fit import ranges, verify
 
-STEPS = 2  # Gauss-Newton steps (one decode each) re-fitting the other parameters after a feature is turned off
+STEPS = 3  # re-linearised Gauss-Newton steps (a Jacobian and one batched decode each) re-fitting the others
+CLOSE = 0.5  # RMSE (0-255 sRGB): how far a candidate may decode from the answer's picture (docs/fitting.md)
+SHARES = (1.0, 0.5, 0.25)  # of the Gauss-Newton step, tried at once; the best taken if it lowers the error
 NEUTRAL_TOLERANCE = 0.01  # of a parameter's range: a value this close to its neutral one counts as neutral
 
 
@@ -37,18 +49,19 @@ class Cleaned:
     """The clean answer and how it was chosen."""
 
     unit: np.ndarray  # the answer returned (unit cube): the clean one, or the fit's when Mitsuba preferred it
-    simplest: np.ndarray  # the simplest material within the threshold (unit cube)
+    simplest: np.ndarray  # the simplest candidate (unit cube)
     best: np.ndarray  # the fit's own answer it started from (unit cube)
-    dropped: tuple[str, ...]  # the features turned off
+    dropped: tuple[str, ...]  # the features off in the clean answer returned (in the simplest, if none was kept)
     chosen: str  # "clean" or "best"
-    figures: dict[str, float] = field(default_factory=dict)  # each one's estimated noise-free Mitsuba RMSE
-    margins: dict[str, float] = field(default_factory=dict)  # the other one's deficit, in standard errors
+    figures: dict[str, float] = field(default_factory=dict)  # estimated noise-free Mitsuba RMSE: "clean", "best"
+    margins: dict[str, float] = field(default_factory=dict)  # each candidate's deficit behind "best", in std errors
     noise: float = 0.0  # the render noise (RMSE) of the best's mean render, the tolerance of the judgement
     batches: dict[str, int] = field(default_factory=dict)
     rendered: np.ndarray | None = None  # the chosen one's Mitsuba render (sRGB), None when nothing was rendered
     free_before: int = 0  # parameters the picture leaves free, away from their neutral values, in the fit's answer
-    free_after: int = 0  # the same in the clean answer
+    free_after: int = 0  # the same in the answer returned
     seconds: float = 0.0
+    candidates: dict[str, dict] = field(default_factory=dict)  # by name: "off" (features), "distance" (D), "mitsuba"
 
 
 def neutral_values() -> dict[int, float]:
@@ -68,67 +81,64 @@ def free_away_from_neutral(unit: np.ndarray, verdicts: tuple[str, ...]) -> int:
     )
 
 
-@programs.jit(static_argnames=("decode", "features"))
-def _simplest(decode, features, variables, answer, target, weights, threshold, allowed):
-    """Returns (the simplest point, which of `features` were turned off (bool)); `features`: a tuple of
-    (index tuple, neutral unit values tuple) in the order tried, `allowed` (bool, one per feature): which to try."""
-    count = answer.shape[0]
-    picture = decode(answer[None], variables)[0]
-    jacobian = jax.jacfwd(lambda x: decode(x[None], variables)[0])(answer)
+@programs.jit(static_argnames=("decode",))
+def _refit(decode, variables, start, held, picture, weights):
+    """Returns (the point after STEPS re-linearised Gauss-Newton steps from `start` toward `picture`, the parameters
+    where `held` (bool (19,)) is true held, its decoded RMSE to `picture`)."""
     scale = 255.0**2 / (3.0 * jnp.sum(weights))
-    hessian = scale * jnp.einsum("hwcj,hwck->jk", jacobian * weights[:, :, None, None], jacobian)
-    answer_error = images.rmse(picture, target, weights)
-    x, held, dropped = answer, jnp.zeros(count, bool), []
-    for k, (indices, values) in enumerate(features):
-        idx = jnp.array(indices)
-        trial = x.at[idx].set(jnp.array(values, x.dtype))
-        trial_held = held.at[idx].set(True)
-        for _ in range(STEPS):
-            residual = (decode(trial[None], variables)[0] - target) * weights[:, :, None]
-            gradient = scale * jnp.einsum("hwc,hwcj->j", residual, jacobian)
-            step = ranges.box_quadratic(hessian, gradient, jnp.zeros_like(x), -trial, 1.0 - trial, trial_held)
-            trial = jnp.clip(trial + step, 0.0, 1.0)
-        image = decode(trial[None], variables)[0]
-        within = (images.rmse(image, picture, weights) <= threshold) | (
-            images.rmse(image, target, weights) <= answer_error
-        )
-        accepted = allowed[k] & within
-        x = jnp.where(accepted, trial, x)
-        held = jnp.where(accepted, trial_held, held)
-        dropped.append(accepted)
-    return x, jnp.stack(dropped)
+    shares = jnp.array(SHARES, start.dtype)[:, None]
+    x = start
+    error = images.rmse(decode(x[None], variables)[0], picture, weights)
+    for _ in range(STEPS):  # unrolled: a decoder inside a loop body runs slowly on XLA's CPU backend
+        image, tangent = jax.linearize(lambda y: decode(y[None], variables)[0], x)
+        jacobian = jax.vmap(tangent, out_axes=-1)(jnp.eye(x.shape[0], dtype=x.dtype))  # (R, R, 3, 19)
+        hessian = scale * jnp.einsum("hwcj,hwck->jk", jacobian * weights[:, :, None, None], jacobian)
+        gradient = scale * jnp.einsum("hwc,hwcj->j", (image - picture) * weights[:, :, None], jacobian)
+        step = ranges.box_quadratic(hessian, gradient, jnp.zeros_like(x), -x, 1.0 - x, held)
+        trials = jnp.clip(x[None] + shares * step[None], 0.0, 1.0)
+        errors = images.rmse(decode(trials, variables), picture[None], weights)
+        k = jnp.argmin(errors)
+        better = errors[k] < error
+        x = jnp.where(better, trials[k], x)
+        error = jnp.where(better, errors[k], error)
+    return x, error
 
 
-def simplest(
-    decode, variables, answer: np.ndarray, target: np.ndarray, weights: np.ndarray | None, found: ranges.Ranges
-) -> tuple[np.ndarray, tuple[str, ...]]:
-    """Returns (the simplest material within `found.threshold` of `answer` (unit cube), the features turned off),
-    by the module docstring. `decode` as for `ranges.measure`; `found`: the answer's ranges."""
+def candidates(
+    decode, variables, answer: np.ndarray, weights: np.ndarray | None, found: ranges.Ranges
+) -> list[tuple[tuple[str, ...], np.ndarray, float]]:
+    """Returns the nested candidates of the module docstring, the simplest last: [(features off, the material (unit
+    cube), D: its decoded RMSE to the answer's picture)]. `decode` as for `ranges.measure`; `found`: the answer's
+    ranges."""
     answer = np.clip(np.asarray(answer, np.float32), 0.0, 1.0)
     neutral = neutral_values()
-    features, allowed = [], []
-    for feature in params.FEATURES.values():
-        indices = tuple(params.INDEX[p] for p in feature)
-        features.append((indices, tuple(float(neutral[i]) for i in indices)))
-        decided = found.verdicts[indices[0]] == "decided"
-        allowed.append(not decided and any(abs(answer[i] - neutral[i]) > 1e-6 for i in indices))
-    if not any(allowed):
-        return np.asarray(answer, np.float64), ()
-    weights = np.ones(target.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
-    unit, dropped = jax.device_get(
-        _simplest(
-            decode,
-            tuple(features),
-            variables,
-            answer,
-            np.asarray(target, np.float32),
-            weights,
-            np.float32(found.threshold),
-            np.array(allowed),
-        )
-    )
-    off = tuple(name for name, turned_off in zip(params.FEATURES, dropped, strict=True) if turned_off)
-    return (np.asarray(unit, np.float64) if off else np.asarray(answer, np.float64)), off
+    tried = {}
+    for name, feature in params.FEATURES.items():
+        indices = [params.INDEX[p] for p in feature]
+        if found.verdicts[indices[0]] != "decided" and any(abs(answer[i] - neutral[i]) > 1e-6 for i in indices):
+            tried[name] = indices
+    if not tried:
+        return []
+    picture = np.asarray(decode(jnp.asarray(answer[None]), variables))[0]
+    weights = np.ones(picture.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
+    limit = min(CLOSE, found.threshold)
+
+    def off(start: np.ndarray, held: np.ndarray, indices) -> tuple[np.ndarray, np.ndarray, float]:
+        start, held = start.copy(), held.copy()
+        for i in indices:
+            start[i], held[i] = neutral[i], True
+        point, distance = jax.device_get(_refit(decode, variables, start, held, picture, weights))
+        return np.asarray(point, np.float32), held, float(distance)
+
+    alone = {name: off(answer, np.zeros(params.COUNT, bool), indices)[2] for name, indices in tried.items()}
+    order = sorted((name for name in tried if alone[name] <= limit), key=alone.__getitem__)
+    out, point, held, names = [], answer, np.zeros(params.COUNT, bool), ()
+    for name in order:
+        trial, trial_held, distance = off(point, held, tried[name])
+        if distance <= limit:
+            point, held, names = trial, trial_held, (*names, name)
+            out.append((names, np.asarray(point, np.float64), distance))
+    return out
 
 
 def render_noise(renders: list[np.ndarray], target: np.ndarray, weights: np.ndarray) -> float:
@@ -139,32 +149,39 @@ def render_noise(renders: list[np.ndarray], target: np.ndarray, weights: np.ndar
     return 255.0 * float(np.sqrt(max(single - estimate, 0.0) / len(renders)))
 
 
-def judge(renderer, best: np.ndarray, clean: np.ndarray, target: np.ndarray, weights: np.ndarray | None) -> dict:
-    """Returns {"chosen": "clean" or "best", "figures", "noise", "margins", "batches", "rendered"}: the two rendered
-    in batches with verification's seeds and compared by its estimates (`verify.decide`, more batches while the
-    difference is within LEAD standard errors, up to MAX_BATCHES). The clean one is kept unless the other is
-    better by more than LEAD standard errors: verification's own rule, the clean one in the start's place.
-    `noise`: the render noise of the best's mean render (`render_noise`), recorded beside the figures."""
+def judge(renderer, best: np.ndarray, pool: dict[str, np.ndarray], target: np.ndarray, weights: np.ndarray | None):
+    """Returns {"chosen": the name kept ("best" or one of `pool`), "figures", "noise", "margins", "batches",
+    "rendered"}: `best` and the candidates of `pool` (by name, simplest last) rendered in batches with verification's
+    seeds and compared by its estimates, by the rule of the module docstring. `margins`: each candidate's deficit
+    behind the best over their common batches, in standard errors (negative: ahead of it); `noise`: the render noise
+    of the best's mean render (`render_noise`), recorded beside the figures."""
     weights = verify.as_weights(target, weights)
-    pool = {"clean": clean, "best": best}
-    batches: dict[str, list[np.ndarray]] = {name: [] for name in pool}
-    verify.render_batches(renderer, pool, batches, list(pool), count=verify.BATCHES, spp=verify.SPP)
+    everyone = {"best": best, **pool}
+    batches: dict[str, list[np.ndarray]] = {}
+    verify.render_batches(renderer, everyone, batches, list(everyone), count=verify.BATCHES, spp=verify.SPP)
     while True:
-        leader, estimates, margins = verify.decide(batches, target, weights)
-        if leader == "clean" or margins["clean"] >= verify.LEAD or len(batches["best"]) >= verify.MAX_BATCHES:
+        margins = {name: deficit(batches["best"], batches[name], target, weights) for name in pool}
+        chosen = next((name for name in reversed(pool) if margins[name] < verify.LEAD), "best")
+        if chosen == "best" or margins[chosen] <= 0 or len(batches[chosen]) >= verify.MAX_BATCHES:
             break
-        verify.render_batches(renderer, pool, batches, list(pool), count=len(batches["best"]) + 1, spp=verify.SPP)
-    figures = {name: 255.0 * float(np.sqrt(max(value, 0.0))) for name, value in estimates.items()}
-    noise = render_noise(batches["best"], target, weights)
-    chosen = "best" if leader == "best" and margins["clean"] >= verify.LEAD else "clean"
+        count = len(batches[chosen]) + 1
+        verify.render_batches(renderer, everyone, batches, ["best", chosen], count=count, spp=verify.SPP)
+    estimates = {name: verify.squared_error(renders, target, weights)[0] for name, renders in batches.items()}
     return {
         "chosen": chosen,
-        "figures": figures,
-        "noise": noise,
+        "figures": {name: 255.0 * float(np.sqrt(max(value, 0.0))) for name, value in estimates.items()},
+        "noise": render_noise(batches["best"], target, weights),
         "margins": margins,
         "batches": {name: len(renders) for name, renders in batches.items()},
         "rendered": np.mean(batches[chosen], axis=0, dtype=np.float32),
     }
+
+
+def deficit(best: list[np.ndarray], other: list[np.ndarray], target: np.ndarray, weights: np.ndarray) -> float:
+    """Returns how far `other`'s estimate trails `best`'s over their common batches, in standard errors (negative:
+    ahead; `verify.decide` of the two, the best first so that a tie favours it)."""
+    leader, _, margins = verify.decide({"best": best, "other": other}, target, weights)
+    return float(margins["other"]) if leader == "best" else -float(margins["best"])
 
 
 def clean(
@@ -177,28 +194,39 @@ def clean(
     renderer=None,
 ) -> Cleaned:
     """Returns the clean answer of `answer` (unit cube), judged in Mitsuba against it with `renderer` (an
-    `engine.Renderer`, `Background` or `Process` at the target's resolution; None: not judged, the clean answer
-    returned)."""
+    `engine.Renderer`, `Background` or `Process` at the target's resolution; None: not judged, the simplest
+    candidate returned)."""
     started = time.perf_counter()
     answer = np.asarray(answer, np.float64)
-    simple, dropped = simplest(decode, variables, answer, target, weights, found)
+    found_candidates = candidates(decode, variables, answer, weights, found)
+    pool = {f"clean-{k + 1}": unit for k, (_, unit, _) in enumerate(found_candidates)}
     out = Cleaned(
-        unit=simple,
-        simplest=simple,
+        unit=answer,
+        simplest=found_candidates[-1][1] if found_candidates else answer,
         best=answer,
-        dropped=dropped,
-        chosen="clean",
+        dropped=found_candidates[-1][0] if found_candidates else (),
+        chosen="clean" if found_candidates else "best",
         free_before=free_away_from_neutral(answer, found.verdicts),
-        free_after=free_away_from_neutral(simple, found.verdicts),
+        candidates={
+            f"clean-{k + 1}": {"off": list(names), "distance": distance}
+            for k, (names, _, distance) in enumerate(found_candidates)
+        },
     )
-    if dropped and renderer is not None:
-        judged = judge(renderer, answer, simple, target, weights)
-        out.chosen, out.figures, out.margins = judged["chosen"], judged["figures"], judged["margins"]
-        out.noise = judged["noise"]
-        out.batches, out.rendered = judged["batches"], judged["rendered"]
-        if out.chosen == "best":
-            out.unit, out.free_after = answer, out.free_before
-    elif not dropped:
-        out.unit = answer
+    chosen = "clean-" + str(len(pool)) if pool else "best"
+    if pool and renderer is not None:
+        judged = judge(renderer, answer, pool, target, weights)
+        chosen = judged["chosen"]
+        out.noise, out.batches, out.rendered = judged["noise"], judged["batches"], judged["rendered"]
+        out.margins = judged["margins"]
+        shown = chosen if chosen != "best" else f"clean-{len(pool)}"
+        out.figures = {"clean": judged["figures"][shown], "best": judged["figures"]["best"]}
+        for name in pool:
+            out.candidates[name]["mitsuba"] = judged["figures"][name]
+            out.candidates[name]["margin"] = judged["margins"][name]
+    if chosen != "best":
+        out.unit = pool[chosen]
+        out.dropped = found_candidates[int(chosen.split("-")[1]) - 1][0]
+    out.chosen = "best" if chosen == "best" else "clean"
+    out.free_after = free_away_from_neutral(out.unit, found.verdicts)
     out.seconds = time.perf_counter() - started
     return out

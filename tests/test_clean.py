@@ -1,0 +1,57 @@
+"""The clean answer: its candidates on synthetic decoders whose answers are known, and its Mitsuba judgement."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from matfit import params
+from matfit.fit import clean, ranges
+
+SIDE = 4
+THRESHOLD = 2.0
+
+
+def flat(value: jnp.ndarray) -> jnp.ndarray:
+    """Returns images (n, SIDE, SIDE, 3) of one grey value per material (n,)."""
+    return jnp.broadcast_to(value[:, None, None, None], (value.shape[0], SIDE, SIDE, 3))
+
+
+def answer(**values: float) -> np.ndarray:
+    x = np.full(params.COUNT, 0.5)
+    for name, value in values.items():
+        x[params.INDEX[name]] = value
+    return x
+
+
+def red_and_sheen(unit, variables):
+    # base_color_r and sheen brighten the image together: base_color_r can make up for part of the sheen only
+    return flat(0.2 + variables * (unit[:, params.INDEX["base_color_r"]] + unit[:, params.INDEX["sheen"]]))
+
+
+def test_features_without_effect_are_turned_off_and_one_the_picture_needs_is_kept():
+    x = answer(sheen=0.7, clearcoat=0.4, anisotropic=0.3, spec_trans=0.2, density=0.5)
+    slope = jnp.float32(0.3)
+    found = ranges.measure(red_and_sheen, slope, x, None, THRESHOLD)
+    sheen = params.INDEX["sheen"]
+    # sheen can fall to 0.2 while base_color_r rises to its face, 1.0 (plus the threshold's slack)
+    assert found.verdicts[sheen] == "partly"
+    assert found.low[sheen] == pytest.approx(0.2 - THRESHOLD / (255.0 * 0.3), abs=2e-3)
+    found_candidates = clean.candidates(red_and_sheen, slope, x, None, found)
+    # nested, each one more feature off; the features without effect decode exactly like the answer (D = 0)
+    assert [names for names, _, _ in found_candidates] == [
+        ("anisotropy",),
+        ("anisotropy", "clearcoat"),
+        ("anisotropy", "clearcoat", "medium"),
+        ("anisotropy", "clearcoat", "medium", "transmission"),
+    ]
+    assert [distance for _, _, distance in found_candidates] == pytest.approx([0.0] * 4, abs=1e-4)
+    simple = found_candidates[-1][1]
+    assert simple[sheen] == pytest.approx(0.7, abs=1e-6)
+    for name, feature in params.FEATURES.items():
+        for parameter, value in feature.items():
+            if name != "sheen":
+                assert params.from_unit(simple)[params.INDEX[parameter]] == pytest.approx(value, abs=1e-6)
+    # free and away from neutral: anisotropic, clearcoat, clearcoat_gloss, spec_trans, the medium's colours,
+    # density and scattering (phase_g 0 and sheen_tint 0.5 are neutral already)
+    assert clean.free_away_from_neutral(x, found.verdicts) == 9
+    assert clean.free_away_from_neutral(simple, found.verdicts) == 0
