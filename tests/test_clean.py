@@ -4,7 +4,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from matfit import params
+from matfit import images, params
 from matfit.fit import clean, ranges
 
 SIDE = 4
@@ -55,3 +55,28 @@ def test_features_without_effect_are_turned_off_and_one_the_picture_needs_is_kep
     # density and scattering (phase_g 0 and sheen_tint 0.5 are neutral already)
     assert clean.free_away_from_neutral(x, found.verdicts) == 9
     assert clean.free_away_from_neutral(simple, found.verdicts) == 0
+
+
+def test_mitsuba_keeps_the_simplest_candidate_it_cannot_tell_from_the_answer(renderer):
+    from matfit.fit import verify
+    from matfit.render import presets
+
+    best = params.to_unit(presets.preset("red-plastic"))
+    target = images.srgb_encode(renderer.render(params.from_unit(best), seed=7, spp=64))
+    unseen = best.copy()  # sheen_tint without sheen: the renders barely show it
+    unseen[params.INDEX["sheen_tint"]] = 0.9
+    assert best[params.INDEX["sheen"]] == 0.0
+    seen = unseen.copy()  # and a base colour the picture plainly decides
+    seen[params.INDEX["base_color_g"]] = 0.8
+    judged = clean.judge(renderer, best, {"clean-1": unseen, "clean-2": seen}, target, None)
+    assert judged["chosen"] == "clean-1" and judged["margins"]["clean-1"] < verify.LEAD
+    assert judged["margins"]["clean-2"] >= verify.LEAD and judged["figures"]["clean-2"] > judged["figures"]["best"] + 5
+    assert judged["figures"]["clean-1"] == pytest.approx(judged["figures"]["best"], abs=0.5)
+    assert judged["batches"]["clean-2"] == verify.BATCHES  # decided at once; the kept one measured again if behind
+    assert verify.BATCHES <= judged["batches"]["clean-1"] == judged["batches"]["best"] <= verify.MAX_BATCHES
+    # a candidate identical to the answer ties with it: no deficit, and the candidate is kept
+    tie = clean.judge(renderer, best, {"clean-1": best.copy()}, target, None)
+    assert tie["chosen"] == "clean-1" and tie["margins"]["clean-1"] == 0.0
+    # the simplest alone is measurably worse: the fit's own answer is kept
+    alone = clean.judge(renderer, best, {"clean-1": seen}, target, None)
+    assert alone["chosen"] == "best" and alone["margins"]["clean-1"] >= verify.LEAD

@@ -41,6 +41,7 @@ from matfit.fit import ranges, verify
 STEPS = 3  # re-linearised Gauss-Newton steps (a Jacobian and one batched decode each) re-fitting the others
 CLOSE = 0.5  # RMSE (0-255 sRGB): how far a candidate may decode from the answer's picture (docs/fitting.md)
 SHARES = (1.0, 0.5, 0.25)  # of the Gauss-Newton step, tried at once; the best taken if it lowers the error
+ALIKE = 1e-5  # relative difference of two estimates that is rounding (two renders of one material), no deficit
 NEUTRAL_TOLERANCE = 0.01  # of a parameter's range: a value this close to its neutral one counts as neutral
 
 
@@ -180,7 +181,9 @@ def judge(renderer, best: np.ndarray, pool: dict[str, np.ndarray], target: np.nd
 def deficit(best: list[np.ndarray], other: list[np.ndarray], target: np.ndarray, weights: np.ndarray) -> float:
     """Returns how far `other`'s estimate trails `best`'s over their common batches, in standard errors (negative:
     ahead; `verify.decide` of the two, the best first so that a tie favours it)."""
-    leader, _, margins = verify.decide({"best": best, "other": other}, target, weights)
+    leader, estimates, margins = verify.decide({"best": best, "other": other}, target, weights)
+    if abs(estimates["other"] - estimates["best"]) <= ALIKE * estimates["best"]:  # renders alike to their last bits
+        return 0.0
     return float(margins["other"]) if leader == "best" else -float(margins["best"])
 
 

@@ -345,6 +345,19 @@ def document(outcome: Outcome, request: Request, model_path: str) -> dict:
             "features_off": list(cleaned.dropped),
             "mitsuba_rmse": {name: round(value, 3) for name, value in cleaned.figures.items()},
             "render_noise": round(cleaned.noise, 3),
+            "candidates": {  # nested, the simplest last; margin: standard errors behind the best (null: decided)
+                name: {
+                    "features_off": candidate["off"],
+                    "decoded_distance": round(candidate["distance"], 3),
+                    **({"mitsuba_rmse": round(candidate["mitsuba"], 3)} if "mitsuba" in candidate else {}),
+                    **(
+                        {"margin": round(candidate["margin"], 2) if np.isfinite(candidate["margin"]) else None}
+                        if "margin" in candidate
+                        else {}
+                    ),
+                }
+                for name, candidate in cleaned.candidates.items()
+            },
             "free_not_neutral": {"best": cleaned.free_before, "answer": cleaned.free_after},
             "best": params.to_mapping(params.from_unit(cleaned.best)),
             "seconds": round(cleaned.seconds, 3),
