@@ -1,5 +1,6 @@
 import importlib.metadata
 import importlib.util
+import itertools
 import json
 import os
 import shutil
@@ -370,7 +371,7 @@ def test_fit_writes_params_and_report(trained, target, tmp_path):
     if document["answer"]["features_off"] and document["answer"]["kept"] == "clean":  # the answer's own figure
         assert document["mitsuba_rmse"] == document["answer"]["mitsuba_rmse"]["clean"]
     tried = [candidate["features_off"] for candidate in document["answer"]["candidates"].values()]
-    assert all(set(fewer) < set(more) for fewer, more in zip(tried, tried[1:], strict=False))  # nested
+    assert all(set(fewer) < set(more) for fewer, more in itertools.pairwise(tried))  # nested
     assert document["answer"]["kept"] == "best" or document["answer"]["features_off"] in tried
     # params.json feeds `matfit render` directly
     assert run("render", out, "-o", tmp_path / "again.png", "--size", 16, "--spp", 4).exit_code == 0
