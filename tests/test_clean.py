@@ -80,3 +80,27 @@ def test_mitsuba_keeps_the_simplest_candidate_it_cannot_tell_from_the_answer(ren
     # the simplest alone is measurably worse: the fit's own answer is kept
     alone = clean.judge(renderer, best, {"clean-1": seen}, target, None)
     assert alone["chosen"] == "best" and alone["margins"]["clean-1"] >= verify.LEAD
+
+
+def red_and_density(unit, variables):
+    # a decoder that (wrongly) shows the medium of an opaque material
+    return flat(0.2 + variables * (unit[:, params.INDEX["base_color_r"]] + unit[:, params.INDEX["density"]]))
+
+
+def test_without_transmission_the_medium_is_turned_off_whatever_the_decoder_shows_of_it():
+    x = answer(spec_trans=0.0, density=0.6, sheen=0.3)
+    slope = jnp.float32(0.3)
+    found = ranges.measure(red_and_density, slope, x, None, THRESHOLD)
+    assert clean.unseen_medium(x) and not clean.unseen_medium(answer(spec_trans=0.1))
+    found_candidates = clean.candidates(red_and_density, slope, x, None, found)
+    # the medium first, without a re-fit (base_color_r as in the answer); then what this decoder ignores
+    assert [names for names, _, _ in found_candidates] == [
+        ("medium",),
+        ("medium", "anisotropy"),
+        ("medium", "anisotropy", "sheen"),
+        ("medium", "anisotropy", "sheen", "clearcoat"),
+    ]
+    first = found_candidates[0][1]
+    assert first[params.INDEX["base_color_r"]] == pytest.approx(0.5, abs=1e-6)
+    assert params.from_unit(first)[params.INDEX["density"]] == 0.0
+    assert [distance for _, _, distance in found_candidates] == pytest.approx([0.0] * 4, abs=1e-4)

@@ -15,7 +15,9 @@ correction; the distance to the answer's picture (D, RMSE on 0-255 sRGB) is what
 predicts of the Mitsuba difference between the two. The features whose re-fit keeps D within
 CLOSE (and within the ranges' tau) are then turned off together in order of their D, smallest
 first, re-fitting after each; every prefix that still decodes within CLOSE is a candidate, so the
-candidates are nested, the last the simplest.
+candidates are nested, the last the simplest. Without transmission (spec_trans at 0) no light
+reaches the medium inside the object and the renderer does not show it: the medium is then turned
+off first, without a re-fit, and the answer's picture is decoded without it.
 
 Judgement (`judge`), like every answer: the answer and the candidates are rendered with
 verification's seeds (common random numbers) and compared by its estimates (`verify.decide` of
@@ -105,6 +107,12 @@ def _refit(decode, variables, start, held, picture, weights):
     return x, error
 
 
+def unseen_medium(unit: np.ndarray) -> bool:
+    """Returns whether the material (unit cube) has no transmission, so that no light reaches the medium inside it
+    and the renderer does not show the medium (the decoder may: its own error)."""
+    return bool(abs(unit[params.INDEX["spec_trans"]] - neutral_values()[params.INDEX["spec_trans"]]) <= 1e-6)
+
+
 def candidates(
     decode, variables, answer: np.ndarray, weights: np.ndarray | None, found: ranges.Ranges
 ) -> list[tuple[tuple[str, ...], np.ndarray, float]]:
@@ -120,7 +128,13 @@ def candidates(
             tried[name] = indices
     if not tried:
         return []
-    picture = np.asarray(decode(jnp.asarray(answer[None]), variables))[0]
+    base, held, names, out = answer.copy(), np.zeros(params.COUNT, bool), (), []
+    if "medium" in tried and unseen_medium(answer):
+        for i in tried.pop("medium"):
+            base[i], held[i] = neutral[i], True
+        names = ("medium",)
+        out.append((names, np.asarray(base, np.float64), 0.0))
+    picture = np.asarray(decode(jnp.asarray(base[None]), variables))[0]  # the answer as the renderer shows it
     weights = np.ones(picture.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
     limit = min(CLOSE, found.threshold)
 
@@ -131,9 +145,9 @@ def candidates(
         point, distance = jax.device_get(_refit(decode, variables, start, held, picture, weights))
         return np.asarray(point, np.float32), held, float(distance)
 
-    alone = {name: off(answer, np.zeros(params.COUNT, bool), indices)[2] for name, indices in tried.items()}
+    alone = {name: off(base, held, indices)[2] for name, indices in tried.items()}
     order = sorted((name for name in tried if alone[name] <= limit), key=alone.__getitem__)
-    out, point, held, names = [], answer, np.zeros(params.COUNT, bool), ()
+    point = base
     for name in order:
         trial, trial_held, distance = off(point, held, tried[name])
         if distance <= limit:
