@@ -146,6 +146,7 @@ def case(
             "clean_seconds": cleaned.seconds,
             "features_off": list(cleaned.dropped) if cleaned.chosen == "clean" else [],
             "renders": sum(cleaned.batches.values()),
+            "candidates": cleaned.candidates,
         }
     return out
 
