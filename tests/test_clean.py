@@ -77,6 +77,12 @@ def test_mitsuba_keeps_the_simplest_candidate_it_cannot_tell_from_the_answer(ren
     # a candidate identical to the answer ties with it: no deficit, and the candidate is kept
     tie = clean.judge(renderer, best, {"clean-1": best.copy()}, target, None)
     assert tie["chosen"] == "clean-1" and tie["margins"]["clean-1"] == 0.0
+    # verification's batches of the answer stand in for its renders: the same judgement
+    rendered: dict[str, list] = {}
+    verify.render_batches(renderer, {"best": best}, rendered, ["best"], count=verify.BATCHES, spp=verify.SPP)
+    again = clean.judge(renderer, best, {"clean-1": unseen, "clean-2": seen}, target, None, rendered=rendered["best"])
+    assert again["chosen"] == "clean-1" and again["batches"] == judged["batches"]
+    assert again["figures"]["best"] == pytest.approx(judged["figures"]["best"], rel=1e-4)
     # the simplest alone is measurably worse: the fit's own answer is kept
     alone = clean.judge(renderer, best, {"clean-1": seen}, target, None)
     assert alone["chosen"] == "best" and alone["margins"]["clean-1"] >= verify.LEAD

@@ -57,6 +57,8 @@ def test_a_fooled_decoder_never_makes_the_answer_physically_worse_than_the_start
     ]
     # the kept render is the mean of the chosen candidate's batches (two renders may differ in the last bits)
     np.testing.assert_allclose(np.mean(again, axis=0), checked.rendered, atol=1e-5)
+    assert len(checked.renders) == checked.batches[checked.chosen]  # the batches themselves, for the clean answer
+    np.testing.assert_allclose(np.mean(checked.renders, axis=0), checked.rendered, atol=1e-6)
 
 
 def test_the_verification_table_judges_every_spp_by_one_independent_render(model, renderer32, monkeypatch):

@@ -24,7 +24,8 @@ verification's seeds (common random numbers) and compared by its estimates (`ver
 each candidate against the answer). The simplest candidate that the answer does not beat by more
 than LEAD standard errors is returned: verification's rule, so the clean answer is never
 measurably worse. While that candidate trails the answer within LEAD standard errors, it and the
-answer get one more batch each, up to MAX_BATCHES; a candidate the answer beats by more is passed
+answer get one more batch each, up to MAX_BATCHES (the answer's first batches are verification's own,
+not rendered again); a candidate the answer beats by more is passed
 over for the next less simple one. At most (len(FEATURES) + 1) * MAX_BATCHES renders.
 """
 
@@ -164,15 +165,24 @@ def render_noise(renders: list[np.ndarray], target: np.ndarray, weights: np.ndar
     return 255.0 * float(np.sqrt(max(single - estimate, 0.0) / len(renders)))
 
 
-def judge(renderer, best: np.ndarray, pool: dict[str, np.ndarray], target: np.ndarray, weights: np.ndarray | None):
+def judge(
+    renderer,
+    best: np.ndarray,
+    pool: dict[str, np.ndarray],
+    target: np.ndarray,
+    weights: np.ndarray | None,
+    *,
+    rendered: list[np.ndarray] | tuple = (),
+):
     """Returns {"chosen": the name kept ("best" or one of `pool`), "figures", "noise", "margins", "batches",
     "rendered"}: `best` and the candidates of `pool` (by name, simplest last) rendered in batches with verification's
     seeds and compared by its estimates, by the rule of the module docstring. `margins`: each candidate's deficit
     behind the best over their common batches, in standard errors (negative: ahead of it); `noise`: the render noise
-    of the best's mean render (`render_noise`), recorded beside the figures."""
+    of the best's mean render (`render_noise`), recorded beside the figures. `rendered`: the batches of `best` that
+    verification rendered already (`verify.Verified.renders`), which are not rendered again."""
     weights = verify.as_weights(target, weights)
     everyone = {"best": best, **pool}
-    batches: dict[str, list[np.ndarray]] = {}
+    batches: dict[str, list[np.ndarray]] = {"best": list(rendered)}
     verify.render_batches(renderer, everyone, batches, list(everyone), count=verify.BATCHES, spp=verify.SPP)
     while True:
         margins = {name: deficit(batches["best"], batches[name], target, weights) for name in pool}
@@ -209,10 +219,12 @@ def clean(
     weights: np.ndarray | None,
     found: ranges.Ranges,
     renderer=None,
+    *,
+    rendered: list[np.ndarray] | tuple = (),
 ) -> Cleaned:
     """Returns the clean answer of `answer` (unit cube), judged in Mitsuba against it with `renderer` (an
     `engine.Renderer`, `Background` or `Process` at the target's resolution; None: not judged, the simplest
-    candidate returned)."""
+    candidate returned). `rendered`: verification's batches of `answer`, as for `judge`."""
     started = time.perf_counter()
     answer = np.asarray(answer, np.float64)
     found_candidates = candidates(decode, variables, answer, weights, found)
@@ -231,7 +243,7 @@ def clean(
     )
     chosen = "clean-" + str(len(pool)) if pool else "best"
     if pool and renderer is not None:
-        judged = judge(renderer, answer, pool, target, weights)
+        judged = judge(renderer, answer, pool, target, weights, rendered=rendered)
         chosen = judged["chosen"]
         out.noise, out.batches, out.rendered = judged["noise"], judged["batches"], judged["rendered"]
         out.margins = judged["margins"]

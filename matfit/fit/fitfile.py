@@ -297,8 +297,16 @@ def decide(outcome: Outcome, model: models.Model, model_path: str, weights, rend
     outcome.ranges = ranges.measure(decoding, model.decoder.variables, outcome.unit, weights, tau, source)
     if answer != "clean":
         return
+    rendered = outcome.verified.renders if outcome.verified is not None else ()  # the answer's batches
     cleaned = clean.clean(
-        decoding, model.decoder.variables, outcome.unit, outcome.target, weights, outcome.ranges, renderer
+        decoding,
+        model.decoder.variables,
+        outcome.unit,
+        outcome.target,
+        weights,
+        outcome.ranges,
+        renderer,
+        rendered=rendered,
     )
     outcome.cleaned = cleaned
     if cleaned.chosen == "clean" and cleaned.dropped:

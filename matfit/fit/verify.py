@@ -75,6 +75,7 @@ class Verified:
     decoded: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # phi of each correction round's point
     points: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)  # every candidate rendered (unit cube)
     corrections: int = 0  # rounds of correction run
+    renders: list[np.ndarray] = dataclasses.field(default_factory=list)  # the chosen one's batches (sRGB), in order
 
 
 def candidates(result: search.Result, *, count: int = CANDIDATES) -> dict[str, Float[np.ndarray, " 19"]]:
@@ -210,6 +211,7 @@ def judge(renderer, pool, contenders: list[str], batches, target, weights, *, sp
         {name: len(batches[name]) for name in contenders},
         margins,
         points=pool,
+        renders=list(batches[chosen]),
     )
 
 

@@ -52,12 +52,12 @@ def mitsuba_distance(renderer, a: np.ndarray, b: np.ndarray) -> float:
     return 255.0 * float(np.sqrt(max(estimate, 0.0)))
 
 
-def fit_case(model: models.Model, renderer, target: np.ndarray) -> tuple[np.ndarray, float]:
-    """Returns (the default fit's kept answer (unit cube), its seconds: the fit and verification with correction)."""
+def fit_case(model: models.Model, renderer, target: np.ndarray) -> tuple[verify.Verified, float]:
+    """Returns (the default fit's verification, its seconds: the fit and verification with correction)."""
     started = time.perf_counter()
     result = search.neural_search(model, target, settings=search.Settings())
     kept = verify.correct_then_verify(renderer, result, target, model=model, corrections=CORRECTIONS)
-    return np.asarray(kept.unit, np.float64), time.perf_counter() - started
+    return kept, time.perf_counter() - started
 
 
 def settings() -> dict:
@@ -81,10 +81,16 @@ def case(
     fitted: tuple[np.ndarray, float] | None = None,
 ) -> dict:
     """Returns one target's figures (see the module docstring); `truth`: its unit-cube parameters, or None;
-    `fitted`: (the answer, the fit's seconds) of an earlier run of this case, or None to fit it. The top-level range
+    `fitted`: (the answer, the fit's seconds) of an earlier run of this case, or None to fit it (then the clean
+    answer's judgement reuses verification's batches of the answer, as `matfit fit` does). The top-level range
     figures are those of `ranges.STATISTIC`; `calibration` has them for each of STATISTICS."""
     truth = None if truth is None else np.asarray(truth, np.float64)
-    answer, fit_seconds = fit_case(model, renderer, target) if fitted is None else fitted
+    rendered: list[np.ndarray] = []
+    if fitted is None:
+        kept, fit_seconds = fit_case(model, renderer, target)
+        answer, rendered = np.asarray(kept.unit, np.float64), kept.renders
+    else:
+        answer, fit_seconds = fitted
     decoding = ranges.Decoding(model.decoder.module)
     calibration, measured_by = {}, {}
     for statistic in STATISTICS:
@@ -135,7 +141,9 @@ def case(
             )
     out["checks"] = checks
     if judge:
-        cleaned = clean.clean(decoding, model.decoder.variables, answer, target, None, found, renderer)
+        cleaned = clean.clean(
+            decoding, model.decoder.variables, answer, target, None, found, renderer, rendered=rendered
+        )
         seed = reachable.JUDGE_SEED + index
         out["judged"] = {
             "best": reachable.rendered_rmse(renderer, answer, target, seed, reachable.JUDGE_SPP),
@@ -153,7 +161,8 @@ def case(
 
 def warm_up(model: models.Model, renderer, target: np.ndarray) -> None:
     """Compiles every stage once (fit, verification, ranges, the clean answer), so that the timings are warm."""
-    answer, _ = fit_case(model, renderer, target)
+    kept, _ = fit_case(model, renderer, target)
+    answer = np.asarray(kept.unit, np.float64)
     decoding = ranges.Decoding(model.decoder.module)
     found = ranges.measure(decoding, model.decoder.variables, answer, None, 2.0)
     clean.candidates(decoding, model.decoder.variables, answer, None, found)
