@@ -24,9 +24,9 @@ verification's seeds (common random numbers) and compared by its estimates (`ver
 each candidate against the answer). The simplest candidate that the answer does not beat by more
 than LEAD standard errors is returned: verification's rule, so the clean answer is never
 measurably worse. While that candidate trails the answer within LEAD standard errors, it and the
-answer get one more batch each, up to MAX_BATCHES (the answer's first batches are verification's own,
-not rendered again); a candidate the answer beats by more is passed
-over for the next less simple one. At most (len(FEATURES) + 1) * MAX_BATCHES renders.
+answer get one more batch each, up to MAX_BATCHES; a candidate the answer beats by more is passed
+over for the next less simple one. The answer's first batches are verification's own, not rendered
+again: at most len(FEATURES) * MAX_BATCHES + MAX_BATCHES - BATCHES renders.
 """
 
 from __future__ import annotations
