@@ -25,8 +25,9 @@ each candidate against the answer). The simplest candidate that the answer does 
 than LEAD standard errors is returned: verification's rule, so the clean answer is never
 measurably worse. While that candidate trails the answer within LEAD standard errors, it and the
 answer get one more batch each, up to MAX_BATCHES; a candidate the answer beats by more is passed
-over for the next less simple one. The answer's first batches are verification's own, not rendered
-again: at most len(FEATURES) * MAX_BATCHES + MAX_BATCHES - BATCHES renders.
+over for the next less simple one, which is rendered only then (the simplest first). The answer's
+first batches are verification's own, not rendered again: at most len(FEATURES) * MAX_BATCHES +
+MAX_BATCHES - BATCHES renders, BATCHES where the simplest is plainly kept.
 """
 
 from __future__ import annotations
@@ -176,21 +177,27 @@ def judge(
 ):
     """Returns {"chosen": the name kept ("best" or one of `pool`), "figures", "noise", "margins", "batches",
     "rendered"}: `best` and the candidates of `pool` (by name, simplest last) rendered in batches with verification's
-    seeds and compared by its estimates, by the rule of the module docstring. `margins`: each candidate's deficit
-    behind the best over their common batches, in standard errors (negative: ahead of it); `noise`: the render noise
+    seeds and compared by its estimates, by the rule of the module docstring. `margins`: each judged candidate's
+    deficit behind the best over their common batches, in standard errors (negative: ahead of it); those after the
+    one kept are not rendered, so neither in `margins` nor in `figures`; `noise`: the render noise
     of the best's mean render (`render_noise`), recorded beside the figures. `rendered`: the batches of `best` that
     verification rendered already (`verify.Verified.renders`), which are not rendered again."""
     weights = verify.as_weights(target, weights)
     everyone = {"best": best, **pool}
     batches: dict[str, list[np.ndarray]] = {"best": list(rendered)}
-    verify.render_batches(renderer, everyone, batches, list(everyone), count=verify.BATCHES, spp=verify.SPP)
-    while True:
-        margins = {name: deficit(batches["best"], batches[name], target, weights) for name in pool}
-        chosen = next((name for name in reversed(pool) if margins[name] < verify.LEAD), "best")
-        if chosen == "best" or margins[chosen] <= 0 or len(batches[chosen]) >= verify.MAX_BATCHES:
+    margins: dict[str, float] = {}
+    chosen = "best"
+    for name in reversed(pool):  # the simplest first; a less simple one is rendered only when it is refused
+        count = verify.BATCHES
+        while True:
+            verify.render_batches(renderer, everyone, batches, ["best", name], count=count, spp=verify.SPP)
+            margins[name] = deficit(batches["best"], batches[name], target, weights)
+            if not 0 < margins[name] < verify.LEAD or len(batches[name]) >= verify.MAX_BATCHES:
+                break
+            count = len(batches[name]) + 1
+        if margins[name] < verify.LEAD:
+            chosen = name
             break
-        count = len(batches[chosen]) + 1
-        verify.render_batches(renderer, everyone, batches, ["best", chosen], count=count, spp=verify.SPP)
     estimates = {name: verify.squared_error(renders, target, weights)[0] for name, renders in batches.items()}
     return {
         "chosen": chosen,
@@ -249,7 +256,7 @@ def clean(
         out.margins = judged["margins"]
         shown = chosen if chosen != "best" else f"clean-{len(pool)}"
         out.figures = {"clean": judged["figures"][shown], "best": judged["figures"]["best"]}
-        for name in pool:
+        for name in judged["margins"]:  # the candidates judged: the simplest, and less simple ones while refused
             out.candidates[name]["mitsuba"] = judged["figures"][name]
             out.candidates[name]["margin"] = judged["margins"][name]
     if chosen != "best":
