@@ -46,19 +46,20 @@ $(BLENDER_VENV)/.installed: pyproject.toml
 blender-extension: $(BIN)/matfit
 	$(BIN)/python blender/build.py dist
 
-# Every test. `make check` is the quick loop while working: the same lint and type check, every test but the slow
-# end-to-end ones. mypy reads its settings from pyproject.toml ([tool.mypy]: the package, not the tests).
+# Every test, on every core (pytest-xdist; a test file's tests share one worker and its module fixtures). `make
+# check` is the quick loop while working: the same lint and type check, every test but the slow end-to-end ones.
+# mypy reads its settings from pyproject.toml ([tool.mypy]: the package, not the tests).
 test: $(BIN)/matfit
 	$(BIN)/ruff check matfit tests blender
 	$(BIN)/ruff format --check matfit tests blender
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n auto --dist loadfile
 
 check: $(BIN)/matfit
 	$(BIN)/ruff check matfit tests blender
 	$(BIN)/ruff format --check matfit tests blender
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q -m "not slow"
+	$(BIN)/python -m pytest -q -n auto --dist loadfile -m "not slow"
 
 lint: $(BIN)/matfit
 	$(BIN)/ruff check matfit tests blender

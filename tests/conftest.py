@@ -27,14 +27,19 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 @pytest.fixture(scope="session", autouse=True)
 def session_cache(tmp_path_factory):
-    """Returns the one $XDG_CACHE_HOME of the session, set for this process and every process it starts.
+    """Returns the one $XDG_CACHE_HOME of the session (of every worker of `pytest -n`), set for this process and
+    every process it starts.
 
     So the suite neither reads nor fills the user's ~/.cache/matfit, and a program that one test compiled (an
     in-process `matfit fit`, say) is read back from matfit's program store (`matfit/programs.py`) by a later test or
     `matfit` process that needs it, instead of being traced and compiled again.
     """
     with pytest.MonkeyPatch.context() as patch:
-        path = tmp_path_factory.mktemp("cache")
+        if os.environ.get("PYTEST_XDIST_WORKER"):  # `pytest -n`: one store for every worker of the run
+            path = tmp_path_factory.getbasetemp().parent / "cache"
+            path.mkdir(exist_ok=True)
+        else:
+            path = tmp_path_factory.mktemp("cache")
         patch.setenv("XDG_CACHE_HOME", str(path))
         yield path
 
