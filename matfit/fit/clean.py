@@ -130,7 +130,9 @@ def candidates(
             tried[name] = indices
     if not tried:
         return []
-    base, held, names, out = answer.copy(), np.zeros(params.COUNT, bool), (), []
+    base, held = answer.copy(), np.zeros(params.COUNT, bool)
+    names: tuple[str, ...] = ()
+    out: list[tuple[tuple[str, ...], np.ndarray, float]] = []
     if "medium" in tried and unseen_medium(answer):
         for i in tried.pop("medium"):
             base[i], held[i] = neutral[i], True
