@@ -131,6 +131,23 @@ def test_bench_ranges_goes_on_from_its_results_file_and_tabulates_each_tau(tmp_p
     ]
     assert [c["name"] for c in figures["cases"]] == ["reachable-0", "reachable-1", "reachable-2"]
     assert json.loads(results.read_text()) == figures
+    # interrupted after its first case was measured again, a run keeps the file's other answers for the next one
+    olds = [{**stale, "name": f"reachable-{k}"} for k in range(3)]
+    results.write_text(json.dumps({"cases": olds}))
+    calls = []
+
+    def interrupted(*args, **kwargs):
+        calls.append(args)
+        if len(calls) > 1:
+            raise KeyboardInterrupt
+        return measure(*args, **kwargs)
+
+    monkeypatch.setattr(ranges, "case", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        ranges.run(model, 3, 0, [], log=lambda line: None, results=str(results))
+    kept = json.loads(results.read_text())["cases"]
+    assert [c["name"] for c in kept] == ["reachable-0", "reachable-1", "reachable-2"]
+    assert kept[0]["settings"] == ranges.settings() and kept[1:] == olds[1:]
     text = ranges.table({"cases": figures["cases"][:1]})
     first, second = text.index("tau = the decoder's mean"), text.index("95th-percentile")
     assert first < second  # the default tau's table comes first

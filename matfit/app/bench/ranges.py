@@ -198,9 +198,10 @@ def run(
     cases: list[dict] = []
     warm = False
 
-    def save() -> None:
+    def save() -> None:  # the cases of this run so far, then the file's others: none is lost to an interruption
         if results is not None:
-            files.write_text(results, json.dumps({"cases": cases}))
+            ours = {c["name"] for c in cases}
+            files.write_text(results, json.dumps({"cases": cases + [c for n, c in done.items() if n not in ours]}))
 
     work = [
         (f"reachable-{k}", target, truth, k < judged)
