@@ -13,7 +13,7 @@ import functools
 import os
 from importlib import metadata
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated
 
 import typer
 
@@ -205,10 +205,7 @@ def fit_command(
     refine: options.Refine = 0,
     corrections: options.Corrections = None,
     variant: options.Variant = None,
-    answer: Annotated[
-        Literal["clean", "best"],
-        typer.Option(help="clean: the simplest material within the threshold of the best fit; best: the fit's own."),
-    ] = "clean",
+    answer: options.Answer = "clean",
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
     from matfit.render import engine as render_module

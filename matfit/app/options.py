@@ -89,6 +89,10 @@ Refine = Annotated[
     ),
 ]
 MAX_CORRECTIONS = 100
+Answer = Annotated[
+    Literal["clean", "best"],
+    typer.Option(help="clean: the simplest material within the threshold of the best fit; best: the fit's own."),
+]
 Corrections = Annotated[
     int | None,
     typer.Option(

@@ -322,6 +322,33 @@ def params_text(outcome: Outcome) -> str:
     return documents.dumps(outcome.document)
 
 
+def answer_section(cleaned: clean.Cleaned) -> dict:
+    """Returns params.json's `answer` section: the clean answer, the candidates judged and the fit's own answer."""
+    return {
+        "kind": "clean",
+        "kept": cleaned.chosen,
+        "features_off": list(cleaned.dropped),
+        "mitsuba_rmse": {name: round(value, 3) for name, value in cleaned.figures.items()},
+        "render_noise": round(cleaned.noise, 3),
+        "candidates": {  # nested, the simplest last; margin: standard errors behind the best (null: decided)
+            name: {
+                "features_off": candidate["off"],
+                "decoded_distance": round(candidate["distance"], 3),
+                **({"mitsuba_rmse": round(candidate["mitsuba"], 3)} if "mitsuba" in candidate else {}),
+                **(
+                    {"margin": round(candidate["margin"], 2) if np.isfinite(candidate["margin"]) else None}
+                    if "margin" in candidate
+                    else {}
+                ),
+            }
+            for name, candidate in cleaned.candidates.items()
+        },
+        "free_not_neutral": {"best": cleaned.free_before, "answer": cleaned.free_after},
+        "best": params.to_mapping(params.from_unit(cleaned.best)),
+        "seconds": round(cleaned.seconds, 3),
+    }
+
+
 def document(outcome: Outcome, request: Request, model_path: str) -> dict:
     """Returns the params.json document of a fit: the 19 values with units, and how they were found."""
     result, checked = outcome.result, outcome.verified
@@ -347,29 +374,7 @@ def document(outcome: Outcome, request: Request, model_path: str) -> dict:
         cleaned = outcome.cleaned
         if cleaned.figures:
             mitsuba["mitsuba_rmse"] = round(cleaned.figures[cleaned.chosen], 3)
-        mitsuba["answer"] = {
-            "kind": "clean",
-            "kept": cleaned.chosen,
-            "features_off": list(cleaned.dropped),
-            "mitsuba_rmse": {name: round(value, 3) for name, value in cleaned.figures.items()},
-            "render_noise": round(cleaned.noise, 3),
-            "candidates": {  # nested, the simplest last; margin: standard errors behind the best (null: decided)
-                name: {
-                    "features_off": candidate["off"],
-                    "decoded_distance": round(candidate["distance"], 3),
-                    **({"mitsuba_rmse": round(candidate["mitsuba"], 3)} if "mitsuba" in candidate else {}),
-                    **(
-                        {"margin": round(candidate["margin"], 2) if np.isfinite(candidate["margin"]) else None}
-                        if "margin" in candidate
-                        else {}
-                    ),
-                }
-                for name, candidate in cleaned.candidates.items()
-            },
-            "free_not_neutral": {"best": cleaned.free_before, "answer": cleaned.free_after},
-            "best": params.to_mapping(params.from_unit(cleaned.best)),
-            "seconds": round(cleaned.seconds, 3),
-        }
+        mitsuba["answer"] = answer_section(cleaned)
     if outcome.refined is not None:
         refined = outcome.refined
         mitsuba["mitsuba_rmse"] = round(refined.rmse, 3)  # the kept point's acceptance render

@@ -71,6 +71,51 @@ def settings() -> dict:
     }
 
 
+def calibrate(
+    model: models.Model, decoding, answer: np.ndarray, truth: np.ndarray | None
+) -> tuple[dict, ranges.Ranges]:
+    """Returns ({statistic: the ranges of `answer` with tau that statistic of the card, whether `truth` lies inside
+    each}, the ranges with tau `ranges.STATISTIC`)."""
+    calibration, measured_by = {}, {}
+    for statistic in STATISTICS:
+        tau, _ = ranges.threshold(model.path, answer, statistic=statistic)
+        started = time.perf_counter()
+        measured = ranges.measure(decoding, model.decoder.variables, answer, None, tau)
+        calibration[statistic] = {
+            "threshold": tau,
+            "verdicts": list(measured.verdicts),
+            "low": measured.low.tolist(),
+            "high": measured.high.tolist(),
+            "seconds": time.perf_counter() - started,
+        }
+        if truth is not None:
+            inside = (truth >= measured.low - 1e-6) & (truth <= measured.high + 1e-6)
+            calibration[statistic]["inside"] = inside.tolist()
+        measured_by[statistic] = measured
+    return calibration, measured_by[ranges.STATISTIC]
+
+
+def mitsuba_checks(renderer, found: ranges.Ranges, answer: np.ndarray, index: int) -> list[dict]:
+    """Returns the Mitsuba checks of the range ends of CHECKED parameters (drawn with seed [CHECK_SEED, index]): per
+    end that moved, its verdict, its decoded and its Mitsuba distance to the answer (`mitsuba_distance`)."""
+    checks = []
+    chosen = np.random.default_rng([CHECK_SEED, index]).choice(params.COUNT, CHECKED, replace=False)
+    for i in chosen:
+        for side in (0, 1):
+            end = found.ends[i, side]
+            if np.max(np.abs(end - answer)) <= ranges.FACE:
+                continue
+            checks.append(
+                {
+                    "parameter": params.NAMES[i],
+                    "verdict": found.verdicts[i],
+                    "neural": float(found.end_rmse[i, side]),
+                    "mitsuba": mitsuba_distance(renderer, end, answer),
+                }
+            )
+    return checks
+
+
 def case(
     model: models.Model,
     renderer,
@@ -92,23 +137,7 @@ def case(
     else:
         answer, fit_seconds = fitted
     decoding = ranges.Decoding(model.decoder.module)
-    calibration, measured_by = {}, {}
-    for statistic in STATISTICS:
-        tau, _ = ranges.threshold(model.path, answer, statistic=statistic)
-        started = time.perf_counter()
-        measured = ranges.measure(decoding, model.decoder.variables, answer, None, tau)
-        calibration[statistic] = {
-            "threshold": tau,
-            "verdicts": list(measured.verdicts),
-            "low": measured.low.tolist(),
-            "high": measured.high.tolist(),
-            "seconds": time.perf_counter() - started,
-        }
-        if truth is not None:
-            inside = (truth >= measured.low - 1e-6) & (truth <= measured.high + 1e-6)
-            calibration[statistic]["inside"] = inside.tolist()
-        measured_by[statistic] = measured
-    found = measured_by[ranges.STATISTIC]
+    calibration, found = calibrate(model, decoding, answer, truth)
     started = time.perf_counter()
     tried = clean.candidates(decoding, model.decoder.variables, answer, None, found)
     simplest_seconds = time.perf_counter() - started
@@ -124,22 +153,7 @@ def case(
         "dropped": list(tried[-1][0]) if tried else [],
         "free_before": clean.free_away_from_neutral(answer, found.verdicts),
     }
-    checks = []
-    chosen = np.random.default_rng([CHECK_SEED, index]).choice(params.COUNT, CHECKED, replace=False)
-    for i in chosen:
-        for side in (0, 1):
-            end = found.ends[i, side]
-            if np.max(np.abs(end - answer)) <= ranges.FACE:
-                continue
-            checks.append(
-                {
-                    "parameter": params.NAMES[i],
-                    "verdict": found.verdicts[i],
-                    "neural": float(found.end_rmse[i, side]),
-                    "mitsuba": mitsuba_distance(renderer, end, answer),
-                }
-            )
-    out["checks"] = checks
+    out["checks"] = mitsuba_checks(renderer, found, answer, index)
     if judge:
         cleaned = clean.clean(
             decoding, model.decoder.variables, answer, target, None, found, renderer, rendered=rendered
