@@ -99,6 +99,31 @@ def test_the_decoder_corrects_the_linear_end_of_a_curved_response():
     assert found.end_rmse[red, 1] <= THRESHOLD + 1e-4
 
 
+def test_later_rounds_decode_only_the_unsettled_ends_and_settling_moves_no_end_by_more_than_its_tolerance(
+    monkeypatch,
+):
+    sizes = []
+    bucket, tolerance = ranges.bucket, ranges.SETTLED
+    monkeypatch.setattr(ranges, "bucket", lambda count, total: sizes.append(count) or bucket(count, total))
+    settled = ranges.measure(fourth_power, jnp.float32(0.5), answer(), None, THRESHOLD)
+    # the first round decodes all 38 ends; the 36 ends of the parameters without effect reach the faces there
+    assert sizes[0] == 2 * params.COUNT
+    assert 0 < max(sizes[1:]) <= 2
+    assert ranges.bucket(2, 2 * params.COUNT) == ranges.BUCKETS[0]
+    assert ranges.bucket(30, 2 * params.COUNT) == 2 * params.COUNT
+    # every end checked in every round (only ends confirmed at a face stop: their move cannot change)
+    monkeypatch.setattr(ranges, "SETTLED", -1.0)
+    sizes.clear()
+    every = ranges.measure(fourth_power, jnp.float32(0.5), answer(), None, THRESHOLD)
+    assert len(sizes) == ranges.CHECKS
+    np.testing.assert_allclose(settled.low, every.low, atol=tolerance)
+    np.testing.assert_allclose(settled.high, every.high, atol=tolerance)
+    assert settled.verdicts == every.verdicts
+    red = params.INDEX["base_color_r"]
+    exact_high = (0.5**4 + THRESHOLD / (255.0 * 0.5)) ** 0.25
+    assert exact_high - tolerance <= settled.high[red] <= exact_high + 1e-4
+
+
 def test_the_document_has_physical_units_and_every_parameter():
     found = ranges.measure(only_base_red, jnp.float32(0.4), answer(density=0.25), None, THRESHOLD, source="stated")
     document = found.document()

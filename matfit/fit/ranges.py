@@ -20,6 +20,8 @@ it stays below it grows (by 0.9 tau / D, within [1/4, 2], up to the box and belo
 move refused), and the others are re-optimised by a Gauss-Newton step with the answer's Jacobian
 (the chord method) before the next decode. An end is reported only where a decode found it within
 tau (`CHECKS` rounds): the range is the widest move the decoder confirmed, never the linear guess.
+A round decodes only the ends not yet settled (confirmed at the box's face, or confirmed and
+refused moves within SETTLED of each other), in batches of a few fixed sizes (`BUCKETS`).
 
 Verdicts (docs/fitting.md#what-the-picture-decides): *free* when the range reaches both faces of the
 box (moving the parameter to either end, others adjusted, stays within tau), *decided* when it
@@ -48,6 +50,8 @@ FACE = 1e-6  # how close (unit cube) a confirmed end must lie to a face of the b
 BISECTIONS = 14  # halvings of the linear end: 1e-4 of the box (the decoder's check refines it)
 SWEEPS = 10  # coordinate-descent sweeps of each box-constrained quadratic
 CHECKS = 8  # decodes of every end point, with a correction between them: enough that the ends stop moving
+SETTLED = 0.005  # unit cube: an end whose confirmed and refused moves lie this close is not decoded again
+BUCKETS = (8, 16, 24)  # batch sizes of the later rounds, which decode only the ends not yet settled
 GROWTH = 0.9  # the next try aims at this share of tau, the response assumed linear in the move
 LOOK_ALIKES = 4
 VERDICTS = ("decided", "partly", "free")
@@ -185,57 +189,110 @@ def _linear_end(hessian, low, high, index, sign, threshold):
     return jnp.where(cost_full <= threshold**2, z_full, z_bisected)
 
 
+def _directions(count: int, dtype) -> tuple[jax.Array, jax.Array]:
+    """Returns (parameter, sign) of every end: each parameter's low end (-1), then its high end (+1)."""
+    return jnp.repeat(jnp.arange(count), 2), jnp.tile(jnp.array([-1.0, 1.0], dtype), count)
+
+
 @programs.jit(static_argnames=("decode",))
-def _measure(decode, variables, answer, weights, threshold):
+def _linearise(decode, variables, answer, weights, threshold):
+    """Returns the answer's picture, the decoder's Jacobian there, the Gauss-Newton Hessian and its scale, and the
+    linearised answer's end points relative to the answer (2 * 19, 19; `_directions`' order)."""
     count = answer.shape[0]
     picture = decode(answer[None], variables)[0]
     jacobian = jax.jacfwd(lambda x: decode(x[None], variables)[0])(answer)  # (R, R, 3, 19)
     scale = 255.0**2 / (3.0 * jnp.sum(weights))
     weighted = jacobian * weights[:, :, None, None]
     hessian = scale * jnp.einsum("hwcj,hwck->jk", weighted, jacobian)
+    indices, signs = _directions(count, answer.dtype)
+    ends = jax.vmap(lambda i, s: _linear_end(hessian, -answer, 1.0 - answer, i, s, threshold))(indices, signs)
+    return {"picture": picture, "jacobian": jacobian, "hessian": hessian, "scale": scale, "ends": ends}
+
+
+@programs.jit(static_argnames=("decode",))
+def _check(decode, variables, answer, linear, weights, threshold, ends, moves, best_move, refused, indices, signs):
+    """One round of the decoder's check of the ends given (n of them; `indices`, `signs` say which): decodes them,
+    keeps the widest move confirmed within tau (`best_move`) and the narrowest refused, and returns the next tries,
+    the others corrected by a Gauss-Newton step with the answer's Jacobian (the chord method)."""
+    count = answer.shape[0]
+    picture, jacobian, hessian = linear["picture"], linear["jacobian"], linear["hessian"]
     low, high = -answer, 1.0 - answer
-    indices = jnp.repeat(jnp.arange(count), 2)
-    signs = jnp.tile(jnp.array([-1.0, 1.0], answer.dtype), count)
-    ends = jax.vmap(lambda i, s: _linear_end(hessian, low, high, i, s, threshold))(indices, signs)
-    linear = ends[jnp.arange(2 * count), indices]
-    moves = jnp.abs(linear)  # how far each direction's parameter moves, >= 0
     bounds = jnp.where(signs > 0, high[indices], -low[indices])
-    best_move = jnp.zeros_like(moves)
-    best_point = jnp.zeros_like(ends)
-    best_rmse = jnp.zeros_like(moves)
-    refused = jnp.full_like(moves, jnp.inf)
-    for check in range(CHECKS):  # unrolled: a decoder inside a loop body runs slowly on XLA's CPU backend
-        decoded = decode(answer[None] + ends, variables)
-        rmse = images.rmse(decoded, picture[None], weights)
-        inside = rmse <= threshold
-        better = inside & (moves >= best_move)
-        refused = jnp.where(inside, refused, jnp.minimum(refused, moves))
-        best_move = jnp.where(better, moves, best_move)
-        best_point = jnp.where(better[:, None], ends, best_point)
-        best_rmse = jnp.where(better, rmse, best_rmse)
-        if check == CHECKS - 1:
+    decoded = decode(answer[None] + ends, variables)
+    rmse = images.rmse(decoded, picture[None], weights)
+    inside = rmse <= threshold
+    better = inside & (moves >= best_move)
+    refused = jnp.where(inside, refused, jnp.minimum(refused, moves))
+    best_move = jnp.where(better, moves, best_move)
+    ratio = jnp.clip(GROWTH * threshold / jnp.maximum(rmse, 1e-6), 1.0 / 4.0, 2.0)
+    # the next try lies between the widest confirmed move and the narrowest refused one
+    new_moves = jnp.clip(moves * ratio, best_move, jnp.minimum(refused, bounds))
+    new_moves = jnp.where(new_moves >= refused, 0.5 * (best_move + refused), new_moves)
+    residual = (decoded - picture[None]) * weights[None, :, :, None]
+    gradients = linear["scale"] * jnp.einsum("nhwc,hwcj->nj", residual, jacobian)
+
+    def correct(z, gradient, index, sign, move):
+        step = jnp.zeros_like(z).at[index].set(sign * move - z[index])
+        linear_term = gradient + hessian @ step  # the chord model of the residual after the parameter's move
+        held = jnp.arange(count) == index
+        step = step + box_quadratic(hessian, linear_term, jnp.zeros_like(z), low - z - step, high - z - step, held)
+        return z + step
+
+    return {
+        "rmse": rmse,
+        "better": better,
+        "best_move": best_move,
+        "refused": refused,
+        "ends": jax.vmap(correct)(ends, gradients, indices, signs, new_moves),
+        "moves": new_moves,
+    }
+
+
+def bucket(count: int, total: int) -> int:
+    """Returns the batch size that `count` ends of `total` are checked in: the next of BUCKETS, or `total`, so
+    that a few compiled programs serve every round."""
+    return next((size for size in BUCKETS if size >= count and size < total), total)
+
+
+def _checked(decode, variables, answer, linear, weights, threshold) -> dict[str, np.ndarray]:
+    """Returns the decoder's check of the linearised ends (`linear`, `_linearise`): CHECKS rounds of `_check`
+    over the ends not yet settled, each end's widest move confirmed within tau, its material and D there.
+
+    An end is settled, and no longer decoded, once its move is confirmed at the face of the box or the widest
+    confirmed and the narrowest refused move lie within SETTLED of each other: later rounds only try moves
+    between those two, so they could change the range by less than SETTLED.
+    """
+    count = answer.shape[0]
+    indices, signs = (np.asarray(a) for a in _directions(count, answer.dtype))
+    bounds = np.where(signs > 0, 1.0 - answer[indices], answer[indices]).astype(answer.dtype)
+    ends = np.asarray(linear["ends"], answer.dtype).copy()
+    moves = np.abs(ends[np.arange(2 * count), indices])
+    best_move, best_rmse = np.zeros_like(moves), np.zeros_like(moves)
+    best_point = np.zeros_like(ends)
+    refused = np.full_like(moves, np.inf)
+    active = np.arange(2 * count)
+    for _ in range(CHECKS):
+        n = active.size
+        take = np.concatenate([active, np.full(bucket(n, 2 * count) - n, active[0])])
+        state = (ends[take], moves[take], best_move[take], refused[take], indices[take], signs[take])
+        out = {
+            k: np.asarray(v)[:n]
+            for k, v in jax.device_get(_check(decode, variables, answer, linear, weights, threshold, *state)).items()
+        }
+        better = out["better"]
+        best_point[active[better]] = ends[active[better]]
+        best_rmse[active[better]] = out["rmse"][better]
+        best_move[active], refused[active] = out["best_move"], out["refused"]
+        ends[active], moves[active] = out["ends"], out["moves"]
+        settled = (best_move[active] >= bounds[active] - FACE) | (refused[active] - best_move[active] <= SETTLED)
+        active = active[~settled]
+        if not active.size:
             break
-        ratio = jnp.clip(GROWTH * threshold / jnp.maximum(rmse, 1e-6), 1.0 / 4.0, 2.0)
-        # the next try lies between the widest confirmed move and the narrowest refused one
-        new_moves = jnp.clip(moves * ratio, best_move, jnp.minimum(refused, bounds))
-        new_moves = jnp.where(new_moves >= refused, 0.5 * (best_move + refused), new_moves)
-        residual = (decoded - picture[None]) * weights[None, :, :, None]
-        gradients = scale * jnp.einsum("nhwc,hwcj->nj", residual, jacobian)
-
-        def correct(z, gradient, index, sign, move):
-            step = jnp.zeros_like(z).at[index].set(sign * move - z[index])
-            linear_term = gradient + hessian @ step  # the chord model of the residual after the parameter's move
-            held = jnp.arange(count) == index
-            step = step + box_quadratic(hessian, linear_term, jnp.zeros_like(z), low - z - step, high - z - step, held)
-            return z + step
-
-        ends = jax.vmap(correct)(ends, gradients, indices, signs, new_moves)
-        moves = new_moves
     return {
         "moves": best_move.reshape(count, 2),
         "points": (answer[None] + best_point).reshape(count, 2, count),
         "rmse": best_rmse.reshape(count, 2),
-        "linear": jnp.abs(linear).reshape(count, 2),
+        "linear": np.abs(linear["ends"][np.arange(2 * count), indices]).reshape(count, 2),
     }
 
 
@@ -261,7 +318,9 @@ def measure(
     if weights is None:
         side = int(np.asarray(decode(jnp.asarray(answer[None]), variables)).shape[1])
         weights = np.ones((side, side), np.float32)
-    out = jax.device_get(_measure(decode, variables, answer, np.asarray(weights, np.float32), np.float32(threshold)))
+    weights, tau = np.asarray(weights, np.float32), np.float32(threshold)
+    linear = jax.device_get(_linearise(decode, variables, answer, weights, tau))
+    out = _checked(decode, variables, answer, linear, weights, tau)
     moves = np.asarray(out["moves"], np.float64)
     low, high = answer - moves[:, 0], answer + moves[:, 1]
     low, high = np.clip(low, 0.0, 1.0), np.clip(high, 0.0, 1.0)

@@ -64,6 +64,7 @@ def settings() -> dict:
     """Returns what the ranges of a case depend on besides its answer: `ranges`' settings and the statistics."""
     return {
         "checks": ranges.CHECKS,
+        "settled": ranges.SETTLED,
         "bisections": ranges.BISECTIONS,
         "sweeps": ranges.SWEEPS,
         "growth": ranges.GROWTH,
