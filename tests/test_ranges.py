@@ -103,14 +103,14 @@ def test_later_rounds_decode_only_the_unsettled_ends_and_settling_moves_no_end_b
     monkeypatch,
 ):
     sizes = []
-    bucket, tolerance = ranges.bucket, ranges.SETTLED
-    monkeypatch.setattr(ranges, "bucket", lambda count, total: sizes.append(count) or bucket(count, total))
+    chunks, tolerance = ranges.chunks, ranges.SETTLED
+    monkeypatch.setattr(ranges, "chunks", lambda active: sizes.append(active.size) or chunks(active))
     settled = ranges.measure(fourth_power, jnp.float32(0.5), answer(), None, THRESHOLD)
     # the first round decodes all 38 ends; the 36 ends of the parameters without effect reach the faces there
     assert sizes[0] == 2 * params.COUNT
     assert 0 < max(sizes[1:]) <= 2
-    assert ranges.bucket(2, 2 * params.COUNT) == ranges.BUCKETS[0]
-    assert ranges.bucket(30, 2 * params.COUNT) == 2 * params.COUNT
+    assert [part.tolist() for part in ranges.chunks(np.array([4, 9]))] == [[4, 9] + [4] * (ranges.CHUNK - 2)]
+    assert [part.size for part in ranges.chunks(np.arange(2 * params.COUNT))] == [ranges.CHUNK] * 2
     # every end checked in every round (only ends confirmed at a face stop: their move cannot change)
     monkeypatch.setattr(ranges, "SETTLED", -1.0)
     sizes.clear()

@@ -138,7 +138,7 @@ def candidates(
             base[i], held[i] = neutral[i], True
         names = ("medium",)
         out.append((names, np.asarray(base, np.float64), 0.0))
-    picture = np.asarray(decode(jnp.asarray(base[None]), variables))[0]  # the answer as the renderer shows it
+    picture = np.asarray(ranges.decoded(decode, base[None].astype(np.float32), variables))[0]  # as rendered
     weights = np.ones(picture.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
     limit = min(CLOSE, found.threshold)
 

@@ -21,7 +21,7 @@ move refused), and the others are re-optimised by a Gauss-Newton step with the a
 (the chord method) before the next decode. An end is reported only where a decode found it within
 tau (`CHECKS` rounds): the range is the widest move the decoder confirmed, never the linear guess.
 A round decodes only the ends not yet settled (confirmed at the box's face, or confirmed and
-refused moves within SETTLED of each other), in batches of a few fixed sizes (`BUCKETS`).
+refused moves within SETTLED of each other), in batches of CHUNK ends, so one compiled program.
 
 Verdicts (docs/fitting.md#what-the-picture-decides): *free* when the range reaches both faces of the
 box (moving the parameter to either end, others adjusted, stays within tau), *decided* when it
@@ -51,7 +51,7 @@ BISECTIONS = 14  # halvings of the linear end: 1e-4 of the box (the decoder's ch
 SWEEPS = 10  # coordinate-descent sweeps of each box-constrained quadratic
 CHECKS = 8  # decodes of every end point, with a correction between them: enough that the ends stop moving
 SETTLED = 0.005  # unit cube: an end whose confirmed and refused moves lie this close is not decoded again
-BUCKETS = (8, 16, 24)  # batch sizes of the later rounds, which decode only the ends not yet settled
+CHUNK = 19  # ends decoded together: the first round's 38 in two batches, the later rounds' unsettled ones in one or two
 GROWTH = 0.9  # the next try aims at this share of tau, the response assumed linear in the move
 LOOK_ALIKES = 4
 VERDICTS = ("decided", "partly", "free")
@@ -69,6 +69,12 @@ class Decoding:
 
     def __call__(self, unit: jax.Array, variables: Any) -> jax.Array:
         return self.module.apply(variables, unit)
+
+
+@programs.jit(static_argnames=("decode",))
+def decoded(decode, unit, variables):
+    """Returns `decode(unit, variables)` compiled as one program (an eager call compiles each of its operations)."""
+    return decode(unit, variables)
 
 
 @dataclass
@@ -248,10 +254,14 @@ def _check(decode, variables, answer, linear, weights, threshold, ends, moves, b
     }
 
 
-def bucket(count: int, total: int) -> int:
-    """Returns the batch size that `count` ends of `total` are checked in: the next of BUCKETS, or `total`, so
-    that a few compiled programs serve every round."""
-    return next((size for size in BUCKETS if size >= count and size < total), total)
+def chunks(active: np.ndarray) -> list[np.ndarray]:
+    """Returns `active` (end numbers) in batches of CHUNK, the last padded by repeating its first end: one compiled
+    program checks every batch of every round."""
+    out = []
+    for start in range(0, active.size, CHUNK):
+        part = active[start : start + CHUNK]
+        out.append(np.concatenate([part, np.full(CHUNK - part.size, part[0])]))
+    return out
 
 
 def _checked(decode, variables, answer, linear, weights, threshold) -> dict[str, np.ndarray]:
@@ -272,13 +282,11 @@ def _checked(decode, variables, answer, linear, weights, threshold) -> dict[str,
     refused = np.full_like(moves, np.inf)
     active = np.arange(2 * count)
     for _ in range(CHECKS):
-        n = active.size
-        take = np.concatenate([active, np.full(bucket(n, 2 * count) - n, active[0])])
-        state = (ends[take], moves[take], best_move[take], refused[take], indices[take], signs[take])
-        out = {
-            k: np.asarray(v)[:n]
-            for k, v in jax.device_get(_check(decode, variables, answer, linear, weights, threshold, *state)).items()
-        }
+        batches = []
+        for take in chunks(active):
+            state = (ends[take], moves[take], best_move[take], refused[take], indices[take], signs[take])
+            batches.append(jax.device_get(_check(decode, variables, answer, linear, weights, threshold, *state)))
+        out = {k: np.concatenate([b[k] for b in batches])[: active.size] for k in batches[0]}
         better = out["better"]
         best_point[active[better]] = ends[active[better]]
         best_rmse[active[better]] = out["rmse"][better]
@@ -316,7 +324,8 @@ def measure(
     if not threshold > 0:
         raise ValueError(f"the threshold {threshold} must be > 0")
     if weights is None:
-        side = int(np.asarray(decode(jnp.asarray(answer[None]), variables)).shape[1])
+        # the picture's shape, traced rather than decoded: an eager decode compiles each of its operations
+        side = jax.eval_shape(decode, jax.ShapeDtypeStruct((1, params.COUNT), np.float32), variables).shape[1]
         weights = np.ones((side, side), np.float32)
     weights, tau = np.asarray(weights, np.float32), np.float32(threshold)
     linear = jax.device_get(_linearise(decode, variables, answer, weights, tau))
