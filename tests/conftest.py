@@ -7,7 +7,12 @@ import os
 # The suite's time is XLA compiling, not running: LLVM's optimisation of the many small programs the
 # tests build (the tiny decoders' initialisation took 34 s at XLA's default level, 2.5 s at 0, with
 # the same numbers). Set before JAX's backend starts; processes the tests start inherit it.
+# Under `pytest -n` with several workers, each worker's XLA runs its matrix products on one thread: the
+# workers already fill the cores, and their thread pools competing for them cost a third more CPU time
+# (docs/decisions.md). xdist sets PYTEST_XDIST_WORKER_COUNT before this file is read.
 XLA_TEST_FLAGS = "--xla_backend_optimization_level=0"
+if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+    XLA_TEST_FLAGS += " --xla_cpu_multi_thread_eigen=false"
 if XLA_TEST_FLAGS not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {XLA_TEST_FLAGS}".strip()
 
