@@ -93,7 +93,7 @@ def calibrated_case(name: str, truth: np.ndarray) -> dict:
         verdicts = ["partly" if tau > 2 and i == 0 else "decided" for i in range(params.COUNT)]
         inside = (truth >= lows) & (truth <= highs)
         return {"threshold": tau, "verdicts": verdicts, "low": lows.tolist(), "high": highs.tolist(),
-                "inside": inside.tolist(), "seconds": 0.1}  # fmt: skip
+                "inside": inside.tolist(), "seconds": 0.1, "truth_rmse": 1.0}  # fmt: skip
 
     calibration = {"mean": ranges_of(0.4, 0.6, 1.8), "p95": ranges_of(0.3, 0.7, 2.9)}
     assert set(calibration) == set(ranges.STATISTICS)
@@ -153,6 +153,9 @@ def test_bench_ranges_goes_on_from_its_results_file_and_tabulates_each_tau(tmp_p
     assert first < second  # the default tau's table comes first
     assert "| base_color_r | 0% (1) | - (0) | - (0) | 0.2 reflectance | - |" in text[first:second]
     assert "| all | 0% (19) | - (0) | - (0) | | |" in text[first:second]
+    # the truth decodes 1.0 from the answer, within tau: every miss is a range that fell short
+    assert "Of the 19 decided ranges that miss the true value, 19 belong to a target" in text[first:second]
+    assert "decided ranges that miss" not in text[second:]  # with the 95th percentile none misses
     assert "| base_color_r | - (0) | 100% (1) | - (0) | - | 0.8 reflectance |" in text[second:]
     assert "| base_color_g | 100% (1) | - (0) | - (0) | 0.4 reflectance | - |" in text[second:]
     assert "| all | 100% (18) | 100% (1) | - (0) | | |" in text[second:]

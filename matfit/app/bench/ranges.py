@@ -93,6 +93,11 @@ def calibrate(
             inside = (truth >= measured.low - 1e-6) & (truth <= measured.high + 1e-6)
             calibration[statistic]["inside"] = inside.tolist()
         measured_by[statistic] = measured
+    if truth is not None:  # whether the truth is one of the materials the ranges describe (within tau of the answer)
+        pictures = ranges.decoded(decoding, np.stack([answer, truth]).astype(np.float32), model.decoder.variables)
+        distance = float(images.rmse(np.asarray(pictures[1]), np.asarray(pictures[0])))
+        for figures in calibration.values():
+            figures["truth_rmse"] = distance
     return calibration, measured_by[ranges.STATISTIC]
 
 
@@ -266,6 +271,19 @@ def calibration_table(cases: list[dict], statistic: str) -> list[str]:
         lines.append(f"| {p.name} | {' | '.join(cells)} | {' | '.join(widths)} |")
     overall = [f"{hit / total:.0%} ({total})" if total else "- (0)" for hit, total in totals.values()]
     lines.append(f"| all | {' | '.join(overall)} | | |")
+    misses = [
+        c["truth_rmse"] <= c["threshold"]
+        for c in calibrated
+        if "truth_rmse" in c
+        for i, verdict in enumerate(c["verdicts"])
+        if verdict == "decided" and not c["inside"][i]
+    ]
+    if misses:
+        lines += [
+            "",
+            f"Of the {len(misses)} decided ranges that miss the true value, {sum(misses)} belong to a target whose "
+            "truth decodes within tau of the answer: a material the range should have reached.",
+        ]
     return lines
 
 
