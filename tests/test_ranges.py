@@ -124,6 +124,25 @@ def test_later_rounds_decode_only_the_unsettled_ends_and_settling_moves_no_end_b
     assert exact_high - tolerance <= settled.high[red] <= exact_high + 1e-4
 
 
+def curved_pair(unit, variables):
+    # base_color_r and base_color_g compensate each other along curved responses: r^4 + 0.3 g^2 is what shows.
+    return flat(0.2 + variables * (unit[:, 0] ** 4 + 0.3 * unit[:, 1] ** 2))
+
+
+def test_an_end_whose_correction_is_still_converging_keeps_its_move():
+    # At the answer (0.5, 0.5) red can go to 0 (green up to 0.68 makes up for it) and green to 0 (red up to 0.61);
+    # the answer's Jacobian misjudges both compensations by up to four times. Refusing every move that one
+    # correction did not bring within tau confirmed only red 0.48 and green 0.498 (a "decided" red and green).
+    found = ranges.measure(curved_pair, jnp.float32(0.5), answer(), None, THRESHOLD)
+    red, green = params.INDEX["base_color_r"], params.INDEX["base_color_g"]
+    assert found.low[red] <= 0.2 and found.low[green] <= 0.45
+    assert found.verdicts[red] == "partly"
+    assert np.all(found.end_rmse <= THRESHOLD + 1e-4)
+    for i, side in ((red, 0), (green, 0)):  # the confirmed materials really decode within tau
+        end = found.ends[i, side]
+        assert 255 * 0.5 * abs(end[0] ** 4 + 0.3 * end[1] ** 2 - (0.5**4 + 0.3 * 0.5**2)) <= THRESHOLD + 1e-3
+
+
 def test_the_document_has_physical_units_and_every_parameter():
     found = ranges.measure(only_base_red, jnp.float32(0.4), answer(density=0.25), None, THRESHOLD, source="stated")
     document = found.document()

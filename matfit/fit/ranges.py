@@ -15,7 +15,8 @@ that the picture does not see reaches both faces of the box, and one that other 
 compensate gets the range that compensation allows.
 
 The linear answer is then checked against the decoder itself: each end point (the moved parameter
-and the others as the quadratic left them) is decoded; where D exceeds tau the move shrinks, where
+and the others as the quadratic left them) is decoded; where D exceeds tau the move shrinks (unless the
+correction at least halved D since the round before: then the move is tried again), where
 it stays below it grows (by 0.9 tau / D, within [1/4, 2], up to the box and below the smallest
 move refused), and the others are re-optimised by a Gauss-Newton step with the answer's Jacobian
 (the chord method) before the next decode. An end is reported only where a decode found it within
@@ -52,6 +53,7 @@ SWEEPS = 10  # coordinate-descent sweeps of each box-constrained quadratic
 CHECKS = 8  # decodes of every end point, with a correction between them: enough that the ends stop moving
 SETTLED = 0.005  # unit cube: an end whose confirmed and refused moves lie this close is not decoded again
 CHUNK = 19  # ends decoded together: the first round's 38 in two batches, the later rounds' unsettled ones in one or two
+HOLD = 0.5  # an end outside tau keeps its move for the next round while its correction at least halves D
 GROWTH = 0.9  # the next try aims at this share of tau, the response assumed linear in the move
 LOOK_ALIKES = 4
 VERDICTS = ("decided", "partly", "free")
@@ -216,10 +218,15 @@ def _linearise(decode, variables, answer, weights, threshold):
 
 
 @programs.jit(static_argnames=("decode",))
-def _check(decode, variables, answer, linear, weights, threshold, ends, moves, best_move, refused, indices, signs):
+def _check(
+    decode, variables, answer, linear, weights, threshold, ends, moves, best_move, refused, indices, signs, previous
+):
     """One round of the decoder's check of the ends given (n of them; `indices`, `signs` say which): decodes them,
     keeps the widest move confirmed within tau (`best_move`) and the narrowest refused, and returns the next tries,
-    the others corrected by a Gauss-Newton step with the answer's Jacobian (the chord method)."""
+    the others corrected by a Gauss-Newton step with the answer's Jacobian (the chord method).
+
+    An end outside tau whose D is at most HOLD times its D of the round before (`previous`) is held: its move is
+    tried again, corrected, rather than refused, since the correction, not the move, is what is still wrong."""
     count = answer.shape[0]
     picture, jacobian, hessian = linear["picture"], linear["jacobian"], linear["hessian"]
     low, high = -answer, 1.0 - answer
@@ -227,13 +234,15 @@ def _check(decode, variables, answer, linear, weights, threshold, ends, moves, b
     decoded = decode(answer[None] + ends, variables)
     rmse = images.rmse(decoded, picture[None], weights)
     inside = rmse <= threshold
+    hold = ~inside & (rmse <= HOLD * previous)
     better = inside & (moves >= best_move)
-    refused = jnp.where(inside, refused, jnp.minimum(refused, moves))
+    refused = jnp.where(inside | hold, refused, jnp.minimum(refused, moves))
     best_move = jnp.where(better, moves, best_move)
     ratio = jnp.clip(GROWTH * threshold / jnp.maximum(rmse, 1e-6), 1.0 / 4.0, 2.0)
     # the next try lies between the widest confirmed move and the narrowest refused one
     new_moves = jnp.clip(moves * ratio, best_move, jnp.minimum(refused, bounds))
     new_moves = jnp.where(new_moves >= refused, 0.5 * (best_move + refused), new_moves)
+    new_moves = jnp.where(hold, moves, new_moves)
     residual = (decoded - picture[None]) * weights[None, :, :, None]
     gradients = linear["scale"] * jnp.einsum("nhwc,hwcj->nj", residual, jacobian)
 
@@ -251,6 +260,7 @@ def _check(decode, variables, answer, linear, weights, threshold, ends, moves, b
         "refused": refused,
         "ends": jax.vmap(correct)(ends, gradients, indices, signs, new_moves),
         "moves": new_moves,
+        "previous": rmse,
     }
 
 
@@ -280,11 +290,20 @@ def _checked(decode, variables, answer, linear, weights, threshold) -> dict[str,
     best_move, best_rmse = np.zeros_like(moves), np.zeros_like(moves)
     best_point = np.zeros_like(ends)
     refused = np.full_like(moves, np.inf)
+    previous = np.full_like(moves, np.inf)
     active = np.arange(2 * count)
     for _ in range(CHECKS):
         batches = []
         for take in chunks(active):
-            state = (ends[take], moves[take], best_move[take], refused[take], indices[take], signs[take])
+            state = (
+                ends[take],
+                moves[take],
+                best_move[take],
+                refused[take],
+                indices[take],
+                signs[take],
+                previous[take],
+            )
             batches.append(jax.device_get(_check(decode, variables, answer, linear, weights, threshold, *state)))
         out = {k: np.concatenate([b[k] for b in batches])[: active.size] for k in batches[0]}
         better = out["better"]
@@ -292,6 +311,7 @@ def _checked(decode, variables, answer, linear, weights, threshold) -> dict[str,
         best_rmse[active[better]] = out["rmse"][better]
         best_move[active], refused[active] = out["best_move"], out["refused"]
         ends[active], moves[active] = out["ends"], out["moves"]
+        previous[active] = out["previous"]
         settled = (best_move[active] >= bounds[active] - FACE) | (refused[active] - best_move[active] <= SETTLED)
         active = active[~settled]
         if not active.size:

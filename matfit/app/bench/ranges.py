@@ -65,6 +65,7 @@ def settings() -> dict:
     return {
         "checks": ranges.CHECKS,
         "settled": ranges.SETTLED,
+        "hold": ranges.HOLD,
         "bisections": ranges.BISECTIONS,
         "sweeps": ranges.SWEEPS,
         "growth": ranges.GROWTH,
