@@ -18,7 +18,8 @@ structure, shapes and dtypes of the others. So a changed matfit, JAX, machine or
 architecture finds no stale program. A static argument without a
 faithful repr (one naming a memory address) cannot be keyed: such calls are traced as usual.
 Under a JAX transformation (a tracer among the arguments), or before `enable`, a `jit` function
-is plain `jax.jit`. An unreadable stored program is compiled again and rewritten. A stored file
+is plain `jax.jit`. An unreadable stored program is compiled again and rewritten. A program is
+compiled under a lock on its file (`compiling`), so processes sharing the store compile it once. A stored file
 holds the argument and result trees (their protocol-buffer form) and the executable as JAX
 serializes it for its own compilation cache.
 
@@ -248,31 +249,72 @@ class Program:
         name = f"{self.function.__module__}.{self.function.__qualname__}"
         arguments = [(shape, str(dtype), weak) for shape, dtype, weak in shapes]
         path = _stored_path(name, (described, str(tree), arguments), SUFFIX)
-        from jax.experimental import serialize_executable
-
-        try:  # the HMAC is checked before any byte of the file is parsed or unpickled
-            payload, in_tree, out_tree = unpack(opened(path))
-            compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
-            touch(path)
+        compiled = load(path)
+        if compiled is not None:
             return compiled
-        except Exception:  # absent, damaged, unauthenticated or foreign: compiled (again) below
-            pass
-        specs = [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in shapes]
-        try:
-            compiled = jax.jit(traced).lower(*jax.tree_util.tree_unflatten(tree, specs)).compile()
-        except Exception:  # something ahead-of-time compilation cannot take: traced as usual
-            return jax.jit(traced)
-        if jax_cache_enabled():  # it may have come from JAX's cache, and such an executable does not survive storing
-            return compiled
-        # No room, no permission (OSError, OutputError), an executable that cannot be serialized or a tree without a
-        # protocol-buffer form (a custom node): used, not stored.
-        with contextlib.suppress(Exception):
-            files.write_bytes(path, seal(path, pack(*serialize_executable.serialize(compiled))))
-        return compiled
+        with compiling(path):  # another process compiling the same program is waited for, then read back
+            compiled = load(path)
+            if compiled is not None:
+                return compiled
+            return compile_and_store(traced, tree, shapes, path)
 
     def _cache_size(self) -> int:
         """Returns how many programs this function holds in this process (compiled by jax.jit or read back)."""
         return self.jitted._cache_size() + len(self.loaded)  # type: ignore[attr-defined]  # jit's private counter
+
+
+def compile_and_store(traced: Callable, tree, shapes: tuple, path: str) -> Callable:
+    """Returns `traced` compiled for `shapes` (with argument tree `tree`), stored at `path` where it can be, or
+    jitted as usual where ahead-of-time compilation cannot take it."""
+    from jax.experimental import serialize_executable
+
+    specs = [jax.ShapeDtypeStruct(shape, dtype, weak_type=weak) for shape, dtype, weak in shapes]
+    try:
+        compiled = jax.jit(traced).lower(*jax.tree_util.tree_unflatten(tree, specs)).compile()
+    except Exception:  # something ahead-of-time compilation cannot take: traced as usual
+        return jax.jit(traced)
+    if jax_cache_enabled():  # it may have come from JAX's cache, and such an executable does not survive storing
+        return compiled
+    # No room, no permission (OSError, OutputError), an executable that cannot be serialized or a tree without a
+    # protocol-buffer form (a custom node): used, not stored.
+    with contextlib.suppress(Exception):
+        files.write_bytes(path, seal(path, pack(*serialize_executable.serialize(compiled))))
+    return compiled
+
+
+def load(path: str) -> Callable | None:
+    """Returns the stored executable at `path`, or None where it is absent, damaged, unauthenticated or foreign.
+    The HMAC is checked before any byte of the file is parsed or unpickled."""
+    from jax.experimental import serialize_executable
+
+    try:
+        payload, in_tree, out_tree = unpack(opened(path))
+        compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+    except Exception:  # absent, damaged, unauthenticated or foreign: compiled (again) by the caller
+        return None
+    touch(path)
+    return compiled
+
+
+@contextlib.contextmanager
+def compiling(path: str):
+    """Holds an exclusive lock on `path`'s lock file (`path` + ".lock", private) while a program is compiled for it,
+    so that processes sharing the store (the page and a `matfit fit`, the suite's workers) compile each program once:
+    a second one waits, then reads what the first stored. The lock goes with its process (flock), so a process killed
+    while compiling blocks no one. Where no lock can be taken (no fcntl, no room, no permission) it compiles alone."""
+    try:
+        import fcntl
+
+        descriptor = os.open(f"{path}.lock", os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+    except (ImportError, OSError):
+        yield
+        return
+    try:
+        with contextlib.suppress(OSError):
+            fcntl.flock(descriptor, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(descriptor)  # releases the lock
 
 
 def pack(payload: bytes, in_tree, out_tree) -> bytes:

@@ -46,6 +46,34 @@ def test_a_new_process_reads_the_stored_program_back_instead_of_tracing(store):
     assert again._cache_size() == 1
 
 
+def slowly_scaled(x, y, factor):
+    import time
+
+    time.sleep(1.0)  # a long compilation: the other caller arrives while it runs
+    return scaled(x, y, factor)
+
+
+def test_a_program_another_caller_is_compiling_is_waited_for_and_read_back(store):
+    import threading
+
+    # Two Programs of one function are what two processes sharing the store hold (the page and `matfit fit`, the
+    # suite's workers); each opens the lock file itself, as a second process would.
+    holders = [programs.jit(slowly_scaled, static_argnames=("factor",)) for _ in range(2)]
+    results = [None, None]
+
+    def call(k: int) -> None:
+        results[k] = holders[k](*arguments(), factor=2.0)
+
+    threads = [threading.Thread(target=call, args=(k,)) for k in range(2)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert len(TRACES) == 1  # compiled once; the other read it back
+    assert [float(r["sum"]) for r in results] == [12.0, 12.0]
+    assert len(programs.stored()) == 1 and all(h._cache_size() == 1 for h in holders)
+
+
 def test_new_statics_shapes_or_source_make_new_programs(store, monkeypatch):
     function = programs.jit(scaled, static_argnames=("factor",))
     function(*arguments(), factor=3.0)
