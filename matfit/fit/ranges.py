@@ -14,11 +14,12 @@ with the box-constrained quadratic solved by coordinate descent (`box_quadratic`
 that the picture does not see reaches both faces of the box, and one that other parameters can
 compensate gets the range that compensation allows.
 
-The linear answer is then checked against the decoder itself: each end point (the moved parameter
-and the others as the quadratic left them) is decoded; where D exceeds tau the move shrinks (unless the
-correction at least halved D since the round before: then the move is tried again), where
-it stays below it grows (by 0.9 tau / D, within [1/4, 2], up to the box and below the smallest
-move refused), and the others are re-optimised by a Gauss-Newton step with the answer's Jacobian
+The linear answer is then checked against the decoder itself, from inside: each end point (the
+moved parameter and the others as the quadratic left them) is taken START of the way from the
+answer (an end the linear answer puts on a face of the box is tried there) and decoded; where D
+exceeds tau the move shrinks by 0.9 tau / D (unless the correction at least halved D since the
+round before: then the move is tried again), where it stays below it grows by tau / D (each
+within [1/4, 2], up to the box and below the smallest move refused), and the others are re-optimised by a Gauss-Newton step with the answer's Jacobian
 (the chord method) before the next decode. An end is reported only where a decode found it within
 tau (`CHECKS` rounds): the range is the widest move the decoder confirmed, never the linear guess.
 A round decodes only the ends not yet settled (confirmed at the box's face, or confirmed and
@@ -53,8 +54,9 @@ SWEEPS = 10  # coordinate-descent sweeps of each box-constrained quadratic
 CHECKS = 8  # decodes of every end point, with a correction between them: enough that the ends stop moving
 SETTLED = 0.005  # unit cube: an end whose confirmed and refused moves lie this close is not decoded again
 CHUNK = 19  # ends decoded together: the first round's 38 in two batches, the later rounds' unsettled ones in one or two
+START = 0.5  # the decoder's check starts at this share of each linear end and grows (at most 2x a round) from there
 HOLD = 0.5  # an end outside tau keeps its move for the next round while its correction at least halves D
-GROWTH = 0.9  # the next try aims at this share of tau, the response assumed linear in the move
+GROWTH = 0.9  # a try outside tau is followed by one aimed at this share of tau, the response taken as linear
 LOOK_ALIKES = 4
 VERDICTS = ("decided", "partly", "free")
 
@@ -238,7 +240,8 @@ def _check(
     better = inside & (moves >= best_move)
     refused = jnp.where(inside | hold, refused, jnp.minimum(refused, moves))
     best_move = jnp.where(better, moves, best_move)
-    ratio = jnp.clip(GROWTH * threshold / jnp.maximum(rmse, 1e-6), 1.0 / 4.0, 2.0)
+    # within tau the next try aims at tau itself (the response taken as linear in the move); beyond it, a little inside
+    ratio = jnp.clip(jnp.where(inside, 1.0, GROWTH) * threshold / jnp.maximum(rmse, 1e-6), 1.0 / 4.0, 2.0)
     # the next try lies between the widest confirmed move and the narrowest refused one
     new_moves = jnp.clip(moves * ratio, best_move, jnp.minimum(refused, bounds))
     new_moves = jnp.where(new_moves >= refused, 0.5 * (best_move + refused), new_moves)
@@ -285,7 +288,9 @@ def _checked(decode, variables, answer, linear, weights, threshold) -> dict[str,
     count = answer.shape[0]
     indices, signs = (np.asarray(a) for a in _directions(count, answer.dtype))
     bounds = np.where(signs > 0, 1.0 - answer[indices], answer[indices]).astype(answer.dtype)
-    ends = np.asarray(linear["ends"], answer.dtype).copy()
+    ends = np.asarray(linear["ends"], answer.dtype)
+    at_face = np.abs(ends[np.arange(2 * count), indices]) >= bounds - FACE
+    ends = ends * np.where(at_face, 1.0, START)[:, None]  # from inside, where the corrections hold; "free" tried as is
     moves = np.abs(ends[np.arange(2 * count), indices])
     best_move, best_rmse = np.zeros_like(moves), np.zeros_like(moves)
     best_point = np.zeros_like(ends)

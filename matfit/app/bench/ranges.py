@@ -66,6 +66,7 @@ def settings() -> dict:
         "checks": ranges.CHECKS,
         "settled": ranges.SETTLED,
         "hold": ranges.HOLD,
+        "start": ranges.START,
         "bisections": ranges.BISECTIONS,
         "sweeps": ranges.SWEEPS,
         "growth": ranges.GROWTH,
