@@ -19,8 +19,9 @@ moved parameter and the others as the quadratic left them) is taken START of the
 answer (an end the linear answer puts on a face of the box is tried there) and decoded; where D
 exceeds tau the move shrinks by 0.9 tau / D (unless the correction at least halved D since the
 round before: then the move is tried again), where it stays below it grows by tau / D (each
-within [1/4, 2], up to the box and below the smallest move refused), and the others are re-optimised by a Gauss-Newton step with the answer's Jacobian
-(the chord method) before the next decode. An end is reported only where a decode found it within
+within [1/4, 2], up to the box and below the smallest move refused), and the others are
+re-optimised by a Gauss-Newton step with the answer's Jacobian (the chord method) before the next
+decode. An end is reported only where a decode found it within
 tau (`CHECKS` rounds): the range is the widest move the decoder confirmed, never the linear guess.
 A round decodes only the ends not yet settled (confirmed at the box's face, or confirmed and
 refused moves within SETTLED of each other), in batches of CHUNK ends, so one compiled program.
