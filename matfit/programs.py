@@ -243,6 +243,7 @@ class Program:
         def traced(*dynamic):
             return self.function(**fixed, **dict(zip(self.dynamic_names, dynamic, strict=True)))
 
+        traced.__name__ = traced.__qualname__ = self.function.__name__  # so that JAX's logs and profiles name it
         described = repr(statics)
         if " at 0x" in described:  # a repr naming an address: no key survives the process
             return jax.jit(traced)
