@@ -10,7 +10,7 @@ import os
 # Under `pytest -n` with several workers, each worker's XLA runs its matrix products on one thread: the
 # workers already fill the cores, and their thread pools competing for them cost a third more CPU time
 # (docs/decisions.md). xdist sets PYTEST_XDIST_WORKER_COUNT before this file is read.
-XLA_TEST_FLAGS = "--xla_backend_optimization_level=0"
+XLA_TEST_FLAGS = "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false"
 if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
     XLA_TEST_FLAGS += " --xla_cpu_multi_thread_eigen=false"
 if XLA_TEST_FLAGS not in os.environ.get("XLA_FLAGS", ""):
