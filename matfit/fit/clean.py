@@ -86,27 +86,36 @@ def free_away_from_neutral(unit: np.ndarray, verdicts: tuple[str, ...]) -> int:
     )
 
 
-@programs.jit(static_argnames=("decode",))
 def _refit(decode, variables, start, held, picture, weights):
     """Returns (the point after STEPS re-linearised Gauss-Newton steps from `start` toward `picture`, the parameters
-    where `held` (bool (19,)) is true held, its decoded RMSE to `picture`)."""
-    scale = 255.0**2 / (3.0 * jnp.sum(weights))
-    shares = jnp.array(SHARES, start.dtype)[:, None]
-    x = start
-    error = images.rmse(decode(x[None], variables)[0], picture, weights)
-    for _ in range(STEPS):  # unrolled: a decoder inside a loop body runs slowly on XLA's CPU backend
-        image, tangent = jax.linearize(lambda y: decode(y[None], variables)[0], x)
-        jacobian = jax.vmap(tangent, out_axes=-1)(jnp.eye(x.shape[0], dtype=x.dtype))  # (R, R, 3, 19)
-        hessian = scale * jnp.einsum("hwcj,hwck->jk", jacobian * weights[:, :, None, None], jacobian)
-        gradient = scale * jnp.einsum("hwc,hwcj->j", (image - picture) * weights[:, :, None], jacobian)
-        step = ranges.box_quadratic(hessian, gradient, jnp.zeros_like(x), -x, 1.0 - x, held)
-        trials = jnp.clip(x[None] + shares * step[None], 0.0, 1.0)
-        errors = images.rmse(decode(trials, variables), picture[None], weights)
-        k = jnp.argmin(errors)
-        better = errors[k] < error
-        x = jnp.where(better, trials[k], x)
-        error = jnp.where(better, errors[k], error)
+    where `held` (bool (19,)) is true held, its decoded RMSE to `picture`).
+
+    A host loop over one compiled step: a decoder inside a compiled loop body runs slowly on XLA's CPU backend, and
+    the steps unrolled into one program cost STEPS times the tracing and compiling (docs/decisions.md)."""
+    x, error = start, None
+    for _ in range(STEPS):
+        x, error = _refit_step(decode, variables, x, held, picture, weights)
     return x, error
+
+
+@programs.jit(static_argnames=("decode",))
+def _refit_step(decode, variables, x, held, picture, weights):
+    """Returns (the point after one Gauss-Newton step from `x`, linearised there, toward `picture` with the
+    parameters where `held` is true held: the best of SHARES of the step, or `x` where none lowers the error; its
+    decoded RMSE to `picture`)."""
+    scale = 255.0**2 / (3.0 * jnp.sum(weights))
+    shares = jnp.array(SHARES, x.dtype)[:, None]
+    image, tangent = jax.linearize(lambda y: decode(y[None], variables)[0], x)
+    error = images.rmse(image, picture, weights)
+    jacobian = jax.vmap(tangent, out_axes=-1)(jnp.eye(x.shape[0], dtype=x.dtype))  # (R, R, 3, 19)
+    hessian = scale * jnp.einsum("hwcj,hwck->jk", jacobian * weights[:, :, None, None], jacobian)
+    gradient = scale * jnp.einsum("hwc,hwcj->j", (image - picture) * weights[:, :, None], jacobian)
+    step = ranges.box_quadratic(hessian, gradient, jnp.zeros_like(x), -x, 1.0 - x, held)
+    trials = jnp.clip(x[None] + shares * step[None], 0.0, 1.0)
+    errors = images.rmse(decode(trials, variables), picture[None], weights)
+    k = jnp.argmin(errors)
+    better = errors[k] < error
+    return jnp.where(better, trials[k], x), jnp.where(better, errors[k], error)
 
 
 def unseen_medium(unit: np.ndarray) -> bool:
