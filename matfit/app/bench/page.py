@@ -19,7 +19,8 @@ def serve_speed(
 ) -> str:
     """Returns the page's figures (Markdown): file saved -> result shown, slider -> preview, memory over many fits.
 
-    Warm fit and latency are medians of `samples` fits; memory is read after `samples` fits and after `fits`.
+    Warm fit and latency are medians of `samples` fits; memory is read after the `samples` fits of the watched file
+    that the latency measures, and again after `fits` of them (`fits` >= `samples`).
 
     The server runs in this process (`server.running`), the client is this process too, over HTTP on
     the loopback: the latency is measured from the watched file's write to the moment the client,
@@ -48,10 +49,11 @@ def serve_speed(
     with running(studio, watched) as url:
         threading.Thread(target=listen, args=(url, events), daemon=True).start()
         time.sleep(0.5)
-        latency = saved_latency(url, watched, contents, events, samples)
         round_trips = preview_round_trips(url, previews)
+        latency = saved_latency(url, watched, contents, events, samples)
+        memory = {samples: resident_mib()}
         log(f"{fits} fits through the page")
-        memory = memory_over_fits(url, watched, contents, events, (samples, fits))
+        memory[fits] = resident_mib_after(url, watched, contents, events, samples, fits)
     studio.close()
     return "\n".join(
         [
@@ -137,22 +139,17 @@ def preview_round_trips(url: str, previews: int) -> list[float]:
     return round_trips
 
 
-def memory_over_fits(
-    url: str, watched: str, contents: list[bytes], events: list, readings: tuple[int, int]
-) -> dict[int, float]:
-    """Returns this process's resident MiB after each count of `readings` fits of the watched file (the last count
-    is how many are made)."""
-    memory = {}
-    for k in range(1, readings[-1] + 1):
+def resident_mib_after(url: str, watched: str, contents: list[bytes], events: list, done: int, fits: int) -> float:
+    """Returns this process's resident MiB once the watched file has been fitted `fits` times, `done` of them
+    already."""
+    for k in range(done + 1, fits + 1):
         with open(watched, "wb") as file:
             file.write(contents[k % len(contents)])
         seen = len(events)
         while len(events) == seen:
             time.sleep(0.005)
         job_done(url, events[-1][1]["job"])
-        if k in readings:
-            memory[k] = resident_mib()
-    return memory
+    return resident_mib()
 
 
 def resident_mib() -> float:
