@@ -15,6 +15,11 @@ if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
     XLA_TEST_FLAGS += " --xla_cpu_multi_thread_eigen=false"
 if XLA_TEST_FLAGS not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {XLA_TEST_FLAGS}".strip()
+# As optimistix's tests do: a silent broadcast or dtype promotion in matfit's JAX code is an error. Set in the
+# environment, which JAX reads at import, so that the `matfit` processes the tests start check it too, and share
+# the program store with the tests (its key holds these settings).
+os.environ["JAX_NUMPY_RANK_PROMOTION"] = "raise"
+os.environ["JAX_NUMPY_DTYPE_PROMOTION"] = "strict"
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
@@ -25,9 +30,7 @@ from matfit.render.engine import Renderer  # noqa: E402
 TEST_RESOLUTION = 16
 TEST_SPP = 16
 
-# As optimistix's tests do: a silent broadcast or dtype promotion in matfit's JAX code is an error.
-jax.config.update("jax_numpy_rank_promotion", "raise")
-jax.config.update("jax_numpy_dtype_promotion", "strict")
+assert jax.config.jax_numpy_rank_promotion == "raise" and jax.config.jax_numpy_dtype_promotion == "strict"
 
 
 @pytest.fixture(scope="session", autouse=True)
