@@ -264,7 +264,6 @@ def _check(
         "refused": refused,
         "ends": jax.vmap(correct)(ends, gradients, indices, signs, new_moves),
         "moves": new_moves,
-        "previous": rmse,
     }
 
 
@@ -298,6 +297,7 @@ def _checked(decode, variables, answer, linear, weights, threshold) -> dict[str,
     refused = np.full_like(moves, np.inf)
     previous = np.full_like(moves, np.inf)
     active = np.arange(2 * count)
+    model = {name: linear[name] for name in ("picture", "jacobian", "hessian", "scale")}  # what `_check` reads
     for _ in range(CHECKS):
         batches = []
         for take in chunks(active):
@@ -310,14 +310,14 @@ def _checked(decode, variables, answer, linear, weights, threshold) -> dict[str,
                 signs[take],
                 previous[take],
             )
-            batches.append(jax.device_get(_check(decode, variables, answer, linear, weights, threshold, *state)))
+            batches.append(jax.device_get(_check(decode, variables, answer, model, weights, threshold, *state)))
         out = {k: np.concatenate([b[k] for b in batches])[: active.size] for k in batches[0]}
         better = out["better"]
         best_point[active[better]] = ends[active[better]]
         best_rmse[active[better]] = out["rmse"][better]
         best_move[active], refused[active] = out["best_move"], out["refused"]
         ends[active], moves[active] = out["ends"], out["moves"]
-        previous[active] = out["previous"]
+        previous[active] = out["rmse"]
         settled = (best_move[active] >= bounds[active] - FACE) | (refused[active] - best_move[active] <= SETTLED)
         active = active[~settled]
         if not active.size:
