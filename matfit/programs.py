@@ -57,6 +57,7 @@ from matfit import files, shipped
 from matfit.errors import OutputError
 
 SUFFIX = ".jaxexecutable"
+LOCK = ".lock"  # beside a program while it is compiled (`compiling`); removed by `prune` once the program is gone
 MAGIC = b"matfit executable 1\n"  # then three little-endian sizes: argument tree, result tree, executable
 KEY_NAME = "programs.key"  # the per-user secret that authenticates stored files, beside the store directory
 KEY_BYTES = 32
@@ -299,14 +300,14 @@ def load(path: str) -> Callable | None:
 
 @contextlib.contextmanager
 def compiling(path: str):
-    """Holds an exclusive lock on `path`'s lock file (`path` + ".lock", private) while a program is compiled for it,
+    """Holds an exclusive lock on `path`'s lock file (`path` + LOCK, private) while a program is compiled for it,
     so that processes sharing the store (the page and a `matfit fit`, the suite's workers) compile each program once:
     a second one waits, then reads what the first stored. The lock goes with its process (flock), so a process killed
     while compiling blocks no one. Where no lock can be taken (no fcntl, no room, no permission) it compiles alone."""
     try:
         import fcntl
 
-        descriptor = os.open(f"{path}.lock", os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+        descriptor = os.open(path + LOCK, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
     except (ImportError, OSError):
         yield
         return
@@ -388,15 +389,18 @@ def remembered(name: str, parts: Any, compute: Callable[[], Any]) -> Any:
 
 
 def prune(directory: str, max_bytes: int) -> int:
-    """Removes the least recently used files of a cache directory until the rest take at most `max_bytes`;
-    returns how many it removed. Last use is a file's later access or modification time (a program read back
-    has its time set, `touch`). Files another process removes meanwhile, or that cannot be removed, are skipped:
-    a cache is never worth an error."""
+    """Removes the least recently used files of a cache directory until the rest take at most `max_bytes`, then
+    the lock files (`compiling`) whose program is gone and that no process holds; returns how many files it
+    removed. Last use is a file's later access or modification time (a program read back has its time set,
+    `touch`). Files another process removes meanwhile, or that cannot be removed, are skipped: a cache is never
+    worth an error."""
     try:
-        entries = []
+        entries, locks = [], []
         with os.scandir(directory) as listing:
             for entry in listing:
-                if entry.is_file(follow_symlinks=False):
+                if entry.name.endswith(LOCK) and entry.is_file(follow_symlinks=False):
+                    locks.append(entry.path)
+                elif entry.is_file(follow_symlinks=False):
                     status = entry.stat(follow_symlinks=False)
                     entries.append((max(status.st_atime, status.st_mtime), status.st_size, entry.path))
     except OSError:
@@ -409,7 +413,25 @@ def prune(directory: str, max_bytes: int) -> int:
             os.remove(path)
             removed += 1
         total -= size
-    return removed
+    return removed + sum(remove_unheld(path) for path in locks if not os.path.exists(path[: -len(LOCK)]))
+
+
+def remove_unheld(lock: str) -> bool:
+    """Removes the lock file `lock` unless a process holds it (compiling its program now); returns whether it did."""
+    try:
+        import fcntl
+
+        descriptor = os.open(lock, os.O_RDWR | os.O_NOFOLLOW)
+    except (ImportError, OSError):
+        return False
+    try:
+        fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        os.remove(lock)
+        return True
+    except OSError:  # held: that process is compiling the program and will store it
+        return False
+    finally:
+        os.close(descriptor)
 
 
 def touch(path: str) -> None:

@@ -173,6 +173,25 @@ def test_prune_removes_the_least_recently_used_until_the_rest_fit(tmp_path):
     assert programs.prune(str(tmp_path / "absent"), 0) == 0  # no cache: nothing to do, no error
 
 
+def test_prune_removes_the_lock_files_of_programs_gone_but_not_one_held(tmp_path):
+    import fcntl
+
+    program = tmp_path / f"kept{programs.SUFFIX}"
+    program.write_bytes(b"x" * 100)
+    for name in ("kept", "gone", "compiling"):
+        (tmp_path / f"{name}{programs.SUFFIX}{programs.LOCK}").touch()
+    held = os.open(tmp_path / f"compiling{programs.SUFFIX}{programs.LOCK}", os.O_RDWR)
+    fcntl.flock(held, fcntl.LOCK_EX)  # another process compiling that program now
+    try:
+        assert programs.prune(str(tmp_path), 1000) == 1
+    finally:
+        os.close(held)
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == [f"compiling{programs.SUFFIX}{programs.LOCK}", program.name, f"{program.name}{programs.LOCK}"]
+    assert programs.prune(str(tmp_path), 0) == 3  # the program by its size, then both locks, no longer held
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_program_read_back_counts_as_used(store, tmp_path):
     programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)
     (path,) = [os.path.join(store, name) for name in programs.stored()]
