@@ -105,9 +105,7 @@ def read_target(
 ) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
     """Returns (sRGB target at the model's resolution, mask weights or None, notices) from image files."""
     loaded = images.load(path)
-    weights = None
-    if mask is not None:
-        weights = search.prepare_mask(images.load(mask).pixels, loaded.pixels.shape[:2], resolution, mask)
+    weights = None if mask is None else read_mask(mask, loaded.pixels.shape[:2], resolution)
     target, notices = search.prepare_target(loaded.pixels, resolution, path)
     return target, weights, [*loaded.notices, *notices]
 
@@ -218,8 +216,13 @@ def request_target(request: Request, resolution: int) -> tuple[np.ndarray, np.nd
     weights = None
     if request.mask is not None:
         width, height = images.header(request.target)[:2]
-        weights = search.prepare_mask(images.load(request.mask).pixels, (height, width), resolution, request.mask)
+        weights = read_mask(request.mask, (height, width), resolution)
     return np.asarray(request.pixels), weights, []
+
+
+def read_mask(path: str, shape: tuple[int, int], resolution: int) -> np.ndarray:
+    """Returns the mask file's weights at the model's resolution for a picture of `shape` (height, width)."""
+    return search.prepare_mask(images.load(path).pixels, shape, resolution, path)
 
 
 def neural_stage(request: Request, model, target, *, weights, extra, on_start=None) -> search.Result:
