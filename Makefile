@@ -48,18 +48,25 @@ blender-extension: $(BIN)/matfit
 
 # Every test, on every core (pytest-xdist; a test file's tests share one worker and its module fixtures). `make
 # check` is the quick loop while working: the same lint and type check, every test but the slow end-to-end ones.
-# mypy reads its settings from pyproject.toml ([tool.mypy]: the package, not the tests).
+# mypy reads its settings from pyproject.toml ([tool.mypy]: the package, not the tests). It runs beside the tests,
+# in the moments their workers wait (on a browser, Ray, a child process), and its output follows theirs; either
+# failing fails the target.
+define TYPED_TESTS
+@out=$$(mktemp); $(BIN)/mypy >"$$out" 2>&1 & typing=$$!; \
+$(BIN)/python -m pytest -q -n auto --dist loadfile $(1); tests=$$?; \
+wait $$typing; typed=$$?; printf '%s\n' "$(BIN)/mypy"; cat "$$out"; rm -f "$$out"; \
+[ $$tests -eq 0 ] && [ $$typed -eq 0 ]
+endef
+
 test: $(BIN)/matfit
 	$(BIN)/ruff check matfit tests blender
 	$(BIN)/ruff format --check matfit tests blender
-	$(BIN)/mypy
-	$(BIN)/python -m pytest -q -n auto --dist loadfile
+	$(call TYPED_TESTS)
 
 check: $(BIN)/matfit
 	$(BIN)/ruff check matfit tests blender
 	$(BIN)/ruff format --check matfit tests blender
-	$(BIN)/mypy
-	$(BIN)/python -m pytest -q -n auto --dist loadfile -m "not slow"
+	$(call TYPED_TESTS,-m "not slow")
 
 lint: $(BIN)/matfit
 	$(BIN)/ruff check matfit tests blender
