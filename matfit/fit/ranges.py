@@ -206,18 +206,25 @@ def _directions(count: int, dtype) -> tuple[jax.Array, jax.Array]:
 
 
 @programs.jit(static_argnames=("decode",))
-def _linearise(decode, variables, answer, weights, threshold):
-    """Returns the answer's picture, the decoder's Jacobian there, the Gauss-Newton Hessian and its scale, and the
-    linearised answer's end points relative to the answer (2 * 19, 19; `_directions`' order)."""
-    count = answer.shape[0]
+def _linearise(decode, variables, answer, weights):
+    """Returns the answer's picture, the decoder's Jacobian there, the Gauss-Newton Hessian and its scale."""
     picture = decode(answer[None], variables)[0]
     jacobian = jax.jacfwd(lambda x: decode(x[None], variables)[0])(answer)  # (R, R, 3, 19)
     scale = 255.0**2 / (3.0 * jnp.sum(weights))
     weighted = jacobian * weights[:, :, None, None]
     hessian = scale * jnp.einsum("hwcj,hwck->jk", weighted, jacobian)
+    return {"picture": picture, "jacobian": jacobian, "hessian": hessian, "scale": scale}
+
+
+@programs.jit
+def _linear_ends(hessian, answer, threshold):
+    """Returns the linearised answer's end points relative to the answer (2 * 19, 19; `_directions`' order).
+
+    A program of its own, apart from the decoder's: it depends on no model, so one compiled program serves them all.
+    """
+    count = answer.shape[0]
     indices, signs = _directions(count, answer.dtype)
-    ends = jax.vmap(lambda i, s: _linear_end(hessian, -answer, 1.0 - answer, i, s, threshold))(indices, signs)
-    return {"picture": picture, "jacobian": jacobian, "hessian": hessian, "scale": scale, "ends": ends}
+    return jax.vmap(lambda i, s: _linear_end(hessian, -answer, 1.0 - answer, i, s, threshold))(indices, signs)
 
 
 @programs.jit(static_argnames=("decode",))
@@ -278,8 +285,9 @@ def chunks(active: np.ndarray) -> list[np.ndarray]:
 
 
 def _checked(decode, variables, answer, linear, weights, threshold) -> dict[str, np.ndarray]:
-    """Returns the decoder's check of the linearised ends (`linear`, `_linearise`): CHECKS rounds of `_check`
-    over the ends not yet settled, each end's widest move confirmed within tau, its material and D there.
+    """Returns the decoder's check of the linearised ends (`linear`: `_linearise`'s and `_linear_ends`'): CHECKS
+    rounds of `_check` over the ends not yet settled, each end's widest move confirmed within tau, its material and
+    D there.
 
     An end is settled, and no longer decoded, once its move is confirmed at the face of the box or the widest
     confirmed and the narrowest refused move lie within SETTLED of each other: later rounds only try moves
@@ -354,7 +362,8 @@ def measure(
         side = jax.eval_shape(decode, jax.ShapeDtypeStruct((1, params.COUNT), np.float32), variables).shape[1]
         weights = np.ones((side, side), np.float32)
     weights, tau = np.asarray(weights, np.float32), np.float32(threshold)
-    linear = jax.device_get(_linearise(decode, variables, answer, weights, tau))
+    linear = jax.device_get(_linearise(decode, variables, answer, weights))
+    linear["ends"] = jax.device_get(_linear_ends(linear["hessian"], answer, tau))
     out = _checked(decode, variables, answer, linear, weights, tau)
     moves = np.asarray(out["moves"], np.float64)
     low, high = answer - moves[:, 0], answer + moves[:, 1]
