@@ -377,24 +377,6 @@ def test_fit_writes_params_and_report(trained, target, tmp_path):
     assert run("render", out, "-o", tmp_path / "again.png", "--size", 16, "--spp", 4).exit_code == 0
 
 
-@pytest.mark.slow
-def test_two_fits_of_one_picture_write_the_same_params_json_but_for_the_timings(tmp_path):
-    # the default fit of a shipped example with the shipped model: gradient stage, two rounds of correction (which
-    # carry a render's last bits into the answer), verification's renders in a render process
-    from matfit import shipped
-
-    texts = []
-    for k in range(2):
-        out = tmp_path / f"params-{k}.json"
-        result = run("fit", shipped.EXAMPLES / "painted-highlight.png", "-o", out)
-        assert result.exit_code == 0, result.output
-        document = json.loads(out.read_text())
-        assert document["verification"]["corrections"] == 2 and document["verification"]["seconds"] > 0
-        timings = ('"fit_seconds": ', '"wall_time_s": ', '"seconds": ')
-        texts.append([line for line in out.read_text().splitlines() if not line.strip().startswith(timings)])
-    assert texts[0] == texts[1]
-
-
 def test_fit_bad_inputs(trained, target, tmp_path):
     out = tmp_path / "params.json"
 

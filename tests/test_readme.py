@@ -148,17 +148,58 @@ def tiny(command: list[str]) -> list[str]:
     return result + [f"{option}={value}" for option, value in small.items() if renders and option not in command]
 
 
-@pytest.mark.slow
-def test_the_quick_start_runs_as_written(tmp_path):
-    commands = quick_start_commands()
-    assert [command[:2] for command in commands] == [["matfit", "fit"], ["matfit", "render"]]
-    for command in commands:
-        run = subprocess.run(
-            [sys.executable, "-m", "matfit", *tiny(command)[1:]], cwd=tmp_path, capture_output=True, text=True
+@pytest.fixture(scope="module")
+def quick_start(tmp_path_factory) -> tuple[Path, list[tuple[list[str], subprocess.CompletedProcess]]]:
+    """Returns (the folder, [(command, its run)]) of the README's quick start run as written, each command a `matfit`
+    process in that folder (renders made tiny). Two tests read it: a default fit costs seconds."""
+    folder = tmp_path_factory.mktemp("quick-start")
+    runs = []
+    for command in quick_start_commands():
+        runs.append(
+            (
+                command,
+                subprocess.run(
+                    [sys.executable, "-m", "matfit", *tiny(command)[1:]], cwd=folder, capture_output=True, text=True
+                ),
+            )
         )
+    return folder, runs
+
+
+@pytest.mark.slow
+def test_the_quick_start_runs_as_written(quick_start):
+    folder, runs = quick_start
+    assert [command[:2] for command, _ in runs] == [["matfit", "fit"], ["matfit", "render"]]
+    for command, run in runs:
         assert run.returncode == 0, f"{shlex.join(command)}\n{run.stderr}"
         outputs = [command[i + 1] for i, word in enumerate(command) if word in ("-o", "--report", "--render")]
-        assert outputs and all((tmp_path / output).stat().st_size > 0 for output in outputs)
-    fitted = json.loads((tmp_path / "params.json").read_text())
+        assert outputs and all((folder / output).stat().st_size > 0 for output in outputs)
+    fitted = json.loads((folder / "params.json").read_text())
     assert len(fitted["params"]) == 19
     assert 0 < fitted["mitsuba_rmse"] < 6  # the recoloured example's render lands about 3 from its target
+
+
+@pytest.mark.slow
+def test_a_second_fit_of_the_quick_start_picture_writes_the_same_params_json_but_for_the_timings(
+    quick_start, tmp_path, monkeypatch
+):
+    # The quick start's default fit of a shipped example with the shipped model (gradient stage, two rounds of
+    # correction, which carry a render's last bits into the answer, verification's renders in a render process),
+    # made again by another process, this one, in another folder: the same params.json but for its timings.
+    from typer.testing import CliRunner
+
+    from matfit.app.cli import app
+
+    folder, runs = quick_start
+    command = next(command for command, _ in runs if command[1] == "fit")
+    monkeypatch.chdir(tmp_path)
+    result = CliRunner().invoke(app, tiny(command)[1:])
+    assert result.exit_code == 0, result.output
+    document = json.loads((tmp_path / "params.json").read_text())
+    assert document["verification"]["corrections"] == 2 and document["verification"]["seconds"] > 0
+    timings = ('"fit_seconds": ', '"wall_time_s": ', '"seconds": ')
+    texts = [
+        [line for line in (where / "params.json").read_text().splitlines() if not line.strip().startswith(timings)]
+        for where in (folder, tmp_path)
+    ]
+    assert texts[0] == texts[1]
