@@ -305,7 +305,7 @@ def _checked(decode, variables, answer, linear, weights, threshold) -> dict[str,
     refused = np.full_like(moves, np.inf)
     previous = np.full_like(moves, np.inf)
     active = np.arange(2 * count)
-    model = {name: linear[name] for name in ("picture", "jacobian", "hessian", "scale")}  # what `_check` reads
+    around = {name: linear[name] for name in ("picture", "jacobian", "hessian", "scale")}  # what `_check` reads
     for _ in range(CHECKS):
         batches = []
         for take in chunks(active):
@@ -318,7 +318,7 @@ def _checked(decode, variables, answer, linear, weights, threshold) -> dict[str,
                 signs[take],
                 previous[take],
             )
-            batches.append(jax.device_get(_check(decode, variables, answer, model, weights, threshold, *state)))
+            batches.append(jax.device_get(_check(decode, variables, answer, around, weights, threshold, *state)))
         out = {k: np.concatenate([b[k] for b in batches])[: active.size] for k in batches[0]}
         better = out["better"]
         best_point[active[better]] = ends[active[better]]
