@@ -362,8 +362,8 @@ def measure(
         side = jax.eval_shape(decode, jax.ShapeDtypeStruct((1, params.COUNT), np.float32), variables).shape[1]
         weights = np.ones((side, side), np.float32)
     weights, tau = np.asarray(weights, np.float32), np.float32(threshold)
-    linear = jax.device_get(_linearise(decode, variables, answer, weights))
-    linear["ends"] = jax.device_get(_linear_ends(linear["hessian"], answer, tau))
+    linear = _linearise(decode, variables, answer, weights)
+    linear = jax.device_get({**linear, "ends": _linear_ends(linear["hessian"], answer, tau)})
     out = _checked(decode, variables, answer, linear, weights, tau)
     moves = np.asarray(out["moves"], np.float64)
     low, high = answer - moves[:, 0], answer + moves[:, 1]
