@@ -42,6 +42,7 @@ import inspect
 import json
 import os
 import platform
+import re
 import secrets
 import stat
 import struct
@@ -62,6 +63,11 @@ MAGIC = b"matfit executable 1\n"  # then three little-endian sizes: argument tre
 KEY_NAME = "programs.key"  # the per-user secret that authenticates stored files, beside the store directory
 KEY_BYTES = 32
 SEAL_BYTES = hashlib.sha256().digest_size  # every stored file begins with its HMAC-SHA256
+# What `prune` may remove, by whole name: the store's own files (`_stored_path`: a function's name, 32 hex digits, a
+# suffix, perhaps a lock), and in the folder earlier versions gave JAX's persistent cache (`matfit/jax`), JAX's
+# (`<module>-<64 hex digits>`, then `-cache` or `-atime` since JAX 0.4.26, and its `.lockfile`).
+STORED_NAME = re.compile(r"[^/]+-[0-9a-f]{32}(?:" + re.escape(SUFFIX) + r"|\.json)(?:" + re.escape(LOCK) + ")?")
+JAX_CACHE_NAME = re.compile(r"[^/]+-[0-9a-f]{64}(?:-cache|-atime)?|\.lockfile")
 _directory: str | None = None
 _key: bytes | None = None
 
@@ -388,45 +394,79 @@ def remembered(name: str, parts: Any, compute: Callable[[], Any]) -> Any:
     return json.loads(json.dumps(value))  # the same types as read back (lists for tuples)
 
 
-def prune(directory: str, max_bytes: int) -> int:
-    """Removes the least recently used files of a cache directory until the rest take at most `max_bytes`, then
-    the lock files (`compiling`) whose program is gone and that no process holds; returns how many files it
+def prune(directory: str, max_bytes: int, *, owned: re.Pattern[str] = STORED_NAME) -> int:
+    """Removes the least recently used of a cache directory's own files until the rest take at most `max_bytes`,
+    then the lock files (`compiling`) whose program is gone and that no process holds; returns how many files it
     removed. Last use is a file's later access or modification time (a program read back has its time set,
     `touch`). Files another process removes meanwhile, or that cannot be removed, are skipped: a cache is never
-    worth an error."""
+    worth an error.
+
+    Only what the cache itself wrote is removed: regular files whose whole name `owned` matches, in `directory`
+    itself. A `directory` that is a symbolic link, or that another user owns, is left alone, and nothing inside it
+    is reached through a link: the folder is opened once (O_NOFOLLOW) and every name is looked up and removed
+    relative to that open folder, so a link planted in the cache (`matfit/jax -> someone's folder`) costs no file.
+    """
+    try:
+        folder = os.open(directory, os.O_RDONLY | os.O_DIRECTORY | os.O_NOFOLLOW | os.O_CLOEXEC)
+    except OSError:  # absent, a link or not a folder: nothing of ours is there
+        return 0
+    try:
+        if os.fstat(folder).st_uid != os.getuid():
+            return 0
+        return _prune_open(folder, max_bytes, owned)
+    finally:
+        os.close(folder)
+
+
+def _prune_open(folder: int, max_bytes: int, owned: re.Pattern[str]) -> int:
+    """`prune` on the open folder `folder`: every name is looked up and removed relative to it (`dir_fd`)."""
     try:
         entries, locks = [], []
-        with os.scandir(directory) as listing:
+        with os.scandir(folder) as listing:
             for entry in listing:
-                if entry.name.endswith(LOCK) and entry.is_file(follow_symlinks=False):
-                    locks.append(entry.path)
-                elif entry.is_file(follow_symlinks=False):
+                if not owned.fullmatch(entry.name) or not entry.is_file(follow_symlinks=False):
+                    continue
+                if entry.name.endswith(LOCK):
+                    locks.append(entry.name)
+                else:
                     status = entry.stat(follow_symlinks=False)
-                    entries.append((max(status.st_atime, status.st_mtime), status.st_size, entry.path))
+                    entries.append((max(status.st_atime, status.st_mtime), status.st_size, entry.name))
     except OSError:
         return 0
     total, removed = sum(size for _, size, _ in entries), 0
-    for _, size, path in sorted(entries):
+    for _, size, name in sorted(entries):
         if total <= max_bytes:
             break
         with contextlib.suppress(OSError):
-            os.remove(path)
+            os.unlink(name, dir_fd=folder)
             removed += 1
         total -= size
-    return removed + sum(remove_unheld(path) for path in locks if not os.path.exists(path[: -len(LOCK)]))
+    return removed + sum(remove_unheld(name, folder) for name in locks if not _present(name[: -len(LOCK)], folder))
 
 
-def remove_unheld(lock: str) -> bool:
-    """Removes the lock file `lock` unless a process holds it (compiling its program now); returns whether it did."""
+def _present(name: str, folder: int) -> bool:
+    """Returns whether `name` exists (as anything, a link included) in the open folder `folder`."""
+    try:
+        os.stat(name, dir_fd=folder, follow_symlinks=False)
+        return True
+    except OSError:
+        return False
+
+
+def remove_unheld(name: str, folder: int) -> bool:
+    """Removes the lock file `name` of the open folder `folder` unless a process holds it (compiling its program
+    now); returns whether it did."""
     try:
         import fcntl
 
-        descriptor = os.open(lock, os.O_RDWR | os.O_NOFOLLOW)
+        descriptor = os.open(name, os.O_RDWR | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC, dir_fd=folder)
     except (ImportError, OSError):
         return False
     try:
+        if not stat.S_ISREG(os.fstat(descriptor).st_mode):
+            return False
         fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        os.remove(lock)
+        os.unlink(name, dir_fd=folder)
         return True
     except OSError:  # held: that process is compiling the program and will store it
         return False
@@ -460,8 +500,9 @@ def enable_compilation_cache() -> None:
     does not grow without bound: each process first prunes it to `CACHE_BYTES` (least recently used first).
     JAX's own persistent compilation cache is not turned on: the store keeps the executables themselves, and an
     executable that JAX read from its cache does not survive being stored again (it fails at its next load with
-    "Function ... not found"). What earlier matfit versions kept there (`matfit/jax`) is removed. A store that
-    another user could have written (see above) is not used, with a one-line notice on standard error.
+    "Function ... not found"). What earlier matfit versions kept there (`matfit/jax`) is removed: JAX's own files
+    only, never through a link (`prune`). A store that another user could have written (see above) is not used,
+    with a one-line notice on standard error.
     """
     root = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     stored = os.path.join(root, "matfit", "programs")
@@ -472,5 +513,8 @@ def enable_compilation_cache() -> None:
     except OutputError as error:  # a store others could have written to is never read: said once, then compiled
         print(f"notice: compiled programs are not stored or read: {error}", file=sys.stderr)
         return
-    prune(os.path.join(root, "matfit", "jax"), 0)
+    old = os.path.join(root, "matfit", "jax")
+    prune(old, 0, owned=JAX_CACHE_NAME)
+    with contextlib.suppress(OSError):  # emptied (a link, or a folder holding anything else, stays)
+        os.rmdir(old)
     prune(stored, CACHE_BYTES["programs"])

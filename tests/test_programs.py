@@ -159,16 +159,21 @@ def test_a_full_disk_leaves_the_fit_working_and_nothing_stored(store, monkeypatc
     assert programs.remembered("shapes", 1, lambda: [4]) == [4]
 
 
+def entry(label: str, suffix: str = programs.SUFFIX) -> str:
+    """Returns the name the store gives a program of function `label` (`_stored_path`)."""
+    return f"matfit.{label}-{'0' * 32}{suffix}"
+
+
 def test_prune_removes_the_least_recently_used_until_the_rest_fit(tmp_path):
-    for age, name in enumerate(["newest", "middle", "oldest"]):
-        path = tmp_path / name
+    for age, label in enumerate(["newest", "middle", "oldest"]):
+        path = tmp_path / entry(label)
         path.write_bytes(b"x" * 1000)
         os.utime(path, (1e9 - 100 * age, 1e9 - 100 * age))
     assert programs.prune(str(tmp_path), 2500) == 1
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["middle", "newest"]
-    programs.touch(str(tmp_path / "middle"))  # read back now: the newest use
+    assert sorted(p.name for p in tmp_path.iterdir()) == [entry("middle"), entry("newest")]
+    programs.touch(str(tmp_path / entry("middle")))  # read back now: the newest use
     assert programs.prune(str(tmp_path), 1000) == 1
-    assert [p.name for p in tmp_path.iterdir()] == ["middle"]
+    assert [p.name for p in tmp_path.iterdir()] == [entry("middle")]
     assert programs.prune(str(tmp_path), 1000) == 0
     assert programs.prune(str(tmp_path / "absent"), 0) == 0  # no cache: nothing to do, no error
 
@@ -176,20 +181,58 @@ def test_prune_removes_the_least_recently_used_until_the_rest_fit(tmp_path):
 def test_prune_removes_the_lock_files_of_programs_gone_but_not_one_held(tmp_path):
     import fcntl
 
-    program = tmp_path / f"kept{programs.SUFFIX}"
+    program = tmp_path / entry("kept")
     program.write_bytes(b"x" * 100)
-    for name in ("kept", "gone", "compiling"):
-        (tmp_path / f"{name}{programs.SUFFIX}{programs.LOCK}").touch()
-    held = os.open(tmp_path / f"compiling{programs.SUFFIX}{programs.LOCK}", os.O_RDWR)
+    for label in ("kept", "gone", "compiling"):
+        (tmp_path / f"{entry(label)}{programs.LOCK}").touch()
+    held = os.open(tmp_path / f"{entry('compiling')}{programs.LOCK}", os.O_RDWR)
     fcntl.flock(held, fcntl.LOCK_EX)  # another process compiling that program now
     try:
         assert programs.prune(str(tmp_path), 1000) == 1
     finally:
         os.close(held)
     left = sorted(p.name for p in tmp_path.iterdir())
-    assert left == [f"compiling{programs.SUFFIX}{programs.LOCK}", program.name, f"{program.name}{programs.LOCK}"]
+    assert left == [f"{entry('compiling')}{programs.LOCK}", program.name, f"{program.name}{programs.LOCK}"]
     assert programs.prune(str(tmp_path), 0) == 3  # the program by its size, then both locks, no longer held
     assert list(tmp_path.iterdir()) == []
+
+
+def test_prune_removes_only_the_cache_s_own_files_and_never_through_a_link(tmp_path):
+    elsewhere = tmp_path / "someone"
+    elsewhere.mkdir()
+    theirs = [entry("a"), entry("b", ".json"), f"{entry('c')}{programs.LOCK}", "notes.txt"]
+    for name in theirs:
+        (elsewhere / name).write_bytes(b"x" * 100)
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    (cache / "notes.txt").write_bytes(b"x" * 100)  # not a name the store gives: not the cache's
+    (cache / entry("linked")).symlink_to(elsewhere / entry("a"))  # a link, not a file the cache wrote
+    os.mkfifo(cache / f"{entry('fifo')}{programs.LOCK}")  # not a regular file: left, and opening it blocks nothing
+    (tmp_path / "link").symlink_to(elsewhere)
+    assert programs.prune(str(tmp_path / "link"), 0) == 0  # the folder itself a link: not followed
+    assert programs.prune(str(cache), 0) == 0
+    assert sorted(p.name for p in elsewhere.iterdir()) == sorted(theirs)
+    assert all((elsewhere / name).read_bytes() == b"x" * 100 for name in theirs)
+    assert sorted(p.name for p in cache.iterdir()) == sorted(
+        ["notes.txt", entry("linked"), f"{entry('fifo')}{programs.LOCK}"]
+    )
+
+
+def test_the_old_jax_cache_linked_elsewhere_costs_no_file_when_the_store_is_enabled(tmp_path, monkeypatch):
+    # `ln -s <scratch>/v <cache>/matfit/jax`: the clean-up of the old folder followed the link and emptied <scratch>/v.
+    scratch = tmp_path / "v"
+    scratch.mkdir()
+    jax_named = f"jit_f-{'0' * 64}-cache"
+    for name in ("thesis.tex", jax_named, ".lockfile"):
+        (scratch / name).write_text("keep me")
+    (tmp_path / "cache" / "matfit").mkdir(parents=True)
+    (tmp_path / "cache" / "matfit" / "jax").symlink_to(scratch)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setattr(programs, "_directory", programs._directory)  # restored after the test, with its key
+    monkeypatch.setattr(programs, "_key", programs._key)
+    programs.enable_compilation_cache()
+    assert sorted(p.name for p in scratch.iterdir()) == sorted(["thesis.tex", jax_named, ".lockfile"])
+    assert (tmp_path / "cache" / "matfit" / "jax").is_symlink()
 
 
 def test_a_program_read_back_counts_as_used(store, tmp_path):
@@ -303,15 +346,21 @@ def test_the_key_is_private_and_a_store_others_can_write_is_not_used(tmp_path):
 
 
 def test_the_program_store_is_pruned_to_its_cap_and_the_old_jax_cache_removed_when_enabled(tmp_path, monkeypatch):
-    pruned = []
+    old = tmp_path / "matfit" / "jax"  # what earlier versions kept in JAX's own cache: removed, and its folder
+    old.mkdir(parents=True)
+    for name in (f"jit_f-{'0' * 64}-cache", f"jit_f-{'0' * 64}-atime", f"jit_g-{'1' * 64}", ".lockfile"):
+        (old / name).write_bytes(b"x")
+    store = tmp_path / "matfit" / "programs"
+    store.mkdir(mode=0o700)
+    for age, label in enumerate(["newer", "older"]):
+        with open(store / entry(label), "wb") as file:  # sparse: its size counts, no disk is written
+            file.truncate(programs.CACHE_BYTES["programs"] // 2 + 1)
+        os.utime(store / entry(label), (1e9 - 100 * age, 1e9 - 100 * age))
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
-    monkeypatch.setattr(programs, "prune", lambda directory, cap: pruned.append((directory, cap)) or 0)
     monkeypatch.setattr(programs, "_directory", programs._directory)  # restored after the test, with its key
     monkeypatch.setattr(programs, "_key", programs._key)
     programs.enable_compilation_cache()
-    assert pruned == [
-        (str(tmp_path / "matfit" / "jax"), 0),  # what earlier versions kept in JAX's own cache
-        (str(tmp_path / "matfit" / "programs"), programs.CACHE_BYTES["programs"]),
-    ]
+    assert not old.exists()
+    assert [p.name for p in store.iterdir()] == [entry("newer")]  # the store pruned to its cap
     assert programs._directory == str(tmp_path / "matfit" / "programs")
     assert not programs.jax_cache_enabled()  # JAX's persistent cache stays off
