@@ -1,7 +1,11 @@
 """JSON documents: the one reader of every JSON file or request matfit takes, and the one writer of what it gives.
 
 Reading: a text that is not JSON, or nested deeper than Python's parser recurses (`'[' * 100000`
-raised RecursionError), is one MatfitError naming the file and the fix, never a traceback.
+raised RecursionError), is one MatfitError naming the file and the fix, never a traceback. A file is
+read only if it is a regular file (`files.read_input`: `mkfifo f.json` or `/dev/zero` is refused
+before a byte is read) of at most MAX_BYTES (a params.json is under 2 KB, a model's card under 4 KB),
+and a document of any source is at most MAX_BYTES too, so that no input costs more than one bounded
+parse. A leading UTF-8 byte order mark (what some Windows editors write) is accepted from every source.
 Writing: JSON has no NaN or Infinity (`"neural_rmse": NaN` is refused by strict readers), so a
 figure that is not finite is written as `null`, "no figure"; parameter values are never written
 non-finite (`params.to_mapping` refuses them before a document is made).
@@ -13,7 +17,11 @@ import json
 import math
 from typing import Any
 
+from matfit import files
 from matfit.errors import MatfitError, printable
+
+MAX_BYTES = 2**20  # the largest JSON document matfit reads: 1 MB, hundreds of times the largest it writes
+BOM = "\ufeff"
 
 
 def parse(text: str | bytes, source: str, fix: str, error: type[MatfitError] = MatfitError, **options: Any) -> Any:
@@ -23,6 +31,10 @@ def parse(text: str | bytes, source: str, fix: str, error: type[MatfitError] = M
     re-raised as `error`, prefixed with `source`.
     """
     source = printable(source)
+    if len(text) > MAX_BYTES:
+        raise error(f"{source} is more than {MAX_BYTES / 2**20:g} MB, the most a JSON document may be: {fix}")
+    if isinstance(text, str):
+        text = text.removeprefix(BOM)  # bytes are decoded by json.loads, which takes the mark itself
     try:
         return json.loads(text, **options)
     except json.JSONDecodeError as problem:
@@ -37,12 +49,12 @@ def parse(text: str | bytes, source: str, fix: str, error: type[MatfitError] = M
 
 
 def read(path: str, fix: str, error: type[MatfitError] = MatfitError, **options: Any) -> Any:
-    """Returns the JSON value of the file `path`; `error` naming the file and `fix` if it cannot be read or parsed."""
+    """Returns the JSON value of the file `path`; `error` naming the file and `fix` if it cannot be read (it is not a
+    regular file, or is larger than MAX_BYTES) or parsed."""
     try:
-        with open(path, "rb") as file:
-            text = file.read()
+        text = files.read_input(path, MAX_BYTES)
     except OSError as problem:
-        raise error(f"cannot read {printable(path)}: {problem.strerror or problem}") from None
+        raise error(f"cannot read {printable(path)}: {problem.strerror or problem}: {fix}") from None
     return parse(text, path, fix, error, **options)
 
 

@@ -1,4 +1,11 @@
-"""Output files: written under a temporary name beside them, verified, then renamed into place (atomic, together).
+"""Files: inputs opened without blocking and only when regular; outputs written under a temporary name beside them,
+verified, then renamed into place (atomic, together).
+
+Every file matfit reads itself is opened with O_NONBLOCK and checked, on the open descriptor, to be a
+regular file before a byte is read (`open_input`, `read_input`): a FIFO or a device planted where a file
+is expected (`mkfifo params.json`, `--init /dev/zero`) is a one-line error, never a read that blocks or
+never ends; a path a library opens by name (OpenImageIO, NumPy's memory maps) is checked the same way first
+(`check_input`).
 
 A write either completes or fails with an OutputError (a full disk, a quota, a size limit): the
 bytes are written, flushed to the disk (`fsync`, where a delayed allocation failure would show) and
@@ -15,12 +22,15 @@ command's inputs, compared as files on the disk (symbolic and hard links include
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import os
 import re
 import socket
+import stat
 import tempfile
 from collections.abc import Iterable, Iterator, Mapping
+from typing import BinaryIO
 
 from matfit import interrupt
 from matfit.errors import OutputError
@@ -41,10 +51,54 @@ def final_name(path: str) -> str:
 def sha256(path: str) -> str:
     """Returns the SHA-256 of a file's bytes (what a result records of the picture it was computed from)."""
     digest = hashlib.sha256()
-    with open(path, "rb") as file:
+    with open_input(path) as file:
         for block in iter(lambda: file.read(1 << 20), b""):
             digest.update(block)
     return digest.hexdigest()
+
+
+def kind(mode: int) -> str:
+    """Returns what a file of status mode `mode` is, in words ("a FIFO (named pipe)")."""
+    kinds = (
+        (stat.S_ISDIR, "a folder"),
+        (stat.S_ISFIFO, "a FIFO (named pipe)"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISSOCK, "a socket"),
+    )
+    return next((words for test, words in kinds if test(mode)), "not a regular file")
+
+
+def open_input(path: str) -> BinaryIO:
+    """Returns the regular file `path` opened for binary reading; OSError if it cannot be opened or is not a regular
+    file (its `strerror` says what it is: "a FIFO (named pipe), not a regular file").
+
+    The file is opened with O_NONBLOCK, so that opening a FIFO that no one writes returns at once, and its type is
+    checked on the open descriptor (no race with a file swapped in after a check by name).
+    """
+    descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    try:
+        mode = os.fstat(descriptor).st_mode
+        if not stat.S_ISREG(mode):
+            raise OSError(errno.EINVAL, f"it is {kind(mode)}, not a regular file", path)
+        os.set_blocking(descriptor, True)
+        return os.fdopen(descriptor, "rb")
+    except BaseException:
+        os.close(descriptor)
+        raise
+
+
+def read_input(path: str, limit: int | None = None) -> bytes:
+    """Returns the bytes of the regular file `path` (`open_input`), at most `limit` + 1 of them: a caller that gets
+    more than `limit` knows the file is too large without reading it all."""
+    with open_input(path) as file:
+        return file.read() if limit is None else file.read(limit + 1)
+
+
+def check_input(path: str) -> None:
+    """Raises OSError (as `open_input`) unless `path` is a regular file that can be opened for reading: for paths a
+    library then opens by name."""
+    open_input(path).close()
 
 
 def check_writable(path: str) -> None:

@@ -1,5 +1,7 @@
 import json
 import math
+import os
+import time
 
 import numpy as np
 import pytest
@@ -46,7 +48,36 @@ def test_text_that_is_not_json_is_one_line_naming_the_source_and_the_fix(text, r
 
 
 def test_a_file_that_cannot_be_read_is_one_line(tmp_path):
-    with pytest.raises(MatfitError, match=rf"^cannot read {tmp_path}/none\.json: No such file or directory$"):
+    with pytest.raises(
+        MatfitError, match=rf"^cannot read {tmp_path}/none\.json: No such file or directory: check the path$"
+    ):
         documents.read(str(tmp_path / "none.json"), "check the path")
     (tmp_path / "ok.json").write_text('{"a": [1, 2]}')
     assert documents.read(str(tmp_path / "ok.json"), "check the path") == {"a": [1, 2]}
+
+
+def test_only_a_regular_file_is_read_and_at_most_its_cap(tmp_path):
+    # `mkfifo f.json; matfit render f.json` hung opening it; `--init /dev/zero` read without end.
+    os.mkfifo(tmp_path / "f.json")
+    started = time.perf_counter()
+    with pytest.raises(MatfitError, match=r"f\.json: it is a FIFO \(named pipe\), not a regular file: give a file$"):
+        documents.read(str(tmp_path / "f.json"), "give a file")
+    with pytest.raises(MatfitError, match=r"^cannot read /dev/zero: it is a character device, not a regular file"):
+        documents.read("/dev/zero", "give a file")
+    with pytest.raises(MatfitError, match=rf"^cannot read {tmp_path}: it is a folder, not a regular file"):
+        documents.read(str(tmp_path), "give a file")
+    assert time.perf_counter() - started < 5
+    (tmp_path / "large.json").write_text(" " * documents.MAX_BYTES + "{}")
+    with pytest.raises(MatfitError, match=r"large\.json is more than 1 MB, the most a JSON document may be: give a f"):
+        documents.read(str(tmp_path / "large.json"), "give a file")
+    with pytest.raises(MatfitError, match=r"^the request is more than 1 MB"):
+        documents.parse(b" " * documents.MAX_BYTES + b"{}", "the request", "send less")
+    (tmp_path / "large.json").write_text(" " * (documents.MAX_BYTES - 2) + "{}")
+    assert documents.read(str(tmp_path / "large.json"), "give a file") == {}
+
+
+def test_a_byte_order_mark_is_accepted_from_every_source(tmp_path):
+    (tmp_path / "bom.json").write_bytes(b'\xef\xbb\xbf{"a": 1}')
+    assert documents.read(str(tmp_path / "bom.json"), "fix") == {"a": 1}
+    assert documents.parse(b'\xef\xbb\xbf{"a": 1}', "upload", "fix") == {"a": 1}
+    assert documents.parse('\ufeff{"a": 1}', "the init field", "fix") == {"a": 1}
