@@ -1,5 +1,6 @@
 import json
 import math
+import time
 
 import numpy as np
 import pytest
@@ -158,7 +159,7 @@ def test_params_document_round_trips_through_json():
         ('{"params": {"roughness": 0.1, "roughness": 0.2}}', "'roughness' given more than once"),
         ('{"params": [1, 2]}', '"params" must be a JSON object of names and values'),
         ("[" * 100000, "is not valid JSON (nested too deeply to read): give a params.json that matfit wrote"),
-        ('{"params": ' * 100000, "is not valid JSON (nested too deeply to read)"),  # was a RecursionError
+        ('{"p":' * 100000, "is not valid JSON (nested too deeply to read)"),  # was a RecursionError
     ],
 )
 def test_bad_params_json_gives_one_line_errors(text, message):
@@ -167,6 +168,23 @@ def test_bad_params_json_gives_one_line_errors(text, message):
     assert message in str(error.value)
     assert str(error.value).startswith("edit.json")
     assert "\n" not in str(error.value)
+
+
+def test_many_keys_are_checked_in_linear_time_and_a_byte_order_mark_is_accepted(tmp_path):
+    # 40 000 keys (430 KB): a count per key took minutes; one pass takes milliseconds.
+    many = "{" + ", ".join(f'"k{i}": 0.5' for i in range(40_000)) + ', "k7": 0.5}'
+    started = time.perf_counter()
+    with pytest.raises(ParameterError, match=r"^edit.json: 'k7' given more than once: keep one value$"):
+        params.parse_params_json(many, "edit.json")
+    assert time.perf_counter() - started < 5
+    text = '{"roughness": 0.3}'
+    (tmp_path / "bom.json").write_bytes(b"\xef\xbb\xbf" + text.encode())  # as Windows' Notepad saves
+    for read in (
+        params.read_file(str(tmp_path / "bom.json")),
+        params.parse_params_json("\ufeff" + text),
+        params.parse_params_json(b"\xef\xbb\xbf" + text.encode()),
+    ):
+        assert read[params.INDEX["roughness"]] == pytest.approx(0.3)
 
 
 def test_medium_coefficients_follow_the_documented_formula():

@@ -585,6 +585,20 @@ def test_request_bodies_over_their_cap_are_a_413_and_not_read_beyond_it(studio):
     assert status == 202  # a body under the cap, in pieces, is read whole
 
 
+def test_a_params_upload_is_read_as_the_command_line_reads_it(studio):
+    # A byte order mark was refused by the page and accepted by `matfit render`; 30 000 keys held the event loop.
+    app = create_app(studio)
+    body, headers = multipart({"params": ("notepad.json", b'\xef\xbb\xbf{"roughness": 0.3}')})
+    status, answer, _ = call(app, "/api/params", [body], headers)
+    assert status == 200 and answer["values"][params.INDEX["roughness"]] == pytest.approx(0.3)
+    many = ("{" + ", ".join(f'"k{i}": 0.5' for i in range(30_000)) + ', "k7": 0.5}').encode()
+    body, headers = multipart({"params": ("many.json", many)})
+    started = time.perf_counter()
+    status, answer, _ = call(app, "/api/params", [body], headers)
+    assert status == 400 and answer["error"] == "many.json: 'k7' given more than once: keep one value"
+    assert time.perf_counter() - started < 5
+
+
 def test_a_watched_file_deleted_before_its_fit_ends_the_job_with_a_410(url, studio, tmp_path):
     path = tmp_path / "edit.png"
     shutil.copy(EXAMPLE, path)

@@ -180,10 +180,10 @@ class Api:
                 upload = form.get("params")
                 if upload is None or isinstance(upload, str):
                     return error("no params.json in the upload: choose one")
-                text = (await upload.read(MAX_JSON_BYTES)).decode("utf-8", errors="strict")
-            values = params.parse_params_json(text, upload.filename or "params.json")
-        except UnicodeDecodeError:
-            return error("the params.json is not UTF-8 text: choose a params.json that matfit wrote")
+                data = await upload.read(MAX_JSON_BYTES + 1)
+            # The CLI's reader (a byte order mark accepted, the size capped), off the event loop: a large document
+            # must not hold every other request.
+            values = await asyncio.to_thread(params.parse_params_json, data, upload.filename or "params.json")
         except HTTPException as problem:
             return error(f"the upload could not be read ({problem.detail}): choose the file again")
         except MatfitError as problem:
