@@ -272,6 +272,31 @@ def test_two_render_processes_render_a_material_to_the_same_bits():
     np.testing.assert_array_equal(pictures[0], pictures[1])
 
 
+def test_a_render_pool_renders_each_picture_to_the_bits_of_one_child_whatever_the_number_of_children():
+    # the renders that decide run on every core, one render a child, and the answer does not depend on how many
+    materials = [presets.preset("jade"), presets.preset("gold"), params.from_unit(params.sample_index(0, 3))]
+    requests = [(material, seed) for material in materials for seed in (7, 8)]
+    with process.Process() as child:
+        child.load(32, 16)
+        expected = [child.render(material, seed=seed) for material, seed in requests]
+    for count in (1, 2, 3):
+        with process.Pool(children=count) as pool:
+            assert pool.children == count and pool.renderer() is pool
+            pool.load(32, 16)
+            for material, seed in requests:
+                pool.prefetch(material, seed)
+            busy = [len(each._pending) for each in pool._children]  # the load, then the renders shared out
+            assert max(busy) - min(busy) <= 1 and sum(busy) == count + len(requests)
+            for (material, seed), picture in zip(requests, expected, strict=True):
+                np.testing.assert_array_equal(pool.render(material, seed=seed), picture)
+            np.testing.assert_array_equal(pool.render(*requests[0]), expected[0])  # read once, rendered again
+
+
+def test_a_render_pool_needs_a_child():
+    with pytest.raises(ValueError, match="at least one child"):
+        process.Pool(children=0)
+
+
 def test_a_render_process_that_cannot_start_raises_its_reason():
     with process.Process("no_such_variant") as child:
         child.load(16, 4)

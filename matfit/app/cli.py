@@ -209,11 +209,11 @@ def fit_command(
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
     from matfit.render import engine as render_module
-    from matfit.render.process import Process
+    from matfit.render.process import Pool
 
     render_module.check_request(variant)
-    # Verification's Mitsuba starts in a child process now, on the other core, while this one imports JAX.
-    with Process(variant) if verify and not refine else contextlib.nullcontext() as renderer:
+    # Verification's Mitsuba starts in child processes now, on the other cores, while this one imports JAX.
+    with Pool(variant) if verify and not refine else contextlib.nullcontext() as renderer:
         from matfit.fit import fitfile
         from matfit.fit.request import Outputs, Request
 

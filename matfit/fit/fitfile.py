@@ -23,7 +23,7 @@ from matfit.fit import clean, ranges, refine, search, verify
 from matfit.fit.request import Outputs, Request
 from matfit.model import models
 from matfit.render import engine as render
-from matfit.render.process import Background, Process
+from matfit.render.process import Background, Pool, Process
 
 # The folder holding the package: the clone, or site-packages when installed (the shipped model reads
 # matfit/data/model either way; a user's own paths lie outside it and stay as given).
@@ -110,10 +110,10 @@ def read_target(
     return target, weights, [*loaded.notices, *notices]
 
 
-def run(request: Request, model: models.Model | str, *, renderer: Process | None = None) -> Outcome:
+def run(request: Request, model: models.Model | str, *, renderer: Process | Pool | None = None) -> Outcome:
     """Fits the picture of `request` with a model (or a model directory) and writes its outputs; returns what was found.
 
-    `renderer`: a `process.Process` to verify with, started early by the caller (`fit_file`), or None. Every
+    `renderer`: a `process.Pool` (or `Process`) to verify with, started early by the caller (`fit_file`), or None. Every
     input is read and every output path checked before the fit (`Request.check`); the outputs are written
     together at the end (`files.together`), so a failure leaves none of them.
     """
@@ -131,12 +131,12 @@ def run(request: Request, model: models.Model | str, *, renderer: Process | None
 
 
 def fit_file(
-    request: Request, model: models.Model | str, *, renderer: render.Renderer | Process | None = None
-) -> tuple[Outcome, render.Renderer | Process | None]:
+    request: Request, model: models.Model | str, *, renderer: render.Renderer | Process | Pool | None = None
+) -> tuple[Outcome, render.Renderer | Process | Pool | None]:
     """Returns (what a fit of the picture of `request` found, with its params.json document; the renderer used).
 
     Writes nothing: `run` writes the CLI's files, `serve` offers the same ones for download.
-    `renderer`: a loaded `engine.Renderer` at the model's resolution to reuse, a `process.Process`
+    `renderer`: a loaded `engine.Renderer` at the model's resolution to reuse, a `process.Pool` or `process.Process`
     (started early by the caller; it loads the scene here, and cannot refine), or None (a
     `process.Background` with the request's variant is made when verification, refinement or a render
     output needs one). Refinement differentiates with the renderer's variant.
@@ -146,8 +146,8 @@ def fit_file(
 
 
 def _fit_checked(
-    request: Request, model: models.Model | str, renderer: render.Renderer | Process | None
-) -> tuple[Outcome, render.Renderer | Process | None]:
+    request: Request, model: models.Model | str, renderer: render.Renderer | Process | Pool | None
+) -> tuple[Outcome, render.Renderer | Process | Pool | None]:
     """Returns `fit_file`'s answer to a checked request: the search, then Mitsuba's stages, then the document."""
     extra = request.extra_candidates()
     model_path = model if isinstance(model, str) else model.path
@@ -169,14 +169,14 @@ def _fit_checked(
 
 
 def start_renderer(
-    request: Request, resolution: int, renderer: render.Renderer | Process | None
-) -> tuple[Process | Background | None, render.Renderer | None]:
+    request: Request, resolution: int, renderer: render.Renderer | Process | Pool | None
+) -> tuple[Process | Pool | Background | None, render.Renderer | None]:
     """Returns (a renderer that loads while the fit runs, or None; the loaded renderer given, or None).
 
-    A `process.Process` given is loaded here and returned first; with none given, a `process.Background`
-    is made when verification, refinement or a render output needs one.
+    A `process.Pool` or `process.Process` given is loaded here and returned first; with none given, a
+    `process.Background` is made when verification, refinement or a render output needs one.
     """
-    if isinstance(renderer, Process):
+    if isinstance(renderer, (Process, Pool)):
         if request.refine_steps:
             raise ValueError("refinement renders through Mitsuba in this process: give a Renderer, or none")
         renderer.load(resolution, verify.SPP)
@@ -432,7 +432,7 @@ def report_picture(outcome: Outcome) -> np.ndarray:
 
 
 def write_outputs(
-    outcome: Outcome, outputs: Outputs, batch: files.Batch, *, renderer: render.Renderer | Process | None = None
+    outcome: Outcome, outputs: Outputs, batch: files.Batch, *, renderer: render.Renderer | Process | Pool | None = None
 ) -> None:
     """Writes the report, the large render and the exports of a fit into `batch` (params.json is the caller's)."""
     values = outcome.values

@@ -248,6 +248,93 @@ class Process:
         )
 
 
+def cores() -> int:
+    """Returns how many cores this process may run on (its CPU affinity where the system tells it)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
+
+
+class Pool:
+    """`Process`es, one render child a core, that render a batch of requests at once: every core renders, and every
+    image is still bit-identical from run to run and whatever the number of children.
+
+    Each child renders on one thread (`Renderer`'s `threads=1`), so an image depends only on its material, seed and
+    samples, never on which child made it, what it made before, or how many children there are: a fit's answer is
+    the same with one child or sixteen. (Several threads in one render are not: the gaussian filter's footprint
+    crosses pixels that other threads write at the same time, in no fixed order.) Parallelism is across renders:
+    verification asks for all the batches it needs (`prefetch`) before reading the first, and each request goes to
+    the child with the fewest requests outstanding. It behaves as `Process` otherwise (`load`, `prefetch`,
+    `render`, `close`, a context manager); `children` None: one a core (`cores`).
+    """
+
+    def __init__(self, variant: str | None = None, children: int | None = None):
+        count = cores() if children is None else int(children)
+        if count < 1:
+            raise ValueError(f"a render pool needs at least one child, got {count}")
+        self._children: list[Process] = []
+        try:
+            for _ in range(count):
+                self._children.append(Process(variant))
+        except BaseException:
+            self.close()
+            raise
+        self._owners: dict[tuple, Process] = {}  # key -> the child asked for it, until `render` reads it
+
+    @property
+    def children(self) -> int:
+        """How many render children the pool holds."""
+        return len(self._children)
+
+    @property
+    def variant(self) -> str:
+        """The variant the children render with (waits until the first has imported Mitsuba)."""
+        return self._children[0].variant
+
+    @property
+    def notice(self) -> str | None:
+        """The children's notice about their variant (the scalar fallback), if any."""
+        return self._children[0].notice
+
+    def load(self, resolution: int, spp: int) -> None:
+        """Has every child load the scene at `resolution` (and warm its kernels) before the first render."""
+        for child in self._children:
+            child.load(resolution, spp)
+
+    def prefetch(self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None) -> None:
+        """Asks the least busy child for a render now, for a later `render` of the same arguments."""
+        key = Background._key(values, seed, spp)
+        if key not in self._owners:
+            child = min(self._children, key=lambda each: len(each._pending))  # the first of the least busy
+            child.prefetch(values, seed, spp)
+            self._owners[key] = child
+
+    def render(
+        self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None
+    ) -> Float[np.ndarray, "R R 3"]:
+        """Returns what `Renderer.render` returns: the linear float32 (H, W, 3) image of a material."""
+        self.prefetch(values, seed, spp)
+        return self._owners.pop(Background._key(values, seed, spp)).render(values, seed, spp)
+
+    def renderer(self) -> Pool:
+        """Returns this pool once every child has started (raises the first failure to start)."""
+        for child in self._children:
+            child.renderer()
+        return self
+
+    def close(self) -> None:
+        """Ends every child (`Process.close`)."""
+        for child in self._children:
+            child.close()
+
+    def __enter__(self) -> Pool:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
 def serve_requests(requests: int, replies: int, variant: str | None) -> None:
     """The child of `Process`: imports Mitsuba, then answers its requests, read from the file descriptor `requests`, on
     `replies`, until they end."""
