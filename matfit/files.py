@@ -69,9 +69,13 @@ def kind(mode: int) -> str:
     return next((words for test, words in kinds if test(mode)), "not a regular file")
 
 
+class NotRegularError(OSError):
+    """A path that names something other than a regular file (a FIFO, a device, a folder, a socket)."""
+
+
 def open_input(path: str) -> BinaryIO:
-    """Returns the regular file `path` opened for binary reading; OSError if it cannot be opened or is not a regular
-    file (its `strerror` says what it is: "a FIFO (named pipe), not a regular file").
+    """Returns the regular file `path` opened for binary reading; OSError if it cannot be opened, NotRegularError if
+    it is not a regular file (its `strerror` says what it is: "it is a FIFO (named pipe), not a regular file").
 
     The file is opened with O_NONBLOCK, so that opening a FIFO that no one writes returns at once, and its type is
     checked on the open descriptor (no race with a file swapped in after a check by name).
@@ -80,7 +84,7 @@ def open_input(path: str) -> BinaryIO:
     try:
         mode = os.fstat(descriptor).st_mode
         if not stat.S_ISREG(mode):
-            raise OSError(errno.EINVAL, f"it is {kind(mode)}, not a regular file", path)
+            raise NotRegularError(errno.EINVAL, f"it is {kind(mode)}, not a regular file", path)
         os.set_blocking(descriptor, True)
         return os.fdopen(descriptor, "rb")
     except BaseException:

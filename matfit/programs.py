@@ -70,6 +70,7 @@ STORED_NAME = re.compile(r"[^/]+-[0-9a-f]{32}(?:" + re.escape(SUFFIX) + r"|\.jso
 JAX_CACHE_NAME = re.compile(r"[^/]+-[0-9a-f]{64}(?:-cache|-atime)?|\.lockfile")
 _directory: str | None = None
 _key: bytes | None = None
+_ignored: set[str] = set()  # stored paths that are not regular files, said once per process
 
 
 def enable(directory: str) -> None:
@@ -113,11 +114,15 @@ def read_key(path: str) -> bytes:
         finally:
             os.unlink(temporary)
     status = check_private(path, "key", f"remove {path} (a new one is made)")
+    if not stat.S_ISREG(status.st_mode):
+        raise OutputError(
+            f"the compiled-program store's key {path} is {files.kind(status.st_mode)}: remove it (a new one is made)"
+        )
     if status.st_mode & 0o077:
         raise OutputError(
             f"the compiled-program store's key {path} can be read by others: remove it (a new one is made)"
         )
-    handle = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+    handle = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK)
     with os.fdopen(handle, "rb") as file:
         key = file.read(KEY_BYTES + 1)
     if len(key) != KEY_BYTES:
@@ -131,9 +136,16 @@ def seal(path: str, data: bytes) -> bytes:
 
 
 def opened(path: str) -> bytes:
-    """Returns the contents of a stored file whose HMAC is right; ValueError (nothing parsed) if it is not."""
-    with open(path, "rb") as file:
-        data = file.read()
+    """Returns the contents of a stored file whose HMAC is right; ValueError (nothing parsed) if it is not, or if it is
+    not a regular file (a FIFO planted in the store would block the process opening it): that one with a notice."""
+    try:
+        with files.open_input(path) as file:
+            data = file.read()
+    except files.NotRegularError as error:
+        if path not in _ignored:  # once: a program is looked for again under its lock
+            _ignored.add(path)
+            print(f"notice: ignored {path} in the compiled-program store: {error.strerror}", file=sys.stderr)
+        raise ValueError(f"{path} is not a stored file") from None
     seal, contents = data[:SEAL_BYTES], data[SEAL_BYTES:]
     if len(seal) != SEAL_BYTES or not hmac.compare_digest(seal, _seal(path, contents)):
         raise ValueError(f"{path} was not written by this user's matfit")
@@ -313,7 +325,7 @@ def compiling(path: str):
     try:
         import fcntl
 
-        descriptor = os.open(path + LOCK, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o600)
+        descriptor = os.open(path + LOCK, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK, 0o600)
     except (ImportError, OSError):
         yield
         return

@@ -314,6 +314,26 @@ def test_a_planted_pickle_is_never_loaded_and_the_program_is_compiled_again(stor
     assert TRACES == []
 
 
+def test_a_fifo_planted_where_a_program_is_stored_is_ignored_with_a_notice(store, capsys):
+    # Opening it blocked `matfit fit` for ever: nothing writes to it.
+    programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)
+    programs.remembered("answer", (1,), lambda: {"value": 1})
+    planted = [os.path.join(store, name) for name in programs.stored()]
+    for path in planted:
+        os.unlink(path)
+        os.mkfifo(path)
+    TRACES.clear()
+    assert float(programs.jit(scaled, static_argnames=("factor",))(*arguments(), factor=3.0)["sum"]) == 18.0
+    assert programs.remembered("answer", (1,), lambda: {"value": 2}) == {"value": 2}
+    assert TRACES == [3.0]  # compiled again, and stored over the FIFO
+    notices = sorted(capsys.readouterr().err.splitlines())
+    assert notices == sorted(
+        f"notice: ignored {path} in the compiled-program store: it is a FIFO (named pipe), not a regular file"
+        for path in planted
+    )
+    assert all(stat.S_ISREG(os.stat(path).st_mode) for path in planted)
+
+
 def test_a_remembered_value_is_read_only_when_authentic(store):
     assert programs.remembered("answer", (1,), lambda: {"value": 1}) == {"value": 1}
     (name,) = programs.stored()
