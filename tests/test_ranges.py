@@ -168,3 +168,45 @@ def test_the_threshold_is_the_shipped_cards_figure_for_the_answers_kind_of_mater
     assert tau == card["decoder_rmse_transmissive"]["p95"] and "95th-percentile" in source and "transmissive" in source
     with pytest.raises(ValueError, match="unknown statistic 'p99'"):
         ranges.threshold(str(tmp_path), opaque, statistic="p99")
+
+
+@pytest.mark.parametrize(
+    ("text", "reason"),
+    [
+        ("{oops", "is not valid JSON (Expecting property name"),
+        ("", "is not valid JSON (Expecting value"),
+        ("[1, 2]", 'must hold a JSON object with "decoder_rmse"'),
+        ('"mean"', 'must hold a JSON object with "decoder_rmse"'),
+        ('{"references": {}}', "decoder_rmse.mean is missing, not a positive RMSE"),
+        ('{"decoder_rmse": "2.0"}', "decoder_rmse.mean is missing, not a positive RMSE"),
+        ('{"decoder_rmse": {"mean": "2.0", "median": 1, "p95": 3}}', 'decoder_rmse.mean is "2.0", not a positive'),
+        ('{"decoder_rmse": {"mean": NaN, "median": 1, "p95": 3}}', "decoder_rmse.mean is NaN, not a positive RMSE"),
+        ('{"decoder_rmse": {"mean": 0, "median": 1, "p95": 3}}', "decoder_rmse.mean is 0, not a positive RMSE"),
+        ('{"decoder_rmse": {"mean": 2, "median": -1, "p95": 3}}', "decoder_rmse.median is -1, not a positive RMSE"),
+        ('{"decoder_rmse": {"mean": 2, "median": 1, "p95": true}}', "decoder_rmse.p95 is true, not a positive RMSE"),
+        (
+            '{"decoder_rmse": {"mean": 2, "median": 1, "p95": 3}, "decoder_rmse_opaque": {"mean": 1e999}}',
+            "decoder_rmse_opaque.mean is Infinity, not a positive RMSE",
+        ),
+        ("[" * 100000, "is not valid JSON (nested too deeply to read)"),
+    ],
+)
+def test_a_model_s_card_that_cannot_give_a_threshold_is_one_line_naming_it_and_the_fix(tmp_path, text, reason):
+    from matfit.errors import WeightsError
+
+    (tmp_path / ranges.EVALUATION).write_text(text)
+    with pytest.raises(WeightsError) as error:
+        ranges.threshold(str(tmp_path), params.to_unit(params.DEFAULTS))
+    message = str(error.value)
+    assert message.startswith(str(tmp_path / ranges.EVALUATION)) and reason in message and "\n" not in message
+    assert message.endswith(f"write it again with `matfit evaluate --model {tmp_path} --card`, or delete it")
+
+
+def test_a_card_that_is_not_a_regular_file_is_refused_not_replaced_by_the_shipped_one(tmp_path):
+    import os
+
+    from matfit.errors import WeightsError
+
+    os.mkfifo(tmp_path / ranges.EVALUATION)
+    with pytest.raises(WeightsError, match=r"evaluation\.json: it is a FIFO \(named pipe\), not a regular file: write"):
+        ranges.threshold(str(tmp_path), params.to_unit(params.DEFAULTS))

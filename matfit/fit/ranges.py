@@ -38,6 +38,7 @@ answer yet differ from it most.
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass
 from typing import Any
@@ -46,7 +47,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from matfit import images, params, programs, shipped
+from matfit import documents, images, params, programs, shipped
+from matfit.errors import WeightsError
 
 DECIDED_WIDTH = 0.25  # a range spanning at most a quarter of the parameter's box is "decided"
 FACE = 1e-6  # how close (unit cube) a confirmed end must lie to a face of the box for "free"
@@ -410,8 +412,39 @@ def look_alikes(points: np.ndarray, answer: np.ndarray, verdicts: tuple[str, ...
 
 
 EVALUATION = "evaluation.json"  # a model directory's card (`model.evaluate`): the decoder's error against Mitsuba
+KINDS = ("transmissive", "scattering", "opaque")  # the card's kinds of material, each with its own figures
 STATISTIC = "mean"  # which of the card's figures is tau: the decoder's mean error on the answer's kind of material
 STATISTICS = {"mean": "mean", "median": "median", "p95": "95th-percentile"}  # the card's figures, in words
+
+
+def read_card(model_directory: str) -> tuple[dict, str]:
+    """Returns (the card, its path): the model's evaluation.json, or the shipped model's when the model has none.
+
+    WeightsError (one line naming the file and the fix) unless it is a JSON object (`documents.read`: a regular file
+    of at most 1 MB) whose "decoder_rmse" and every "decoder_rmse_<kind>" it has hold each statistic as a finite
+    positive number: a card that is empty, a list, a string, NaN, 0 or negative would be a threshold that decides
+    nothing (a traceback on every fit before).
+    """
+    path = os.path.join(model_directory, EVALUATION)
+    if not os.path.lexists(path):
+        path = os.path.join(str(shipped.MODEL), EVALUATION)
+    if os.path.dirname(path) == os.path.normpath(model_directory):
+        fix = f"write it again with `matfit evaluate --model {model_directory} --card`, or delete it"
+    else:
+        fix = "install matfit again (the shipped model's card is damaged)"
+    card = documents.read(path, fix, WeightsError)
+    if not isinstance(card, dict):
+        raise WeightsError(f'{path} must hold a JSON object with "decoder_rmse": {fix}')
+    for key in ["decoder_rmse", *(f"decoder_rmse_{kind}" for kind in KINDS)]:
+        if key != "decoder_rmse" and not card.get(key):  # no references of that kind: `threshold` uses all
+            continue
+        figures = card.get(key)
+        for statistic in STATISTICS:
+            value = figures.get(statistic) if isinstance(figures, dict) else None
+            if isinstance(value, bool) or not isinstance(value, int | float) or not 0 < value < math.inf:
+                shown = "missing" if value is None else json.dumps(value)[:40]
+                raise WeightsError(f"{path}: {key}.{statistic} is {shown}, not a positive RMSE: {fix}")
+    return card, path
 
 
 def threshold(model_directory: str, unit: np.ndarray, *, statistic: str = STATISTIC) -> tuple[float, str]:
@@ -430,11 +463,7 @@ def threshold(model_directory: str, unit: np.ndarray, *, statistic: str = STATIS
     if values[params.INDEX["spec_trans"]] >= 0.5:
         dense = values[params.INDEX["scattering"]] >= 0.5 and values[params.INDEX["density"]] >= 1.0
         kind = "scattering" if dense else "transmissive"
-    path = os.path.join(model_directory, EVALUATION)
-    if not os.path.isfile(path):
-        path = os.path.join(str(shipped.MODEL), EVALUATION)
-    with open(path, encoding="utf-8") as file:
-        card = json.load(file)
+    card, path = read_card(model_directory)
     if not card.get(f"decoder_rmse_{kind}"):  # a card without such references: every material's error
         kind = "all"
     figure = float(card["decoder_rmse" if kind == "all" else f"decoder_rmse_{kind}"][statistic])
