@@ -32,7 +32,7 @@ import tempfile
 from collections.abc import Iterable, Iterator, Mapping
 from typing import BinaryIO
 
-from matfit import interrupt
+from matfit import interrupt, shipped
 from matfit.errors import OutputError
 
 PREFIX = ".matfit-"
@@ -126,12 +126,19 @@ def takes_files(directory: str) -> bool:
         return False
 
 
-def check_folder(folder: str, outputs: Named | None = None, inputs: Named | None = None, field: str = "out") -> None:
+def check_folder(
+    folder: str,
+    outputs: Named | None = None,
+    inputs: Named | None = None,
+    field: str = "out",
+    *,
+    model: str | None = None,
+) -> None:
     """Raises OutputError, before any work, unless output folder `folder` takes new files or can be created.
 
     The folders missing on the way are created by the command; the nearest one that exists must be
     writable. `outputs` (files the command writes inside `folder`) and `inputs` are then checked as
-    `check_outputs` does, once the folder exists (a folder still to be made holds no input).
+    `check_outputs` does (with `model`), once the folder exists (a folder still to be made holds no input).
     """
     name = words(field)
     if os.path.exists(folder) and not os.path.isdir(folder):
@@ -149,7 +156,7 @@ def check_folder(folder: str, outputs: Named | None = None, inputs: Named | None
             f"{name} {folder} cannot be written: {existing} is read-only (choose another folder)", field=field
         )
     if os.path.isdir(folder):
-        check_outputs(outputs, inputs, folder_field=field)
+        check_outputs(outputs, inputs, folder_field=field, model=model)
     else:
         for _, path in named_paths(outputs):
             check_name_length(path)
@@ -220,21 +227,26 @@ def named_paths(paths: Named | None) -> list[tuple[str, str]]:
     return [(label, path) for label, path in pairs if path is not None]
 
 
-def check_outputs(outputs: Named | None, inputs: Named | None = None, *, folder_field: str | None = None) -> None:
+def check_outputs(
+    outputs: Named | None, inputs: Named | None = None, *, folder_field: str | None = None, model: str | None = None
+) -> None:
     """Raises OutputError, before any work, unless every output can be written without losing a file.
 
     `outputs` and `inputs` map what each file is (the option's name: "report", "mask"; a name may
     repeat in pairs) to its path (None: not given). Each output must be writable with a name its
     folder takes (`check_writable`); no two outputs may be the same file (one would silently
-    replace the other), and no output may be one of the inputs (the user's picture would be
-    overwritten). Files are compared on the disk: a symbolic or hard link to an input is that input.
-    `folder_field`: the outputs are files the command names inside that output folder, which is
-    the thing to change.
+    replace the other), no output may be one of the inputs (the user's picture would be
+    overwritten), and none may lie in the folder of the model in use (`model`) or of the shipped
+    one, nor be one of their files (`check_not_model`). Files are compared on the disk: a symbolic
+    or hard link to an input is that input. `folder_field`: the outputs are files the command names
+    inside that output folder, which is the thing to change.
     """
     named, sources = named_paths(outputs), named_paths(inputs)
     folder = f"another {words(folder_field)} folder" if folder_field else None
-    for _, path in named:
+    for label, path in named:
         check_writable(path)
+        fix = f"choose {folder or f'another path for the {words(label)}'}"
+        check_not_model(label, path, model, fix=fix, field=folder_field or label)
     read = {_identity(source): (source_label, source) for source_label, source in reversed(sources)}
     written: dict[tuple, tuple[str, str]] = {}
     for label, path in named:
@@ -254,6 +266,26 @@ def check_outputs(outputs: Named | None, inputs: Named | None = None, *, folder_
                 f"{words(label)} {path} is the {words(source_label)} {source}: writing it would overwrite the "
                 f"{words(source_label)}; choose {folder or f'another path for the {words(label)}'}",
                 field=folder_field or label,
+            )
+
+
+def check_not_model(label: str, path: str, model: str | None, *, fix: str, field: str) -> None:
+    """Raises OutputError when output `path` lies in the folder of `model` or of the shipped model (followed through
+    links), or is one of their files by another name (a hard link): writing it would change the model every later
+    fit reads (`-o <model>/decoder.json` replaced the decoder's description with a params.json)."""
+    real = os.path.dirname(os.path.realpath(path))
+    identity = _identity(path)
+    for folder in dict.fromkeys(str(place) for place in (model, shipped.MODEL) if place is not None):
+        try:
+            with os.scandir(folder) as listing:
+                held = identity[0] == "file" and any(_identity(entry.path) == identity for entry in listing)
+            inside = os.path.samefile(real, folder)
+        except OSError:  # no such model folder: `load_model` says so
+            continue
+        if inside or held:
+            raise OutputError(
+                f"{words(label)} {path} is a file of the model {folder}: writing it would change the model; {fix}",
+                field=field,
             )
 
 

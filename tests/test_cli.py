@@ -672,3 +672,50 @@ def test_train_and_sequence_refuse_a_read_only_output_as_fit_does(tiny_dataset, 
     images.write(str(frames / "f.png"), np.full((16, 16, 3), 0.5, np.float32))
     result = run("sequence", frames, "-o", "/proc/sequence", "--model", tmp_path / "no-model")  # checked first
     assert_one_line_error(result, "--out /proc/sequence cannot be written: /proc is read-only")
+
+
+def linked_model(folder: Path) -> Path:
+    """Returns a model folder whose files are links to the shipped model's (a model of one's own, made in no time)."""
+    folder.mkdir()
+    for name in os.listdir(shipped.MODEL):
+        (folder / name).symlink_to(shipped.MODEL / name)
+    return folder
+
+
+def test_no_output_of_a_fit_may_be_a_file_of_its_model_or_of_the_shipped_one(tmp_path):
+    # `matfit fit in.png -o <model>/decoder.json` replaced the model's own file: every later fit with it failed.
+    model = linked_model(tmp_path / "model")
+    target = shipped.EXAMPLES / "recoloured.png"
+    fit = ("fit", target, "--model", model, "--method", "nn", "--no-verify")
+    for option, name in (("-o", "decoder.json"), ("-o", "evaluation.json"), ("--report", "report.png")):
+        arguments = (*fit, "-o", tmp_path / "p.json") if option != "-o" else fit
+        result = run(*arguments, option, model / name)
+        assert_one_line_error(result, f"{model / name} is a file of the model {model}: writing it would change")
+        assert (model / name).is_symlink() or not (model / name).exists()
+    (tmp_path / "link.json").symlink_to(shipped.MODEL / "decoder.json")  # the shipped model's, by another name
+    result = run("fit", target, "-o", tmp_path / "link.json", "--method", "nn", "--no-verify")
+    assert_one_line_error(result, f"is a file of the model {shipped.MODEL}", "choose another path for the output")
+    result = run("render", "--preset", "gold", "-o", shipped.MODEL / "gold.png", "--size", 16, "--spp", 1)
+    assert_one_line_error(result, f"is a file of the model {shipped.MODEL}")
+    assert not (shipped.MODEL / "gold.png").exists() and not (tmp_path / "p.json").exists()
+
+
+def test_a_model_whose_card_is_damaged_is_refused_before_the_fit(tmp_path):
+    model = linked_model(tmp_path / "model")
+    (model / "evaluation.json").unlink()
+    (model / "evaluation.json").write_text('{"decoder_rmse": {"mean": 0, "median": 1, "p95": 2}}')
+    target = shipped.EXAMPLES / "recoloured.png"
+    result = run("fit", target, "-o", tmp_path / "p.json", "--model", model, "--method", "nn", "--no-verify")
+    assert_one_line_error(result, "evaluation.json: decoder_rmse.mean is 0, not a positive RMSE", "--card")
+    assert not (tmp_path / "p.json").exists()
+
+
+def test_json_inputs_that_are_not_regular_files_are_refused_at_once(tmp_path):
+    # `mkfifo f.json; matfit render f.json` hung; `--init /dev/zero` read until the kernel killed it.
+    os.mkfifo(tmp_path / "f.json")
+    result = run("render", tmp_path / "f.json", "-o", tmp_path / "x.png", "--size", 16, "--spp", 1)
+    assert_one_line_error(result, f"cannot read {tmp_path / 'f.json'}: it is a FIFO (named pipe), not a regular file")
+    target = shipped.EXAMPLES / "recoloured.png"
+    result = run("fit", target, "-o", tmp_path / "p.json", "--init", "/dev/zero", "--method", "nn", "--no-verify")
+    assert_one_line_error(result, "cannot read /dev/zero: it is a character device, not a regular file")
+    assert list(tmp_path.iterdir()) == [tmp_path / "f.json"]

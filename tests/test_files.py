@@ -47,6 +47,27 @@ def test_an_output_that_is_an_input_is_refused_through_links(tmp_path):
     assert picture.read_bytes() == b"the user's picture"
 
 
+def test_no_output_lies_in_the_model_s_folder_or_is_one_of_its_files_by_a_link(tmp_path):
+    from matfit import shipped
+
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "decoder.json").write_text("the decoder")
+    os.link(model / "decoder.json", tmp_path / "hard.json")
+    (tmp_path / "soft.json").symlink_to(model / "decoder.json")
+    (tmp_path / "folder").symlink_to(model)
+    for output in ("model/decoder.json", "model/evaluation.json", "hard.json", "soft.json", "folder/new.json"):
+        with pytest.raises(OutputError, match=f"^output {tmp_path / output} is a file of the model {model}: writing"):
+            files.check_outputs({"output": str(tmp_path / output)}, model=str(model))
+    files.check_outputs({"output": str(tmp_path / "p.json")}, model=str(model))
+    for output in (shipped.MODEL / "decoder.json", shipped.MODEL / "new.png"):  # the shipped one's, always
+        with pytest.raises(OutputError, match=f"is a file of the model {shipped.MODEL}: writing it would change"):
+            files.check_outputs({"output": str(output)})
+    with pytest.raises(OutputError, match=r"choose another out folder$"):
+        files.check_folder(str(model), [("summary", str(model / "summary.md"))], model=str(model))
+    assert (model / "decoder.json").read_text() == "the decoder"
+
+
 def test_a_name_too_long_for_the_folder_is_refused_before_any_work(tmp_path):
     limit = os.pathconf(tmp_path, "PC_NAME_MAX")
     with pytest.raises(OutputError, match=f"its name is 300 bytes, longer than the {limit} its folder takes"):

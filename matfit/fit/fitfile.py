@@ -121,7 +121,7 @@ def run(request: Request, model: models.Model | str, *, renderer: Process | Pool
     outputs = request.outputs
     if outputs is None:
         raise ValueError("run writes the request's outputs: name them (Outputs), or call fit_file")
-    request.check()
+    request.check(model if isinstance(model, str) else model.path)
     outcome, used = _fit_checked(request, model, renderer)
     with files.together() as batch:
         write_outputs(outcome, outputs, batch, renderer=used)
@@ -141,7 +141,7 @@ def fit_file(
     `process.Background` with the request's variant is made when verification, refinement or a render
     output needs one). Refinement differentiates with the renderer's variant.
     """
-    request.check()
+    request.check(model if isinstance(model, str) else model.path)
     return _fit_checked(request, model, renderer)
 
 

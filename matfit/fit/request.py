@@ -16,6 +16,7 @@ import numpy as np
 
 from matfit import files, images, params
 from matfit.errors import FitError, ImageError, OutputError
+from matfit.fit import ranges
 from matfit.fit.methods import CORRECTIONS, Settings, check_corrections
 from matfit.render import engine
 
@@ -32,9 +33,10 @@ class Outputs:
     mitsuba_xml: str | None = None
     blender: str | None = None
 
-    def check(self, inputs: dict[str, str | None] | None = None) -> None:
+    def check(self, inputs: dict[str, str | None] | None = None, *, model: str | None = None) -> None:
         """Raises OutputError, before any work is done, for a path of the wrong kind, one that cannot be written,
-        one named twice, or one that is an input (`inputs`: {"target": path, ...}) that writing would overwrite."""
+        one named twice, one that is an input (`inputs`: {"target": path, ...}) that writing would overwrite, or
+        one in the folder of the model `model` or of the shipped model."""
         if not self.params.lower().endswith(".json"):
             raise OutputError(f"output {self.params} must end in .json", field="output")
         for path in (self.report, self.render):
@@ -50,7 +52,7 @@ class Outputs:
             "mitsuba_xml": self.mitsuba_xml,
             "blender": self.blender,
         }
-        files.check_outputs(named, inputs)
+        files.check_outputs(named, inputs, model=model)
 
     @property
     def needs_render(self) -> bool:
@@ -97,10 +99,14 @@ class Request:
         """Returns whether an output shows the Mitsuba render of the result."""
         return self.outputs is not None and self.outputs.needs_render
 
-    def check(self) -> None:
-        """Raises the one-line error (OutputError, FitError, ImageError) of the first value that cannot run."""
+    def check(self, model: str | None = None) -> None:
+        """Raises the one-line error (OutputError, FitError, ImageError, WeightsError) of the first value that cannot
+        run; with the folder of the `model` to fit with, also of an output among its files or of its card
+        (`ranges.read_card`)."""
         if self.outputs is not None:
-            self.outputs.check({"target": self.target, "mask": self.mask, "init": self.init})
+            self.outputs.check({"target": self.target, "mask": self.mask, "init": self.init}, model=model)
+        if model is not None:
+            ranges.read_card(model)
         self.settings.check()
         if self.answer not in ANSWERS:
             raise FitError(

@@ -107,17 +107,20 @@ def check_frame_names(frames: list[str]) -> None:
         seen[name] = path
 
 
-def check_outputs(frames: list[str], out: str, *, rendered: bool, init: str | None = None) -> None:
+def check_outputs(
+    frames: list[str], out: str, *, rendered: bool, init: str | None = None, model: str | None = None
+) -> None:
     """Raises SequenceError or OutputError, before any fit, unless every file of a run into `out` can be written.
 
     No two frames may share a result name, the folder must take files, and no output (a result, a
-    render, summary.md, preview.png) may be a frame or the `init` file.
+    render, summary.md, preview.png) may be a frame, the `init` file or a file of the model folder `model`
+    (or of the shipped model).
     """
     check_frame_names(frames)
     outputs = [("result", frame_json_path(out, frame)) for frame in frames]
     outputs += [("render", render_path(out, frame)) for frame in frames] if rendered else []
     outputs += [("summary", os.path.join(out, SUMMARY_FILE)), ("preview", os.path.join(out, PREVIEW_FILE))]
-    files.check_folder(out, outputs, [("frame", frame) for frame in frames] + [("init", init)])
+    files.check_folder(out, outputs, [("frame", frame) for frame in frames] + [("init", init)], model=model)
 
 
 def run_settings(settings: search.Settings, reinit: bool, model: models.Model) -> dict:
@@ -342,7 +345,8 @@ def run(
         raise SequenceError(
             f"output folder {out} cannot be created: {parent} does not exist (create it first)", field="out"
         )
-    check_outputs(frames, out, rendered=render is not None, init=init)
+    model_path = model if isinstance(model, str) else model.path
+    check_outputs(frames, out, rendered=render is not None, init=init, model=model_path)
     if isinstance(model, str):
         model = fitfile.load_model(model)
     started = time.perf_counter()
