@@ -244,6 +244,13 @@ def test_corrupt_weights_are_refused(tmp_path, damage, message):
         weight_files.load(str(path))
 
 
+def test_weights_that_are_not_a_regular_file_are_refused_at_once(tmp_path):
+    # A FIFO planted in a model folder blocked the fit that loaded it, for ever.
+    os.mkfifo(tmp_path / "decoder.msgpack")
+    with pytest.raises(WeightsError, match=r"decoder\.msgpack: it is a FIFO \(named pipe\), not a regular file: del"):
+        weight_files.load(str(tmp_path / "decoder.msgpack"))
+
+
 def test_checkpoint_of_other_settings_or_damaged_is_refused(tmp_path, data):
     out = str(tmp_path)
     with pytest.raises(KeyboardInterrupt):

@@ -30,7 +30,7 @@ from typing import Literal
 
 import numpy as np
 
-from matfit import files, params
+from matfit import documents, files, params
 from matfit.errors import DatasetError
 from matfit.render import engine as render
 from matfit.render import scene
@@ -182,11 +182,7 @@ def read_meta(path: str) -> dict:
         raise DatasetError(
             f"{path} is not a matfit dataset (no meta.json): make one with `matfit render-dataset {path} --count N`"
         )
-    try:
-        with open(meta_path) as file:
-            meta = json.load(file)
-    except (OSError, json.JSONDecodeError) as error:
-        raise DatasetError(f"{meta_path} is corrupt ({error}): delete {path} and render the dataset again") from None
+    meta = documents.read(meta_path, f"delete {path} and render the dataset again", DatasetError)
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise DatasetError(f"{meta_path} does not describe a matfit dataset: delete {path} and render it again")
     if meta.get("format_version") != FORMAT_VERSION:

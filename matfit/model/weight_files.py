@@ -76,11 +76,12 @@ def save(path: str, network: Network, dtype: type = np.float16) -> None:
 def restore_document(path: str, expected_format: str, what: str) -> dict:
     """Returns a msgpack document of `expected_format`, checking its parameter table; "sha256" holds the file's hash."""
     try:
-        with open(path, "rb") as file:
-            data = file.read()
+        data = files.read_input(path)  # a regular file only: a FIFO in the model folder would block the fit
         document = serialization.msgpack_restore(data)
     except FileNotFoundError:
         raise WeightsError(f"{path} does not exist: train it with `matfit train` or check the path") from None
+    except files.NotRegularError as error:
+        raise WeightsError(f"cannot read {path}: {error.strerror}: delete it and train again") from None
     except Exception as error:  # msgpack raises many types on damaged bytes
         raise WeightsError(
             f"{path} is not a readable {what} ({type(error).__name__}): delete it and train again"
