@@ -536,6 +536,45 @@ def test_fit_with_the_gradient_method_an_init_and_verification(trained, target, 
     )
 
 
+def test_fit_of_several_pictures_writes_one_params_json_each_and_goes_on_past_a_bad_one(trained, target, tmp_path):
+    copy = tmp_path / "copy.png"
+    copy.write_bytes(target.read_bytes())
+    broken = tmp_path / "broken.png"
+    broken.write_text("not an image")
+    out = tmp_path / "fits" / "new"
+    result = run("fit", target, broken, copy, "-o", out, "--model", trained, "--iterations", 10, "--report", "r.png")
+    assert result.exit_code == 2, result.output
+    assert sorted(path.name for path in out.iterdir()) == [
+        "copy.params.json",
+        "copy.r.png",
+        "edited.params.json",
+        "edited.r.png",
+    ]
+    errors = [line for line in result.output.splitlines() if line.startswith("error: ")]
+    assert len(errors) == 1 and str(broken) in errors[0] and "Traceback" not in result.output
+    assert f"fitted 2 of 3 pictures into {out}" in result.output
+    first, second = (json.loads((out / f"{name}.params.json").read_text()) for name in ("edited", "copy"))
+    assert first["target"] == str(target) and second["target"] == str(copy) and "verification" in first
+    # the same picture fitted first (cold) and last (warm) in one process: the same answer, to the bit
+    assert params.parse_params_json(json.dumps(first)).tolist() == params.parse_params_json(json.dumps(second)).tolist()
+
+
+def test_fit_of_several_pictures_refuses_a_plan_that_cannot_run_before_any_work(trained, target, tmp_path):
+    copy = tmp_path / "edited.jpg"
+    images.write(str(copy), images.read(str(target)))
+    (tmp_path / "afile").write_text("")
+
+    def fit(*arguments):
+        return run("fit", *arguments, "--model", trained)
+
+    assert_one_line_error(fit(target, copy, "-o", tmp_path / "p.json"), "p.json names one file", "give -o a folder")
+    assert_one_line_error(fit(target, copy, "-o", tmp_path / "afile"), "afile is a file", "give -o a folder")
+    assert_one_line_error(fit(target, copy, "-o", tmp_path / "out"), "have one name", "edited.params.json")
+    assert_one_line_error(fit(target, target, "-o", tmp_path / "out"), "is given twice")
+    assert_one_line_error(fit(target, tmp_path / "none.png", "-o", tmp_path / "out" / "deep"), "none.png is not a file")
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["afile", "edited.jpg"]  # no folder made
+
+
 def test_fit_records_the_variant_it_was_asked_for(trained, target, tmp_path):
     out = tmp_path / "params.json"
     arguments = ("fit", target, "-o", out, "--model", trained, "--iterations", 5, "--corrections", 0)

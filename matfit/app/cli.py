@@ -17,7 +17,7 @@ from typing import Annotated
 
 import typer
 
-from matfit import documents, params
+from matfit import documents, interrupt, params
 from matfit.app import console, options
 from matfit.fit.methods import Box, Method, Settings
 from matfit.model import dataset, dataset_workers, dataset_writing
@@ -182,8 +182,20 @@ def render_dataset(
 
 @command(name="fit", interrupted="nothing was written")
 def fit_command(
-    target: Annotated[Path, typer.Argument(help="The edited picture: PNG, JPEG, TIFF (8/16-bit) or EXR (linear).")],
-    output: Annotated[Path, options.output("params.json to write (feeds `matfit render`).")] = Path("params.json"),
+    targets: Annotated[
+        list[Path],
+        typer.Argument(
+            help="The edited picture: PNG, JPEG, TIFF (8/16-bit) or EXR (linear). Several are fitted in one process, "
+            "each written to OUTPUT/<name>.params.json (and --report report.png to OUTPUT/<name>.report.png).",
+            show_default=False,
+        ),
+    ],
+    output: Annotated[
+        Path | None,
+        options.output(
+            "params.json to write (feeds `matfit render`); with several pictures, the folder to write into."
+        ),
+    ] = None,
     model_path: options.Model = options.DEFAULT_MODEL,
     method: options.Fitting = Method.lbfgsb,
     evaluations: options.Evaluations = 1500,
@@ -214,11 +226,13 @@ def fit_command(
     render_module.check_request(variant)
     # Verification's Mitsuba starts in child processes now, on the other cores, while this one imports JAX.
     with Pool(variant) if verify and not refine else contextlib.nullcontext() as renderer:
-        from matfit.fit import fitfile
+        from matfit.fit import batch, fitfile
         from matfit.fit.request import Outputs, Request
 
         text = options.text
-        outputs = Outputs(str(output), text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
+        several = len(targets) > 1
+        written = str(output or ("." if several else "params.json"))
+        outputs = Outputs(written, text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
         settings = Settings(
             method,
             evaluations,
@@ -229,7 +243,7 @@ def fit_command(
             narrow_after=narrow_after,
         )
         request = Request(
-            str(target),
+            str(targets[0]),
             text(mask),
             text(init),
             seed=seed,
@@ -241,9 +255,28 @@ def fit_command(
             outputs=outputs,
             answer=answer,
         )
+        if several:
+            requests = batch.plan([str(target) for target in targets], written, request)
+            interrupt.set_message("each picture fitted so far is written; the one in hand is not")
+            failed = batch.fit_all(requests, str(model_path), renderer=renderer, done=report_fit)
+            log(f"fitted {len(requests) - failed} of {len(requests)} pictures into {written}")
+            if failed:
+                raise typer.Exit(2)
+            return
         outcome = fitfile.run(request, str(model_path), renderer=renderer)
     echo_lines(outcome.notices)
-    log(outcome.summary(str(output)))
+    log(outcome.summary(written))
+
+
+def report_fit(request, outcome) -> None:
+    """Prints what one picture of several came to: its notices and summary line, or its error."""
+    from matfit.errors import MatfitError
+
+    if isinstance(outcome, MatfitError):
+        log(f"error: {request.target}: {outcome}")
+        return
+    echo_lines(outcome.notices)
+    log(outcome.summary(request.outputs.params))
 
 
 @command(interrupted="finished frames are saved; run the same command to resume")
