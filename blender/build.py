@@ -1,8 +1,9 @@
 """Writes the matfit Blender extension's zip: blender/extension/, the mapping table and the parameter bounds.
 
 Usage: python blender/build.py OUT_FOLDER (`make blender-extension` writes dist/matfit-blender-VERSION.zip).
-The zip carries matfit/render/blender_mapping.py itself, the one table the export writes with, and
-params.PARAMETERS' bounds as parameters.json, so that Blender's Python needs neither numpy nor matfit.
+The zip carries matfit/render/blender_mapping.py itself, the one table the export writes with,
+params.PARAMETERS' bounds as parameters.json and params.MINIMUM_EXTINCTION as medium.json, so that
+Blender's Python needs neither numpy nor matfit to build a fitted material.
 Prints the zip's path.
 """
 
@@ -29,6 +30,7 @@ def build(out: str) -> Path:
                 archive.write(file, file.name)
         archive.write(blender_mapping.__file__, "blender_mapping.py")
         archive.writestr("parameters.json", json.dumps(params.table(), indent=1))
+        archive.writestr("medium.json", json.dumps({"minimum_extinction": params.MINIMUM_EXTINCTION}))
     return path
 
 

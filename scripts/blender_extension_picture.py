@@ -4,7 +4,8 @@ Builds the extension, installs it into a fresh bpy session and runs it there (te
 the driver the tests use): "Picture of this material" on the red-plastic preset built in Blender by its
 exported script, then "Fit edited picture" on matfit/data/examples/recoloured.png (that picture with its hue
 turned, as a 2D editor would) with matfit fit's default settings. The fitted material, as the extension put
-it on the selected objects, is rendered in Cycles in Blender's copy of the test scene (`blender.render_scripts`).
+it on the selected objects (to_blender of the params.json it saved beside the picture, the exported script's
+inputs), is rendered in Cycles in Blender's copy of the test scene (`blender.render_scripts`).
 Writes OUT (default data/blender/extension.png): picture | edited picture | fitted material in Cycles.
 
 Usage: python scripts/blender_extension_picture.py [OUT]  (needs `make blender`; minutes on a 2-core CPU)
@@ -21,7 +22,7 @@ import tempfile
 
 import numpy as np
 
-from matfit import images, shipped
+from matfit import images, params, shipped
 from matfit.render import blender, export, presets
 
 ROOT = shipped.PACKAGE.parent
@@ -62,8 +63,8 @@ def main(out: str) -> None:
         print(*(line for line in run.stdout.splitlines() if line.startswith(("Info", "Warning", "Error"))), sep="\n")
         if run.returncode != 0:
             sys.exit(run.stderr[-2000:])
-        with open(os.path.join(folder, "edited.blender.py")) as file:
-            cycles = blender.render_scripts([file.read()], SIZE, SPP, blender=python)[0]
+        fitted = params.read_file(os.path.join(folder, "edited.params.json"))
+        cycles = blender.render_scripts([export.blender_script(fitted)], SIZE, SPP, blender=python)[0]
         tiles = [
             (images.read(job["picture"]["out"]), "1. Picture of this material"),
             (images.read(edited), "2. edited in a 2D editor"),

@@ -2,8 +2,9 @@
 
 Usage: python blender_extension_run.py job.json report.json, in a fresh user folder ($BLENDER_USER_RESOURCES).
 job.json: {"zip", "command", "size", "spp", "fit_options", "imports": {name: exported script},
-"picture": {"script", "out"}, "refusals": [kind], "fit": edited picture, "failures": [[command, edited]],
-"follow": {"edited", "saved"}, "cancel": edited picture}.
+"picture": {"script", "out"}, "refusals": [kind], "unwritable": [picture path], "fit": edited picture,
+"failures": [[command, edited]], "planted": {"edited", "silent", "redirect"}, "follow": {"edited", "saved"},
+"cancel": edited picture}.
 The scene: "source" (active, selected, holds the material to picture), "bare" (selected, no slots),
 "shared_a" (selected) and "shared_b" (not selected) sharing a mesh with the material "keep", and a selected light.
 The report holds what each step gave back and the line each operator reported.
@@ -72,6 +73,22 @@ def value(socket):
     return list(default) if hasattr(default, "__len__") else float(default)
 
 
+def material_state(name="matfit"):
+    """Returns every node's inputs (by kind), the links and the slots: what a fit may change, to compare."""
+    material = bpy.data.materials.get(name)
+    if material is None:
+        return None
+    nodes = {}
+    for node in material.node_tree.nodes:
+        inputs = {socket.name: value(socket) for socket in node.inputs if hasattr(socket, "default_value")}
+        nodes[node.bl_idname] = {"inputs": inputs, "distribution": getattr(node, "distribution", None)}
+    links = sorted(
+        f"{link.from_node.bl_idname}.{link.from_socket.name}->{link.to_node.bl_idname}.{link.to_socket.name}"
+        for link in material.node_tree.links
+    )
+    return {"nodes": nodes, "links": links, "slots": slots()}
+
+
 def slots():
     return {
         obj.name: [(slot.link, slot.material.name if slot.material else None) for slot in obj.material_slots]
@@ -122,21 +139,40 @@ def main(job_path, report_path):
         bpy.context.scene.matfit.picture = job["picture"]["out"] + f".{kind}.png"
         report["refusals"][kind] = operator(bpy.ops.matfit.picture)
 
+    report["unwritable"] = {}
+    for path in job.get("unwritable", []):  # a picture the extension cannot write, or matfit refuses
+        build_scene()
+        run_script(job["picture"]["script"])
+        bpy.context.scene.matfit.picture = path
+        report["unwritable"][path] = operator(bpy.ops.matfit.picture)
+
     if "fit" in job:
         build_scene()
         report["fit"] = operator(lambda: bpy.ops.matfit.fit(filepath=job["fit"]))
         report["slots"] = slots()
         report["shared_mesh_materials"] = [m.name for m in bpy.data.objects["shared_a"].data.materials]
-        if "matfit" in bpy.data.materials:
-            bsdf = bpy.data.materials["matfit"].node_tree.nodes["Principled BSDF"]
-            report["fitted"] = {
-                socket.name: value(socket) for socket in bsdf.inputs if hasattr(socket, "default_value")
-            }
+        report["fitted"] = material_state()
     report["failures"] = []
     for command, edited in job.get("failures", []):
         prefs.command = command
         report["failures"].append(operator(lambda path=edited: bpy.ops.matfit.fit(filepath=path)))
     prefs.command = job["command"]
+
+    if "planted" in job:  # a script and a stale params.json beside the picture; outputs that are not written
+        planted = job["planted"]
+        build_scene()
+        run_script(job["picture"]["script"])  # an earlier material "matfit" on the selected meshes
+        shutil.copy(job["picture"]["out"], planted["edited"])  # jade's picture: a fit with a medium
+        report["planted"] = {"before": material_state()}
+        prefs.command = planted["silent"]  # exits 0 and writes nothing
+        report["planted"]["silent"] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["edited"]))
+        report["planted"]["after_silent"] = material_state()
+        prefs.command, prefs.fit_options = job["command"], planted["redirect"]
+        report["planted"]["redirect"] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["edited"]))
+        report["planted"]["after_redirect"] = material_state()
+        prefs.fit_options = job["fit_options"]
+        report["planted"]["fit"] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["edited"]))
+        report["planted"]["fitted"] = material_state()
 
     if "follow" in job:  # what the Follow operator does at each timer tick, ticked here
         build_scene()
@@ -152,8 +188,7 @@ def main(job_path, report_path):
             time.sleep(0.25)
             line = follower.step(bpy.context)
         report["follow"] = line
-        bsdf = bpy.data.materials["matfit"].node_tree.nodes["Principled BSDF"]
-        report["follow_fitted"] = {s.name: value(s) for s in bsdf.inputs if hasattr(s, "default_value")}
+        report["follow_fitted"] = material_state()
 
     if "cancel" in job:  # what Esc does to a running fit
         running = extension.jobs.Job(prefs.command, ["fit", job["cancel"], "-o", job["cancel"] + ".json"])

@@ -16,7 +16,7 @@ import pytest
 from helpers import assert_round_trip
 
 from matfit import images, params, shipped
-from matfit.render import blender, export, presets
+from matfit.render import blender, blender_mapping, export, presets
 
 try:
     BLENDER = blender.find_blender()
@@ -30,6 +30,7 @@ FIT_OPTIONS = ["--method", "nn"]
 PICTURE_PRESET = "jade"  # transmission and a scattering medium: every part of the mapping
 EDITED = str(shipped.EXAMPLES / "recoloured.png")
 REFUSALS = ("texture", "glass", "emission")
+STALE = {"neural_rmse": 99.0, "mitsuba_rmse": 99.0}  # the figures of a params.json that no fit of this run wrote
 
 
 def matfit(*arguments, folder):
@@ -45,6 +46,29 @@ def open_bytes(path):
         return file.read()
 
 
+def assert_material_is(state, path):
+    """Asserts that the material's nodes are blender_mapping.to_blender of the params.json at `path`, input by input."""
+    principled, volume = export.blender_inputs(params.read_file(str(path)))
+    nodes = state["nodes"]
+    for key, expected in principled.items():
+        assert nodes["ShaderNodeBsdfPrincipled"]["inputs"][key] == pytest.approx(expected, rel=1e-6, abs=1e-6), key
+    assert nodes["ShaderNodeBsdfPrincipled"]["distribution"] == "GGX"
+    if not blender_mapping.has_volume(principled, volume):
+        assert sorted(nodes) == ["ShaderNodeBsdfPrincipled", "ShaderNodeOutputMaterial"]
+        return
+    absorption, scatter = nodes["ShaderNodeVolumeAbsorption"]["inputs"], nodes["ShaderNodeVolumeScatter"]["inputs"]
+    actual = [*absorption["Color"], absorption["Density"], *scatter["Color"], scatter["Density"], scatter["Anisotropy"]]
+    expected = [
+        *volume["absorption_color"],
+        volume["absorption_density"],
+        *volume["scatter_color"],
+        volume["scatter_density"],
+        volume["anisotropy"],
+    ]
+    assert actual == pytest.approx(expected, rel=1e-6, abs=1e-6)
+    assert "ShaderNodeAddShader.Shader->ShaderNodeOutputMaterial.Volume" in state["links"]
+
+
 @pytest.fixture(scope="module")
 def session(tmp_path_factory):
     """Returns (report, folder, Blender's output) of one bpy session that ran every step."""
@@ -58,6 +82,17 @@ def session(tmp_path_factory):
     command = folder / "matfit"
     command.write_text(f'#!/bin/sh\nexec "{sys.executable}" -m matfit "$@"\n')
     command.chmod(0o755)
+    (folder / "my dir").mkdir()
+    spaced = folder / "my dir" / "matfit"  # the same command, in a folder whose name has a space
+    spaced.write_text(command.read_text())
+    spaced.chmod(0o755)
+    silent = folder / "silent"  # a "matfit" that exits 0 and writes nothing
+    silent.write_text("#!/bin/sh\nexit 0\n")
+    silent.chmod(0o755)
+    # planted beside a picture in a shared folder: a script that would leave a mark, and a stale params.json
+    (folder / "planted.blender.py").write_text(f"open({str(folder / 'executed')!r}, 'w').write('planted')\n")
+    stale = params.params_document(presets.preset("gold"), **STALE)
+    (folder / "planted.params.json").write_text(json.dumps(stale))
     imports = {}
     for name in presets.PRESETS:
         imports[name] = str(folder / f"{name}.py")
@@ -75,11 +110,18 @@ def session(tmp_path_factory):
         "imports": imports,
         "picture": {"script": str(folder / "picture.py"), "out": str(folder / "pictures" / "picture.png")},
         "refusals": list(REFUSALS),
+        "unwritable": [str(folder / "pictures" / "refused.gif"), "/proc/picture.png", "/proc/matfit/picture.png"],
         "fit": str(folder / "edited.png"),
         "failures": [
             [str(folder / "no-such-matfit"), str(folder / "edited.png")],
             [str(command), str(folder / "not-a-picture.png")],
+            [str(spaced), str(folder / "not-a-picture.png")],
         ],
+        "planted": {
+            "edited": str(folder / "planted.png"),
+            "silent": str(silent),
+            "redirect": " ".join([*FIT_OPTIONS, "-o", str(folder / "x.json"), "--blender", str(folder / "x.py")]),
+        },
         "follow": {"edited": str(folder / "follow.png"), "saved": str(shipped.EXAMPLES / "desaturated.png")},
         "cancel": str(folder / "edited.png"),
     }
@@ -158,7 +200,7 @@ def test_a_material_matfit_cannot_represent_gets_one_line(session, kind):
 
 def test_a_missing_or_failing_matfit_shows_its_error_line(session):
     report, folder, _ = session
-    missing, failing = report["failures"]
+    missing, failing, _ = report["failures"]
     assert missing == [
         ["CANCELLED"],
         f"Error: matfit: cannot run '{folder / 'no-such-matfit'}' (No such file or directory): "
@@ -183,9 +225,7 @@ def test_fit_puts_the_values_matfit_fit_writes_on_the_selected_objects_only(sess
     reference = str(folder / "reference.json")
     matfit("fit", EDITED, "-o", reference, "--size", str(SIZE), "--spp", str(SPP), *FIT_OPTIONS, folder=folder)
     document = json.loads(open_bytes(reference))
-    principled, _ = export.blender_inputs(params.from_document(document, reference))
-    for key, expected in principled.items():
-        assert report["fitted"][key] == pytest.approx(expected, rel=1e-6, abs=1e-6), key
+    assert_material_is(report["fitted"], reference)
     line = (
         f"Info: matfit: material 'matfit' on 3 selected mesh(es), neural RMSE {document['neural_rmse']:.2f}, "
         f"Mitsuba RMSE {document['mitsuba_rmse']:.2f}"
@@ -208,12 +248,86 @@ def test_follow_refits_when_the_picture_is_saved(session):
     followed = params.read_file(str(folder / "follow.params.json"))
     metallic = params.INDEX["metallic"]
     assert followed[metallic] > 0.5 > params.read_file(str(folder / "edited.params.json"))[metallic]
-    principled, _ = export.blender_inputs(followed)
-    for key, expected in principled.items():
-        assert report["follow_fitted"][key] == pytest.approx(expected, rel=1e-6, abs=1e-6), key
+    assert_material_is(report["follow_fitted"], folder / "follow.params.json")
 
 
 def test_esc_stops_a_running_fit_at_once(session):
     cancel = session[0]["cancel"]
     assert re.fullmatch(r"matfit fit running for \d+ s(: .*)?", cancel["status"])
     assert cancel["code"] != 0 and cancel["seconds"] < 5
+
+
+def test_a_matfit_command_whose_path_has_a_space_runs(session):
+    report, folder, _ = session
+    outcome, line = report["failures"][2]
+    # it ran: the error is matfit's own, about the picture, not "No such file or directory" for ".../my"
+    assert outcome == ["CANCELLED"] and line.startswith(
+        f"Error: matfit ({folder / 'my dir' / 'matfit'}) failed: error: "
+    )
+    assert "not-a-picture.png" in line
+
+
+@pytest.mark.parametrize("where", ["gif", "proc", "proc-folder"])
+def test_a_picture_the_extension_cannot_write_is_one_line_and_leaves_nothing(session, where):
+    report, folder, output = session
+    path = {
+        "gif": str(folder / "pictures" / "refused.gif"),
+        "proc": "/proc/picture.png",
+        "proc-folder": "/proc/matfit/picture.png",
+    }[where]
+    outcome, line = report["unwritable"][path]
+    assert outcome == ["CANCELLED"] and "\n" not in line and "Traceback" not in output
+    if where == "gif":  # matfit's own refusal; the parameters were not left beside it
+        assert line.startswith(f"Error: matfit ({folder / 'matfit'}) failed: error: cannot write {path}: ")
+        assert not (folder / "pictures" / "refused.source.json").exists()
+    else:
+        assert line.startswith(f"Error: matfit: cannot write the picture {path} (")
+        assert line.endswith("): choose a folder you can write to in the panel's Picture")
+
+
+def test_a_script_beside_the_picture_is_never_run(session):
+    _, folder, _ = session
+    # neither by a matfit that wrote nothing, nor by a fit that redirected its outputs, nor by a fit that succeeded
+    assert not (folder / "executed").exists()
+    assert (folder / "planted.blender.py").read_text().startswith("open(")
+
+
+def test_a_matfit_that_writes_nothing_is_one_line_and_leaves_the_material_as_it_was(session):
+    report, folder, _ = session
+    planted = report["planted"]
+    assert planted["silent"] == [
+        ["CANCELLED"],
+        f"Error: matfit ({folder / 'silent'}) ended without writing the fit's params.json: the material is "
+        "unchanged; set the matfit command to matfit's own executable in Edit > Preferences > Add-ons > matfit",
+    ]
+    assert planted["before"] is not None and planted["after_silent"] == planted["before"]
+
+
+def test_fit_options_that_redirect_the_outputs_are_refused_and_apply_nothing(session):
+    report, folder, _ = session
+    planted = report["planted"]
+    assert planted["redirect"] == [
+        ["CANCELLED"],
+        "Error: matfit: the Fit options name an output (-o): remove it from the extension's preferences; "
+        "the fit's params.json is saved beside the picture as planted.params.json",
+    ]
+    assert planted["after_redirect"] == planted["before"]
+    assert not (folder / "x.json").exists() and not (folder / "x.py").exists()
+
+
+def test_fit_applies_exactly_to_blender_of_the_params_json_its_own_job_wrote(session):
+    report, folder, output = session
+    planted = report["planted"]
+    assert planted["fit"] == [["FINISHED"], None]
+    # the job's params.json, saved beside the picture over the stale one
+    document = json.loads(open_bytes(folder / "planted.params.json"))
+    assert document["neural_rmse"] != STALE["neural_rmse"]
+    assert_material_is(planted["fitted"], folder / "planted.params.json")
+    # a fit of jade's picture keeps a medium: the volume nodes are compared too
+    principled, volume = export.blender_inputs(params.read_file(str(folder / "planted.params.json")))
+    assert blender_mapping.has_volume(principled, volume)
+    line = (
+        f"Info: matfit: material 'matfit' on 3 selected mesh(es), neural RMSE {document['neural_rmse']:.2f}, "
+        f"Mitsuba RMSE {document['mitsuba_rmse']:.2f}"
+    )
+    assert line in output.splitlines()

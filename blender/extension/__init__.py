@@ -5,8 +5,10 @@ runs the matfit command line (its path in the extension's preferences) in a subp
 - `matfit.picture`: reads the active material (`material.read`) into matfit's parameters through
   blender_mapping, the table the export writes with, and renders it in matfit's test scene
   (`matfit render`) to a PNG;
-- `matfit.fit`: fits the edited picture (`matfit fit ... --blender script.py`) and runs the exported
-  script, which puts the material on the selected meshes exactly as it does from the Text Editor.
+- `matfit.fit`: fits the edited picture (`matfit fit ... -o params.json` into the job's own new
+  folder) and builds the material from that params.json through blender_mapping.to_blender
+  (`material.write`), as the exported script would, on the selected meshes. No script is run: a
+  params.json this job did not write, or none, is one report line and the material stays as it was.
 From the panel both run in the background (a timer polls the subprocess, its last line in the status
 bar, Esc cancels); called from Python (`bpy.ops.matfit.fit(filepath=...)`, as headless Blender and
 the tests do) they wait for it. `matfit.follow` refits each time the edited file changes (`Follower`, one
@@ -16,15 +18,21 @@ Every failure is one line in Blender's report, never a traceback.
 
 import json
 import os
+import tempfile
 
 import bpy
 from bpy.props import BoolProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from . import blender_mapping, jobs, material
+from . import blender_mapping, fitted, jobs, material
 
 with open(os.path.join(os.path.dirname(__file__), "parameters.json")) as _file:
-    BOUNDS = {p["name"]: (p["low"], p["high"]) for p in json.load(_file)}
+    TABLE = json.load(_file)  # matfit's params.table(): names, bounds, defaults
+with open(os.path.join(os.path.dirname(__file__), "medium.json")) as _file:
+    MINIMUM_EXTINCTION = json.load(_file)["minimum_extinction"]  # params.MINIMUM_EXTINCTION
+BOUNDS = {p["name"]: (p["low"], p["high"]) for p in TABLE}
+NAME = "matfit"  # the fitted material, as the exported script names it
 POLL_SECONDS = 0.25
+OUTPUT_OPTIONS = ("-o", "--output")
 
 
 def preferences(context):
@@ -68,7 +76,7 @@ class MatfitSettings(bpy.types.PropertyGroup):
 
 def one_line(error):
     """Returns the report line of an error: the extension's own as written, any other with its kind."""
-    if isinstance(error, (material.MaterialError, jobs.JobError)):
+    if isinstance(error, (material.MaterialError, jobs.JobError, fitted.FitError)):
         return str(error)
     text = str(error).strip().splitlines()
     return f"matfit: {type(error).__name__}: {text[-1] if text else 'no message'}"
@@ -79,6 +87,37 @@ def _absolute(path):
     if path.startswith("//") and not bpy.data.filepath:
         return os.path.join(os.path.expanduser("~"), path[2:])
     return os.path.abspath(bpy.path.abspath(path))
+
+
+def _writable_folder(path):
+    """Raises JobError unless a file can be written beside the picture `path` (its folder made if need be)."""
+    folder = os.path.dirname(path)
+    try:
+        os.makedirs(folder, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        raise jobs.JobError(
+            f"matfit: cannot write the picture {path} ({error.strerror or error}): "
+            "choose a folder you can write to in the panel's Picture"
+        ) from None
+
+
+def _save(path, data):
+    """Writes `data` (bytes) to `path` as a new file put in place, never through a link; returns None or why not."""
+    try:
+        descriptor, temporary = tempfile.mkstemp(dir=os.path.dirname(path), prefix=".matfit-")
+    except OSError as error:
+        return f"{os.path.basename(path)} not saved ({error.strerror or error})"
+    try:
+        with os.fdopen(descriptor, "wb") as file:
+            file.write(data)
+        os.chmod(temporary, 0o644)
+        os.replace(temporary, path)
+    except OSError as error:
+        os.unlink(temporary)
+        return f"{os.path.basename(path)} not saved ({error.strerror or error})"
+    return None
 
 
 def _radius(context, settings):
@@ -159,19 +198,28 @@ class MATFIT_OT_picture(_Background, bpy.types.Operator):  # noqa: N801 (Blender
         values, _, notes = blender_mapping.from_blender(principled, volume, BOUNDS)
         self._notes += notes
         self._picture = _absolute(settings.picture)
-        os.makedirs(os.path.dirname(self._picture), exist_ok=True)
-        # .source.json, not .params.json: a fit of the picture edited in place writes NAME.params.json
-        source = os.path.splitext(self._picture)[0] + ".source.json"
-        with open(source, "w") as file:
-            json.dump({"params": values}, file, indent=2)
+        _writable_folder(self._picture)
+        self._source = json.dumps({"params": values}, indent=2).encode()
         prefs = preferences(context)
         options = ["--size", str(prefs.size), "--spp", str(prefs.spp)]
-        return jobs.Job(prefs.command, ["render", source, "-o", self._picture, *options])
+        # The parameters go to the job's own folder and beside the picture only once it is rendered:
+        # a render matfit refuses (a .gif) leaves nothing behind.
+        folder = jobs.new_folder()
+        source = os.path.join(folder, "source.json")
+        with open(source, "wb") as file:
+            file.write(self._source)
+        return jobs.Job(prefs.command, ["render", source, "-o", self._picture, *options], folder)
 
     def finish(self, context, job):
-        job.check()
-        unmapped = f"; not mapped: {', '.join(self._notes)}" if self._notes else ""
-        self.report({"WARNING"} if self._notes else {"INFO"}, f"matfit: picture saved to {self._picture}{unmapped}")
+        try:
+            job.check()
+        finally:
+            job.remove()
+        # .source.json, not .params.json: a fit of the picture edited in place writes NAME.params.json
+        unsaved = _save(os.path.splitext(self._picture)[0] + ".source.json", self._source)
+        unmapped = [f"not mapped: {', '.join(self._notes)}"] if self._notes else []
+        line = "; ".join([f"matfit: picture saved to {self._picture}", *unmapped, *([unsaved] if unsaved else [])])
+        self.report({"WARNING"} if self._notes or unsaved else {"INFO"}, line)
 
 
 class MATFIT_OT_fit(_Background, bpy.types.Operator):  # noqa: N801 (Blender's naming of operators and panels)
@@ -192,38 +240,55 @@ class MATFIT_OT_fit(_Background, bpy.types.Operator):  # noqa: N801 (Blender's n
 
 
 def start_fit(context, path):
-    """Returns the running `matfit fit` of the edited picture at `path`; remembers the path in the scene."""
+    """Returns the running `matfit fit` of the edited picture at `path`; remembers the path in the scene.
+
+    The fit writes its params.json into the job's own new folder (`finish_fit` reads it from there
+    only), and `finish_fit` saves a copy beside the picture as NAME.params.json.
+    """
     if not path:
         raise jobs.JobError("matfit: choose the edited picture first (the panel's Edited picture)")
     edited = _absolute(path)
     if not os.path.isfile(edited):
         raise jobs.JobError(f"matfit: no edited picture at {edited}: choose the file the 2D editor saved")
     context.scene.matfit.edited = edited
-    stem = os.path.splitext(edited)[0]
+    saved = os.path.splitext(edited)[0] + ".params.json"
     prefs = preferences(context)
-    outputs = {"params": stem + ".params.json", "script": stem + ".blender.py"}
-    arguments = ["fit", edited, "-o", outputs["params"], "--blender", outputs["script"]]
-    arguments += ["--size", str(prefs.size), "--spp", str(prefs.spp), *jobs.split(prefs.fit_options)]
-    job = jobs.Job(prefs.command, arguments)
-    job.outputs = outputs
+    options = jobs.split(prefs.fit_options)
+    for word in options:
+        if word in OUTPUT_OPTIONS or word.startswith("--output=") or (word.startswith("-o") and word[:2] != "--"):
+            raise jobs.JobError(
+                f"matfit: the Fit options name an output ({word}): remove it from the extension's preferences; "
+                f"the fit's params.json is saved beside the picture as {os.path.basename(saved)}"
+            )
+    folder = jobs.new_folder()
+    arguments = ["fit", edited, "--size", str(prefs.size), "--spp", str(prefs.spp), *options]
+    job = jobs.Job(prefs.command, [*arguments, "-o", os.path.join(folder, "params.json")], folder)
+    job.outputs = {"params": saved}
     return job
 
 
 def finish_fit(context, job):
-    """Puts the fitted material on the selected meshes by running the exported script; returns the report line."""
-    job.check()
-    with open(job.outputs["params"]) as file:
-        document = json.load(file)
-    script = job.outputs["script"]
-    with open(script) as file:
-        exec(compile(file.read(), script, "exec"), {"__name__": "__main__", "__file__": script})
-    meshes = [obj.name for obj in context.selected_objects if obj.type == "MESH"]
+    """Builds the material from the params.json this job wrote and puts it on the selected meshes; returns the line.
+
+    Through blender_mapping.to_blender, as the export: the same inputs as the exported script's.
+    """
+    try:
+        job.check()
+        values, document, data = fitted.read(job.path("params.json"), TABLE, job.command)
+        sigma_t, albedo = fitted.medium_coefficients(values, MINIMUM_EXTINCTION)
+        principled, volume = blender_mapping.to_blender(values, sigma_t, albedo)
+        with_volume = blender_mapping.has_volume(principled, volume)
+        built = material.write(bpy.data.materials, NAME, principled, volume, with_volume)
+        meshes = material.assign(built, context.selected_objects)
+        unsaved = _save(job.outputs["params"], data)
+    finally:
+        job.remove()
     hint = "" if meshes else " (select meshes and fit again to put it on them)"
-    mitsuba = document.get("mitsuba_rmse")  # absent with --no-verify
-    return (
-        f"matfit: material 'matfit' on {len(meshes)} selected mesh(es){hint}, "
-        f"neural RMSE {document['neural_rmse']:.2f}" + (f", Mitsuba RMSE {mitsuba:.2f}" if mitsuba is not None else "")
-    )
+    neural, mitsuba = fitted.figure(document, "neural_rmse"), fitted.figure(document, "mitsuba_rmse")
+    figures = [f"neural RMSE {neural:.2f}"] if neural is not None else []
+    figures += [f"Mitsuba RMSE {mitsuba:.2f}"] if mitsuba is not None else []  # absent with --no-verify
+    figures += [unsaved] if unsaved else []
+    return f"matfit: material {NAME!r} on {len(meshes)} selected mesh(es){hint}" + "".join(f", {f}" for f in figures)
 
 
 class Follower:

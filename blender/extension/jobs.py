@@ -1,8 +1,17 @@
-"""The matfit command line in a subprocess: started, polled or waited for, cancelled, its error as one line."""
+"""The matfit command line in a subprocess: started, polled or waited for, cancelled, its error as one line.
+
+Each job owns a fresh private temporary folder (`Job.folder`, made with mkdtemp: mode 0700, a new
+name) for the files it writes; the extension reads its outputs only from there, so a file that this
+run did not write (left from an older fit, or planted beside a picture) is never read, and the
+folder is removed when the job is done with (`Job.remove`).
+"""
 
 import collections
+import os
 import shlex
+import shutil
 import subprocess
+import tempfile
 import threading
 import time
 
@@ -21,25 +30,53 @@ def split(text):
         raise JobError(f"matfit: cannot read {text!r}: {error}") from None
 
 
-class Job:
-    """One run of the matfit command line; a thread keeps its last lines so that polling never blocks."""
+def command_words(command):
+    """Returns the words of the matfit command: an existing file is one program, spaces in its path and all."""
+    path = os.path.expanduser(command.strip())
+    if os.path.isfile(path):
+        return [path]
+    return split(command)
 
-    def __init__(self, command, arguments):
-        words = split(command)
+
+def new_folder():
+    """Returns a new private temporary folder for a job's files (the Job given it removes it)."""
+    return tempfile.mkdtemp(prefix="matfit-job-")
+
+
+class Job:
+    """One run of the matfit command line; a thread keeps its last lines so that polling never blocks.
+
+    `folder` (from `new_folder()`, or None for a new one) is the job's own: matfit's outputs go there,
+    and `remove` (or `cancel`, or a start that fails) deletes it.
+    """
+
+    def __init__(self, command, arguments, folder=None):
+        self.folder = folder or new_folder()
+        try:
+            words = command_words(command)
+        except JobError:
+            self.remove()
+            raise
         if not words:
+            self.remove()
             raise JobError(f"matfit: no matfit command: {FIX}")
         self.command, self.arguments = command, arguments
-        self.outputs = {}
         self.started = time.monotonic()
         self._lines = collections.deque(maxlen=20)
         try:
             self._process = subprocess.Popen(
-                [*words, *arguments], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+                [*words, *self.arguments], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
             )
         except OSError as error:
-            raise JobError(f"matfit: cannot run {command!r} ({error.strerror or error}): {FIX}") from None
+            self.remove()
+            quote = " (a path with spaces runs as it is only when the file exists)" if " " in command.strip() else ""
+            raise JobError(f"matfit: cannot run {command!r} ({error.strerror or error}){quote}: {FIX}") from None
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
+
+    def path(self, name):
+        """Returns the path of `name` in the job's own folder."""
+        return os.path.join(self.folder, name)
 
     def _read(self):
         for line in self._process.stdout:
@@ -63,6 +100,11 @@ class Job:
         if self._process.poll() is None:
             self._process.terminate()
         self.wait()
+        self.remove()
+
+    def remove(self):
+        """Removes the job's folder and what matfit wrote there."""
+        shutil.rmtree(self.folder, ignore_errors=True)
 
     def check(self):
         """Raises JobError with matfit's own error line if it failed."""

@@ -1,4 +1,8 @@
-"""A Blender material's node tree as the plain data blender_mapping reads: Principled BSDF inputs and a volume.
+"""A Blender material's node tree as the plain data blender_mapping reads and writes: Principled BSDF inputs, a volume.
+
+`write` builds the fitted material from blender_mapping.to_blender's inputs with the node tree of the
+exported script (matfit/render/blender_material.py), and `assign` puts it on the selected meshes as
+that script does; the extension runs no script.
 
 What matfit's shader can hold: a Principled BSDF on the Material Output's Surface, and on its Volume
 Volume Absorption, Volume Scatter (alone or added) or a Principled Volume. Another shader on the
@@ -117,3 +121,47 @@ def _volume(node, radius, notes):
         "scatter_color": [s / scatter_density if scatter_density > 0 else 0.0 for s in sigma_s],
         "anisotropy": sum(anisotropy) / len(anisotropy) if anisotropy else 0.0,
     }
+
+
+def write(materials, name, principled, volume, with_volume):
+    """Returns the material `name` of `materials` (bpy.data.materials), its node tree rebuilt as the script builds it.
+
+    `with_volume` is blender_mapping.has_volume: Volume Absorption + Volume Scatter behind the
+    transmission, per unit of matfit's sphere radius (the script's OBJECT_RADIUS 1).
+    """
+    material = materials.get(name) or materials.new(name)
+    material.use_nodes = True
+    nodes, links = material.node_tree.nodes, material.node_tree.links
+    nodes.clear()
+    output = nodes.new("ShaderNodeOutputMaterial")
+    bsdf = nodes.new(PRINCIPLED)
+    bsdf.distribution = "GGX"
+    for key, value in principled.items():
+        bsdf.inputs[key].default_value = value
+    links.new(bsdf.outputs["BSDF"], output.inputs["Surface"])
+    if with_volume:
+        absorption = nodes.new("ShaderNodeVolumeAbsorption")
+        absorption.inputs["Color"].default_value = volume["absorption_color"]
+        absorption.inputs["Density"].default_value = volume["absorption_density"]
+        scatter = nodes.new("ShaderNodeVolumeScatter")
+        scatter.inputs["Color"].default_value = volume["scatter_color"]
+        scatter.inputs["Density"].default_value = volume["scatter_density"]
+        scatter.inputs["Anisotropy"].default_value = volume["anisotropy"]
+        both = nodes.new("ShaderNodeAddShader")
+        links.new(absorption.outputs["Volume"], both.inputs[0])
+        links.new(scatter.outputs["Volume"], both.inputs[1])
+        links.new(both.outputs["Shader"], output.inputs["Volume"])
+        material.cycles.homogeneous_volume = True
+    return material
+
+
+def assign(material, objects):
+    """Puts `material` in every slot of the meshes among `objects`, linked to the object; returns those meshes."""
+    meshes = [obj for obj in objects if obj.type == "MESH"]
+    for obj in meshes:
+        if not obj.material_slots:
+            obj.data.materials.append(None)
+        for slot in obj.material_slots:
+            slot.link = "OBJECT"
+            slot.material = material
+    return meshes
