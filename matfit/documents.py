@@ -21,6 +21,7 @@ from matfit import files
 from matfit.errors import MatfitError, printable
 
 MAX_BYTES = 2**20  # the largest JSON document matfit reads: 1 MB, hundreds of times the largest it writes
+MAX_DIGITS = 40  # the longest whole number a document may hold: a seed or a count has at most 20 digits
 BOM = "\ufeff"
 
 
@@ -28,8 +29,10 @@ def parse(text: str | bytes, source: str, fix: str, error: type[MatfitError] = M
     """Returns the JSON value of `text` (read from `source`); `error` naming `source` and `fix` if it is not JSON.
 
     `options` go to `json.loads` (`object_pairs_hook`, `parse_int`); a MatfitError that a hook raises is
-    re-raised as `error`, prefixed with `source`.
+    re-raised as `error`, prefixed with `source`. Whole numbers are read by `whole_number` unless `parse_int` says
+    otherwise: one of 5000 digits is refused for what it is, not with Python's advice to raise its digit limit.
     """
+    options.setdefault("parse_int", whole_number)
     source = printable(source)
     if len(text) > MAX_BYTES:
         raise error(f"{source} is more than {MAX_BYTES / 2**20:g} MB, the most a JSON document may be: {fix}")
@@ -46,6 +49,18 @@ def parse(text: str | bytes, source: str, fix: str, error: type[MatfitError] = M
         raise error(f"{source}: {problem}") from None
     except (ValueError, UnicodeDecodeError) as problem:  # bytes that are not UTF-8, an integer of 5000 digits
         raise error(f"{source} is not valid JSON ({str(problem).splitlines()[0]}): {fix}") from None
+
+
+def whole_number(text: str) -> int:
+    """Returns the JSON whole number `text` as an int; MatfitError if it has more than MAX_DIGITS digits (no value
+    matfit takes is that long)."""
+    digits = len(text.lstrip("-"))
+    if digits > MAX_DIGITS:
+        raise MatfitError(
+            f"the whole number {text[:12]}... has {digits} digits, more than any value matfit takes: "
+            "give one in the field's range"
+        )
+    return int(text)
 
 
 def read(path: str, fix: str, error: type[MatfitError] = MatfitError, **options: Any) -> Any:

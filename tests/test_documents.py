@@ -81,3 +81,16 @@ def test_a_byte_order_mark_is_accepted_from_every_source(tmp_path):
     assert documents.read(str(tmp_path / "bom.json"), "fix") == {"a": 1}
     assert documents.parse(b'\xef\xbb\xbf{"a": 1}', "upload", "fix") == {"a": 1}
     assert documents.parse('\ufeff{"a": 1}', "the init field", "fix") == {"a": 1}
+
+
+def test_a_whole_number_too_long_for_any_value_is_refused_for_what_it_is(tmp_path):
+    # 5000 digits were refused with Python's advice to call sys.set_int_max_str_digits().
+    path = tmp_path / "meta.json"
+    path.write_text('{"count": ' + "1" * 5000 + "}")
+    with pytest.raises(SequenceError) as raised:
+        documents.read(str(path), "write it again", SequenceError)
+    assert str(raised.value) == (
+        f"{path}: the whole number 111111111111... has 5000 digits, more than any value matfit takes: "
+        "give one in the field's range"
+    )
+    assert documents.parse('{"seed": 18446744073709551615}', "x", "fix") == {"seed": 2**64 - 1}

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from helpers import random_model
 
-from matfit import images, params, shipped
+from matfit import files, images, params, shipped
 from matfit.app.serve import uploads
 from matfit.app.serve.routes import create_app
 from matfit.app.serve.server import check_listen, running
@@ -478,20 +478,129 @@ def test_a_mask_painted_in_the_page_weights_the_fit(browser, url):
     page.close()
 
 
-def test_a_mask_of_another_size_is_a_422_naming_the_fix(url):
+def uploads_left(studio) -> set[str]:
+    """Returns the uploads in the studio's private folder once the jobs that end meanwhile have removed theirs."""
+    deadline = time.monotonic() + 10
+    while (left := set(os.listdir(studio.folder)) - {"preview.png"}) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return left
+
+
+def test_a_bad_mask_is_a_400_at_upload_naming_the_upload_and_leaves_no_copy(url, studio):
+    # It was answered 202, then the job failed naming the server's private copy (/tmp/matfit-serve-.../tmpab.png).
     with open(EXAMPLE, "rb") as file:
         picture = file.read()
     small = images.encode(np.full((8, 8, 3), 1.0, np.float32), ".png")
-    body, headers = multipart({"image": ("edit.png", picture), "mask": ("mask.png", small)})
+    black = images.encode(np.zeros((256, 256, 3), np.float32), ".png")
+    for mask, message in [
+        (
+            ("small.png", small),
+            "the mask 'small.png' is 8x8, the target is 256x256: make the mask the same size as the target",
+        ),
+        (("black.png", black), "the mask 'black.png' is black everywhere: paint white where the fit should look"),
+    ]:
+        body, headers = multipart({"image": ("edit.png", picture), "mask": mask})
+        code, answer = request(url + "api/fit", body, headers)
+        assert code == 400 and json.loads(answer) == {"error": message}
+    assert uploads_left(studio) == set()
+
+
+def test_uploads_are_removed_when_refused_and_when_their_job_ends(url, studio):
+    # Refused and accepted uploads stayed in the server's folder until it stopped.
+    with open(EXAMPLE, "rb") as file:
+        picture = file.read()
+    refused = [
+        {"image": ("broken.png", b"\x89PNG\r\n\x1a\n this is not the rest of a PNG")},
+        {"image": ("program.png", b"\x7fELF\x02\x01\x01" + bytes(200))},
+        {"image": ("edit.png", picture), "mask": ("mask.png", b"\x7fELF\x02\x01\x01" + bytes(200))},
+        {"image": ("edit.png", picture), "init": '{"values": [1, 2]}'},
+    ]
+    for fields in refused:
+        code, answer = request(url + "api/fit", *multipart(fields))
+        assert code == 400, answer
+    assert uploads_left(studio) == set()
+    white = images.encode(np.ones((256, 256, 3), np.float32), ".png")
+    body, headers = multipart({"image": ("edit.png", picture), "mask": ("mask.png", white)})
     code, answer = request(url + "api/fit", body, headers)
-    status, done = wait(url, json.loads(answer)["job"])
-    assert code == 202 and status == 422 and "make the mask the same size as the target" in done["error"]
+    assert code == 202 and wait(url, json.loads(answer)["job"])[1]["state"] == "done"
+    assert uploads_left(studio) == set()
 
 
-def test_an_upload_over_the_byte_cap_is_a_413(url, monkeypatch):
-    monkeypatch.setattr(uploads, "MAX_UPLOAD_BYTES", 1000)
-    code, answer = start_fit(url, EXAMPLE)
-    assert code == 413 and "more than 0 MB: scale it down" in answer["error"]
+def test_a_new_server_removes_the_folders_of_servers_that_are_gone():
+    # After `kill -9` the folder stayed for good, even after the next `serve`.
+    script = (
+        "from matfit.app.serve import uploads; import sys, time; folder = uploads.private_folder(); "
+        f"uploads.save_upload(folder, open({EXAMPLE!r}, 'rb').read(), 'edit.png', 'picture'); "
+        "print(folder, flush=True); time.sleep(60)"
+    )
+    server = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    folder = server.stdout.readline().strip()
+    assert len(os.listdir(folder)) == 1
+    assert folder not in uploads.remove_orphans(os.path.dirname(folder))  # its server still runs: kept
+    os.kill(server.pid, 9)
+    server.wait()
+    server.stdout.close()
+    mine = uploads.private_folder()  # a new server: the folder of the one killed is gone, its own is made
+    try:
+        assert not os.path.exists(folder) and os.path.isdir(mine)
+    finally:
+        os.rmdir(mine)
+
+
+def test_an_orphan_folder_holding_a_link_costs_no_one_a_file(tmp_path):
+    precious = tmp_path / "precious.png"
+    precious.write_bytes(b"someone's")
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    folder = tmp_path / f"{uploads.FOLDER_PREFIX}{dead.pid}@{files.owner().partition('@')[2]}-abc123"
+    folder.mkdir()
+    (folder / "tmpab12cd.png").symlink_to(precious)
+    (folder / "tmpef34gh.png").write_bytes(b"an upload")
+    assert uploads.remove_orphans(str(tmp_path)) == []  # the link is not an upload: the folder stays
+    assert precious.read_bytes() == b"someone's" and os.listdir(folder) == ["tmpab12cd.png"]
+
+
+def test_every_api_error_is_json_naming_the_fix(url):
+    # Starlette answered plain text ("Method Not Allowed", "Not Found") where every other error of the API is JSON.
+    for path, data, status, message in [
+        ("api/preview", None, 405, "GET /api/preview is not served: /api/preview takes POST"),
+        ("api/parameters", b"", 405, "POST /api/parameters is not served: /api/parameters takes GET"),
+        ("api/nowhere", None, 404, "no /api/nowhere here: open / for the page (its API: /api/parameters"),
+        ("nowhere/else", b"", 404, "no /nowhere/else here"),
+    ]:
+        code, answer = request(url + path, data)
+        assert code == status and json.loads(answer)["error"].startswith(message), answer
+
+
+def test_a_whole_number_of_5000_digits_is_refused_for_what_it_is(url):
+    # It was a 400 advising sys.set_int_max_str_digits(), a Python setting, not what is wrong with the value.
+    gold = json.dumps(presets.preset("gold").tolist())
+    body = ('{"values": ' + gold + ', "size": ' + "9" * 5000 + ', "spp": 4}').encode()
+    code, answer = request(url + "api/render", body, {"Content-Type": "application/json"})
+    message = json.loads(answer)["error"]
+    assert code == 400 and message == (
+        "the request: the whole number 999999999999... has 5000 digits, more than any value matfit takes: "
+        "give one in the field's range"
+    )
+
+
+def test_the_init_field_takes_the_form_its_error_asks_for(url):
+    # {"values": [19 numbers]}, the form VALUES_FIX names, was refused: only the bare list was taken.
+    gold = presets.preset("gold").tolist()
+    for init in (json.dumps({"values": gold}), json.dumps(gold)):
+        code, answer = start_fit(url, EXAMPLE, init=init)
+        assert code == 202, answer
+        assert wait(url, answer["job"])[1]["state"] == "done"
+    code, answer = start_fit(url, EXAMPLE, init=json.dumps({"values": gold[:18]}))
+    assert code == 400 and answer["error"].startswith("values must be a list of 19 numbers")
+
+
+def test_an_upload_over_the_byte_cap_is_a_413_saying_its_size_and_the_cap(url):
+    # A 53.5 MB picture was "52 MB, more than 52 MB": the size counted was the part read, one byte over the cap.
+    body, headers = multipart({"image": ("huge.png", bytes(int(53.5 * 2**20)))})
+    code, answer = request(url + "api/fit", body, headers)
+    assert code == 413
+    assert json.loads(answer)["error"] == "the picture is 53.5 MB, more than the 50 MB an upload may be: scale it down"
 
 
 def test_a_malformed_form_is_a_400_and_the_server_carries_on(url):

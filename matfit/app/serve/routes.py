@@ -22,15 +22,16 @@ from starlette.exceptions import HTTPException
 from starlette.requests import Request
 from starlette.responses import FileResponse, JSONResponse, Response
 
-from matfit import documents, params, shipped
+from matfit import params, shipped
 from matfit.app.serve import uploads
 from matfit.app.serve.jobs import FILES, fit_files
 from matfit.app.serve.studio import Studio
-from matfit.app.serve.uploads import MAX_FIT_BYTES, MAX_JSON_BYTES, TOO_LARGE, VALUES_FIX, capped, check_values
+from matfit.app.serve.uploads import MAX_FIT_BYTES, MAX_JSON_BYTES, TOO_LARGE, capped, check_values
 from matfit.app.serve.watch import Watcher
 from matfit.errors import MatfitError, ParameterError
 from matfit.render import presets
 
+API = ("/api/parameters", "/api/fit", "/api/jobs/{id}", "/api/preview", "/api/render", "/api/params", "/api/watch")
 PAGE_FILES = ("index.html", "app.js", "style.css")  # the files of matfit/static/ the page is made of
 
 
@@ -54,7 +55,28 @@ def create_app(studio: Studio, watch: str | None = None):
         Route("/api/params", api.parse_params, methods=["POST"]),
         Route("/api/watch", watcher.events),
     ]
-    return Starlette(routes=routes, lifespan=watcher.lifespan)
+    handlers = {HTTPException: http_error, Exception: internal_error}
+    return Starlette(routes=routes, lifespan=watcher.lifespan, exception_handlers=handlers)  # type: ignore[arg-type]
+
+
+async def http_error(request: Request, problem: HTTPException) -> Response:
+    """Returns Starlette's own refusals (no such route, a method the route does not take) as every other error of the
+    API is: {"error": the one-line message}, naming the request and the fix."""
+    where = f"{request.method} {request.url.path}"
+    if problem.status_code == 404:
+        message = f"no {request.url.path} here: open / for the page (its API: {', '.join(API)})"
+    elif problem.status_code == 405:
+        allowed = (problem.headers or {}).get("Allow", "another method")
+        message = f"{where} is not served: {request.url.path} takes {allowed}"
+    else:
+        message = f"{where}: {problem.detail}"
+    return JSONResponse({"error": message}, status_code=problem.status_code, headers=problem.headers)
+
+
+async def internal_error(request: Request, problem: Exception) -> Response:
+    """Returns a failure of matfit's own while answering a request as a 500 with {"error": its first line}."""
+    first = str(problem).splitlines()[0] if str(problem) else type(problem).__name__
+    return error(f"{request.method} {request.url.path} failed: {first}", 500)
 
 
 def error(message: str, status: int = 400) -> JSONResponse:
@@ -103,26 +125,39 @@ class Api:
         )
 
     async def start_fit(self, request: Request) -> Response:
-        """POST /api/fit: queues a fit of the uploaded picture (and mask, and initial values); 202 and its job."""
-        folder = self.studio.folder
+        """POST /api/fit: queues a fit of the uploaded picture (and mask, and initial values); 202 and its job.
+
+        Everything is checked here, off the event loop (the mask against the picture, the initial values): a refused
+        upload is a 4xx naming what was sent, and leaves no copy."""
+        target = mask = None
         try:
             request = capped(request, MAX_FIT_BYTES, "upload a smaller picture")
             async with request.form(max_files=3, max_part_size=MAX_JSON_BYTES) as form:
-                target = await uploads.read_upload(form, "image", "picture", folder)
+                target = await uploads.read_upload(form, "image", "picture", self.studio.folder)
                 if target is None:
                     return error("no picture in the upload: choose or drop an image file")
-                mask = await uploads.read_upload(form, "mask", "mask", folder)
+                mask = await uploads.read_upload(form, "mask", "mask", self.studio.folder)
+                if mask is not None:
+                    name = getattr(form.get("mask"), "filename", None) or "mask"
+                    await asyncio.to_thread(uploads.check_mask, mask, target, self.studio.model.resolution, name)
                 init = form.get("init")
                 init_values = None
                 if isinstance(init, str) and init:
-                    init_values = check_values(documents.parse(init, "the init field", VALUES_FIX, ParameterError))
+                    init_values = await asyncio.to_thread(uploads.init_values, init)
                 label = getattr(form.get("image"), "filename", None) or "upload"
         except MatfitError as problem:
-            return refused(problem)
+            answer = refused(problem)
         except (ValueError, HTTPException) as problem:  # a malformed form: Starlette raises HTTPException
-            return error(f"the upload could not be read ({getattr(problem, 'detail', problem)}): choose the file again")
-        job = self.studio.submit_fit(target, os.path.basename(label), mask, init_values)
-        return JSONResponse({"job": job.id}, status_code=202)
+            detail = getattr(problem, "detail", problem)
+            answer = error(f"the upload could not be read ({detail}): choose the file again")
+        except BaseException:  # the page went away mid-upload
+            uploads.discard(target, mask)
+            raise
+        else:
+            job = self.studio.submit_fit(target, os.path.basename(label), mask, init_values)
+            return JSONResponse({"job": job.id}, status_code=202)
+        uploads.discard(target, mask)
+        return answer
 
     async def job_state(self, request: Request) -> Response:
         """GET /api/jobs/{job}: the job's answer, with its HTTP status."""

@@ -19,6 +19,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from matfit import files, images, interrupt, params
+from matfit.app.serve import uploads
 from matfit.app.serve.jobs import Job, fit_result, png_bytes, png_data_url
 from matfit.app.serve.watch import GONE, gone
 from matfit.errors import MatfitError, ParameterError
@@ -41,8 +42,7 @@ class Studio:
         self.variant = variant  # the Mitsuba variant (None: render.choose_variant's)
         self.model_label = model_label
         self.settings = settings or search.Settings()
-        self.folder = tempfile.mkdtemp(prefix="matfit-serve-")
-        interrupt.register(self.folder)  # a Ctrl-C that skips `close` still removes it
+        self.folder = uploads.private_folder()  # the uploads, each removed when its job ends
         self.worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="matfit-fit")
         self.jobs: dict[str, Job] = {}
         self.counter = itertools.count(1)
@@ -101,6 +101,14 @@ class Studio:
         return job
 
     def _fit(self, job: Job, target: str, label: str, mask: str | None, init: np.ndarray | None, watched: bool) -> None:
+        try:
+            self._run_fit(job, target, label, mask, init, watched)
+        finally:
+            uploads.discard(mask, None if watched else target)  # the job has ended: its uploads are no longer needed
+
+    def _run_fit(
+        self, job: Job, target: str, label: str, mask: str | None, init: np.ndarray | None, watched: bool
+    ) -> None:
         if job.cancelled.is_set():
             job.state = job.stage = "superseded" if job.state == "superseded" else "cancelled"
             return
