@@ -258,6 +258,29 @@ def test_a_dataset_too_large_for_the_disk_is_refused_before_its_folder_is_made(t
     assert not (tmp_path / "huge").exists()
 
 
+def test_sizes_in_the_disk_message_read_true_when_small():
+    # A nearly full disk read "need 0.0 GiB, only 0.0 GiB are free".
+    sizes = [3 * 2**30 // 2, 2**30, 2**30 - 1, 40 * 2**20 + 2**19, 2**20, 400 * 2**10, 0]
+    shown = ["1.5 GiB", "1.0 GiB", "1024.0 MiB", "40.5 MiB", "1.0 MiB", "400.0 KiB", "0.0 KiB"]
+    assert [dataset_writing.byte_size(size) for size in sizes] == shown
+
+
+def test_a_nearly_full_disk_says_its_free_space_in_a_unit_that_shows_it(tmp_path, settings):
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(disk)], capture_output=True)
+    if mounted.returncode:
+        pytest.skip("a small file system to fill needs mount (root)")
+    try:
+        with pytest.raises(DatasetError) as raised:
+            dataset_writing.prepare(str(disk / "data"), Settings(64, 1, 0, settings.variant), 100, VERSIONS)
+        assert str(raised.value) == (
+            "100 images at 64 px need 2.4 MiB, only 2.0 MiB are free: lower --count or --resolution"
+        )
+    finally:
+        subprocess.run(["umount", str(disk)], check=True)
+
+
 def test_corrupt_datasets_name_the_fix(tmp_path, reference):
     with pytest.raises(DatasetError, match=r"no meta\.json"):
         dataset.open_dataset(str(tmp_path))

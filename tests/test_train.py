@@ -503,7 +503,9 @@ def test_make_model_trains_what_ships():
 
 
 def test_a_refused_train_leaves_no_folder(tmp_path, data, renderer):
-    """Backward ranges, an unfinished dataset, a start of another architecture: one error line, exit 2, no out/."""
+    """Backward ranges, an unfinished dataset, a start of another architecture, encoders on 16 px images (--arch 9
+    left out/checkpoints/, --arch all,1 trained the decoder before refusing the encoders): one error line, exit 2,
+    no out/, before any work."""
     from typer.testing import CliRunner
 
     from matfit.app.cli import app
@@ -516,7 +518,13 @@ def test_a_refused_train_leaves_no_folder(tmp_path, data, renderer):
     variables = architectures.initialise(encoder, jax.random.key(1), (32, 32, 3))
     network = weight_files.Network("encoder-8", architectures.architecture("encoder-8", 64), encoder, variables, {})
     weight_files.save(weight_files.weights_path(str(base), "encoder-8"), network)
+    small = str(tmp_path / "small")  # 16 px: the decoder trains on it, the encoders cannot
+    dataset_writing.render_missing(
+        dataset_writing.prepare(small, dataset.Settings(16, 1, 0, renderer.variant), 4, {}), 0
+    )
     cases = [
+        (["--arch", "9", "--dataset", small, "--batch-size", "1"], "encoders need images whose side is a multiple"),
+        (["--arch", "all,1", "--dataset", small, "--batch-size", "1"], f"{small} has 16: render one at 64 px"),
         (["--arch", "9..1", "--dataset", data.path], "error: --arch 9..1 is an empty range: give it from low to high"),
         (["--arch", "3..2,8", "--dataset", data.path], "error: --arch 3..2 is an empty range"),
         (["--arch", "8", "--dataset", partial, "--batch-size", "1"], "0/4 samples rendered"),

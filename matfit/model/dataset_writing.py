@@ -85,9 +85,18 @@ def _check_disk(path: str, settings: Settings, count: int) -> None:
     free = shutil.disk_usage(path if os.path.isdir(path) else os.path.dirname(os.path.abspath(path))).free
     if needed > free:
         raise DatasetError(
-            f"{count} images at {settings.resolution} px need {needed / 2**30:.1f} GiB, only {free / 2**30:.1f} GiB "
-            "are free: lower --count or --resolution"
+            f"{count} images at {settings.resolution} px need {byte_size(needed)}, only {byte_size(free)} are free: "
+            "lower --count or --resolution"
         )
+
+
+def byte_size(size: int) -> str:
+    """Returns a size in bytes as people read it: "1.5 GiB", "12.3 MiB", "0.4 KiB" (a nearly full disk's free space
+    read "0.0 GiB")."""
+    for unit, scale in (("GiB", 2**30), ("MiB", 2**20)):
+        if size >= scale:
+            return f"{size / scale:.1f} {unit}"
+    return f"{size / 2**10:.1f} KiB"
 
 
 def _sampled_params(settings: Settings, start: int, stop: int) -> np.ndarray:

@@ -45,15 +45,20 @@ def linear_targets(data: Dataset) -> np.ndarray:
     return convert(data, lambda linear: np.maximum(linear, 0.0), data.resolution)
 
 
-def encoder_inputs(data: Dataset) -> np.ndarray:
-    """Returns every image as the encoders see it (`models.encoder_input`), float16 (count, 32, 32, 3)."""
+def check_encoder_resolution(data: Dataset) -> None:
+    """Raises DatasetError unless the encoders can read the dataset's images (a side that is a multiple of theirs)."""
     side = architectures.ENCODER_RESOLUTION
     if data.resolution % side:
         raise DatasetError(
             f"encoders need images whose side is a multiple of {side} px; {data.path} has {data.resolution}: "
             "render one at 64 px"
         )
-    return convert(data, models.encoder_input, side)
+
+
+def encoder_inputs(data: Dataset) -> np.ndarray:
+    """Returns every image as the encoders see it (`models.encoder_input`), float16 (count, 32, 32, 3)."""
+    check_encoder_resolution(data)
+    return convert(data, models.encoder_input, architectures.ENCODER_RESOLUTION)
 
 
 def training_arrays(name: str, data: Dataset, linear: bool = False) -> tuple[np.ndarray, np.ndarray]:

@@ -265,6 +265,8 @@ def check_run(
         raise TrainingError(f"unknown network {name!r}: use decoder or 1 to 9", field="arch")
     for each in datasets:
         pipeline.check_finished(each)
+        if name != architectures.DECODER:
+            pipeline.check_encoder_resolution(each)
     config.check(sum(each.count for each in datasets))
     description = architectures.architecture(name, datasets[0].resolution, decoder)
     if architectures.architecture_problem(description) is not None:
