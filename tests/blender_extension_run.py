@@ -3,8 +3,8 @@
 Usage: python blender_extension_run.py job.json report.json, in a fresh user folder ($BLENDER_USER_RESOURCES).
 job.json: {"zip", "command", "size", "spp", "fit_options", "imports": {name: exported script},
 "picture": {"script", "out"}, "refusals": [kind], "unwritable": [picture path], "fit": edited picture,
-"failures": [[command, edited]], "planted": {"edited", "silent", "redirect"}, "follow": {"edited", "saved"},
-"cancel": edited picture}.
+"failures": [[command, edited]], "planted": {"edited", "silent", "writers": {kind: command}, "redirect"},
+"follow": {"edited", "saved"}, "cancel": edited picture}.
 The scene: "source" (active, selected, holds the material to picture), "bare" (selected, no slots),
 "shared_a" (selected) and "shared_b" (not selected) sharing a mesh with the material "keep", and a selected light.
 The report holds what each step gave back and the line each operator reported.
@@ -167,6 +167,11 @@ def main(job_path, report_path):
         prefs.command = planted["silent"]  # exits 0 and writes nothing
         report["planted"]["silent"] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["edited"]))
         report["planted"]["after_silent"] = material_state()
+        report["planted"]["writers"] = {}
+        for kind, command in planted["writers"].items():  # each writes, as the output, what is not a params.json
+            prefs.command = command
+            report["planted"]["writers"][kind] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["edited"]))
+        report["planted"]["after_writers"] = material_state()
         prefs.command, prefs.fit_options = job["command"], planted["redirect"]
         report["planted"]["redirect"] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["edited"]))
         report["planted"]["after_redirect"] = material_state()

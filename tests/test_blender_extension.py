@@ -10,6 +10,7 @@ import re
 import subprocess
 import sys
 import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,6 +32,17 @@ PICTURE_PRESET = "jade"  # transmission and a scattering medium: every part of t
 EDITED = str(shipped.EXAMPLES / "recoloured.png")
 REFUSALS = ("texture", "glass", "emission")
 STALE = {"neural_rmse": 99.0, "mitsuba_rmse": 99.0}  # the figures of a params.json that no fit of this run wrote
+# "matfit" commands that exit 0 having written, as the output, something that is not matfit's params.json
+WRITERS = {
+    "not JSON": "printf 'not json' > \"$out\"",
+    "NaN": 'printf \'{"params": {"roughness": NaN}}\' > "$out"',
+    "out of range": 'printf \'{"params": {"roughness": 7}}\' > "$out"',
+    "unknown name": 'printf \'{"params": {"roughnes": 0.2}}\' > "$out"',
+    "no params": "printf '[1, 2]' > \"$out\"",
+    "too large": 'head -c 2000000 /dev/zero > "$out"',
+    "a FIFO": 'mkfifo "$out"',
+    "a link": 'ln -s "$STALE" "$out"',
+}
 
 
 def matfit(*arguments, folder):
@@ -93,6 +105,13 @@ def session(tmp_path_factory):
     (folder / "planted.blender.py").write_text(f"open({str(folder / 'executed')!r}, 'w').write('planted')\n")
     stale = params.params_document(presets.preset("gold"), **STALE)
     (folder / "planted.params.json").write_text(json.dumps(stale))
+    writers = {}
+    for kind, write in WRITERS.items():
+        writers[kind] = str(folder / f"writes {kind}")  # the -o path of the fit is the one written
+        find_output = 'while [ $# -gt 0 ]; do [ "$1" = -o ] && out="$2"; shift; done'
+        stale_file = folder / "planted.params.json"
+        Path(writers[kind]).write_text(f"#!/bin/sh\nSTALE='{stale_file}'\n{find_output}\n{write}\n")
+        Path(writers[kind]).chmod(0o755)
     imports = {}
     for name in presets.PRESETS:
         imports[name] = str(folder / f"{name}.py")
@@ -121,6 +140,7 @@ def session(tmp_path_factory):
             "edited": str(folder / "planted.png"),
             "silent": str(silent),
             "redirect": " ".join([*FIT_OPTIONS, "-o", str(folder / "x.json"), "--blender", str(folder / "x.py")]),
+            "writers": writers,
         },
         "follow": {"edited": str(folder / "follow.png"), "saved": str(shipped.EXAMPLES / "desaturated.png")},
         "cancel": str(folder / "edited.png"),
@@ -301,6 +321,27 @@ def test_a_matfit_that_writes_nothing_is_one_line_and_leaves_the_material_as_it_
         "unchanged; set the matfit command to matfit's own executable in Edit > Preferences > Add-ons > matfit",
     ]
     assert planted["before"] is not None and planted["after_silent"] == planted["before"]
+
+
+@pytest.mark.parametrize("kind", list(WRITERS))
+def test_a_matfit_that_writes_no_params_json_of_its_own_is_one_line_and_changes_nothing(session, kind):
+    report, folder, output = session
+    planted = report["planted"]
+    outcome, line = planted["writers"][kind]
+    expected = {
+        "not JSON": "the fit's params.json is not valid JSON (",
+        "NaN": "the fit's params.json is not valid JSON (NaN is not a number JSON allows)",
+        "out of range": "the fit's params.json gives roughness = 7, outside [0, 1]",
+        "unknown name": "the fit's params.json names 'roughnes', which is not one of matfit's parameters",
+        "no params": 'the fit\'s params.json holds no "params" object',
+        "too large": f"matfit ({folder / 'writes too large'}) wrote a params.json of more than 1024 KB",
+        "a FIFO": f"matfit ({folder / 'writes a FIFO'}) wrote something other than a file as the fit's params.json",
+        "a link": f"matfit ({folder / 'writes a link'}) wrote a link as the fit's params.json",
+    }[kind]
+    assert outcome == ["CANCELLED"] and "\n" not in line and "Traceback" not in output
+    assert expected in line and line.startswith("Error: matfit")
+    assert line.endswith("set the matfit command to matfit's own executable in Edit > Preferences > Add-ons > matfit")
+    assert planted["after_writers"] == planted["before"]
 
 
 def test_fit_options_that_redirect_the_outputs_are_refused_and_apply_nothing(session):

@@ -6,6 +6,7 @@ file, larger than a params.json can be, not JSON, or holding a value that is not
 parameters in its range is one line (`FitError`), and the material is left as it was.
 """
 
+import errno
 import json
 import math
 import os
@@ -32,6 +33,8 @@ def _read_bytes(path, command):
             f"matfit ({command}) ended without writing the fit's params.json: the material is unchanged; {FIX}"
         ) from None
     except OSError as error:
+        if error.errno == errno.ELOOP:
+            raise FitError(f"matfit ({command}) wrote a link as the fit's params.json: {FIX}") from None
         raise FitError(f"matfit: cannot read the fit's params.json ({error.strerror or error}): {FIX}") from None
     with os.fdopen(descriptor, "rb") as file:
         if not stat.S_ISREG(os.fstat(file.fileno()).st_mode):
