@@ -14,8 +14,8 @@ from typer.testing import CliRunner
 
 from matfit import images, params, shipped
 from matfit.app.cli import app
+from matfit.fit import methods, verify
 from matfit.fit import search as fit
-from matfit.fit import verify
 from matfit.model import architectures, weight_files
 from matfit.render import engine, presets
 
@@ -573,6 +573,26 @@ def test_fit_of_several_pictures_refuses_a_plan_that_cannot_run_before_any_work(
     assert_one_line_error(fit(target, target, "-o", tmp_path / "out"), "is given twice")
     assert_one_line_error(fit(target, tmp_path / "none.png", "-o", tmp_path / "out" / "deep"), "none.png is not a file")
     assert sorted(path.name for path in tmp_path.iterdir()) == ["afile", "edited.jpg"]  # no folder made
+
+
+def test_bench_speed_times_each_stage_and_counts_the_renders_of_a_warm_fit(trained, target):
+    from matfit.app.bench import speed
+
+    table = speed.fit_speed(str(trained), 1, cold=False, pictures=[str(target)])
+    header, _, row = table.splitlines()
+    assert "verification + correction" in header and "renders" in header
+    cells = [cell.strip() for cell in row.split("|")[1:-1]]
+    assert cells[0] == "edited.png"
+    fit, search, verification, rest, clean = (float(cell.split()[0]) for cell in cells[1:6])
+    assert 0 < search < fit and 0 < verification < fit and 0 < rest < fit and clean >= 0
+    assert fit == pytest.approx(search + verification + rest + clean, abs=0.02)
+    renders, samples, cores = int(cells[6]), float(cells[7]), float(cells[8])
+    # at least the batches of the start, the best end and the last round, and the rounds' residuals
+    assert renders >= 3 * verify.BATCHES + methods.CORRECTIONS
+    from matfit.model import models
+
+    side = models.load_model(str(trained)).resolution
+    assert samples == pytest.approx(renders * verify.SPP * side**2 / 1e6, abs=0.01) and cores > 0
 
 
 def test_fit_records_the_variant_it_was_asked_for(trained, target, tmp_path):

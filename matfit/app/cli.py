@@ -434,6 +434,18 @@ def bench_model(
 
 
 @command
+def bench_speed(
+    model_path: options.Model = options.DEFAULT_MODEL,
+    repeats: Annotated[int, typer.Option(min=1, max=100, help="Timed runs of each figure (their median shown).")] = 5,
+    cold: Annotated[bool, typer.Option(help="Also time whole `matfit fit` processes (the slow part).")] = True,
+) -> None:
+    """Time a default fit of each shipped example: cold whole process, and a warm process's fit stage by stage."""
+    from matfit.app.bench import speed
+
+    typer.echo(speed.fit_speed(str(model_path), repeats, cold=cold))
+
+
+@command
 def bench_fit(
     model_path: options.Model = options.DEFAULT_MODEL,
     count: options.TargetCount = 20,

@@ -157,7 +157,10 @@ class Process:
         return self._started()[1]
 
     def load(self, resolution: int, spp: int) -> None:
-        """Has the child load the scene at `resolution` (and warm its kernels) before the first render."""
+        """Has the child load the scene at `resolution` (and warm its kernels) before the first render; a scene loaded
+        at that resolution already is kept (a warm process's next fit renders at once)."""
+        if self._resolution == resolution:
+            return
         self._resolution = resolution
         self._send({"load": [int(resolution), int(spp)]})
         self._pending.append(("load", resolution))
@@ -281,6 +284,9 @@ class Pool:
             self.close()
             raise
         self._owners: dict[tuple, Process] = {}  # key -> the child asked for it, until `render` reads it
+        self._spp = 0  # the loaded scene's samples, those of a request that names none
+        self.renders = 0  # renders asked of the children so far (a prefetched one counts once)
+        self.samples = 0  # samples per pixel of those renders, summed
 
     @property
     def children(self) -> int:
@@ -299,6 +305,7 @@ class Pool:
 
     def load(self, resolution: int, spp: int) -> None:
         """Has every child load the scene at `resolution` (and warm its kernels) before the first render."""
+        self._spp = int(spp)
         for child in self._children:
             child.load(resolution, spp)
 
@@ -309,6 +316,8 @@ class Pool:
             child = min(self._children, key=lambda each: len(each._pending))  # the first of the least busy
             child.prefetch(values, seed, spp)
             self._owners[key] = child
+            self.renders += 1
+            self.samples += int(spp or self._spp)
 
     def render(
         self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None

@@ -1,7 +1,11 @@
-"""`matfit bench-render` and `matfit bench-model`: the renderer's and the model's speed."""
+"""`matfit bench-render`, `bench-model` and `bench-speed`: the renderer's, the model's and a whole fit's speed."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import tempfile
 import time
 
 import numpy as np
@@ -52,3 +56,92 @@ def model_speed(model_path: str, repeats: int) -> str:
         f"| networks | load (s) | decoder forward, batch 1 (ms) |\n|---|---|---|\n"
         f"| {networks} | {loaded:.3f} | {1e3 * forward:.2f} |"
     )
+
+
+def cpu_seconds(pids: list[int]) -> float:
+    """Returns the CPU seconds (user + system) that the processes `pids` have used so far (Linux's /proc)."""
+    ticks = os.sysconf("SC_CLK_TCK")
+    total = 0.0
+    for pid in pids:
+        with open(f"/proc/{pid}/stat") as file:
+            fields = file.read().rsplit(")", 1)[1].split()
+        total += (int(fields[11]) + int(fields[12])) / ticks
+    return total
+
+
+def whole_process(arguments: list[str], repeats: int) -> list[float]:
+    """Returns the wall seconds of `repeats` runs of `python -m matfit ARGUMENTS` after one run not timed (Dr.Jit's and
+    the program store's caches filled, as on a user's second fit)."""
+    times = []
+    for k in range(repeats + 1):
+        started = time.perf_counter()
+        subprocess.run([sys.executable, "-m", "matfit", *arguments], check=True, capture_output=True)
+        if k:
+            times.append(time.perf_counter() - started)
+    return times
+
+
+def figures(times: list[float]) -> str:
+    """Returns 'median (min-max)' of seconds."""
+    return f"{np.median(times):.2f} ({min(times):.2f}-{max(times):.2f})"
+
+
+def fit_speed(model_path: str, repeats: int, *, cold: bool = True, pictures: list[str] | None = None) -> str:
+    """Returns Markdown tables of a default fit's speed on `pictures` (default: the shipped examples): the cold whole
+    process (`matfit fit`, median of `repeats` after one run not timed), and a warm process's fit of the same picture
+    again and again (`fitfile.run` with the model and a `process.Pool` kept, as the page and `matfit fit a b c` do):
+    seconds per stage, renders made, samples rendered and the cores' use (CPU seconds of this process and its render
+    children over the wall seconds)."""
+    from matfit import shipped
+    from matfit.fit import fitfile
+    from matfit.fit.request import Outputs, Request
+    from matfit.render.process import Pool
+
+    pictures = pictures or sorted(str(path) for path in shipped.EXAMPLES.glob("*.png"))
+    lines = []
+    with tempfile.TemporaryDirectory(prefix="matfit-bench-speed-") as folder:
+        if cold:
+            lines += ["| picture | cold `matfit fit`, s |", "|---|---|"]
+            for picture in pictures:
+                output = os.path.join(folder, "cold.json")
+                times = whole_process(["fit", picture, "-o", output, "--model", model_path], repeats)
+                lines.append(f"| {os.path.basename(picture)} | {figures(times)} |")
+            times = whole_process(["fit", *pictures, "-o", os.path.join(folder, "all"), "--model", model_path], repeats)
+            lines += [f"| all {len(pictures)} in one command | {figures(times)} |", ""]
+        lines += [
+            "| picture (warm) | fit, s | search | verification + correction | ranges, document, outputs | "
+            "clean answer | renders | samples (M) | cores busy |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
+        model = fitfile.load_model(model_path)
+        with Pool() as pool:
+            pids = [os.getpid(), *(child._child.pid for child in pool._children)]
+            for picture in pictures:
+                request = Request(picture, outputs=Outputs(os.path.join(folder, "warm.json")))
+                fitfile.run(request, model, renderer=pool)  # compiles, loads and fills what a warm process holds
+                rows: dict[str, list[float]] = {}
+                for _ in range(repeats):
+                    renders, samples = pool.renders, pool.samples
+                    started, cpu = time.perf_counter(), cpu_seconds(pids)
+                    outcome = fitfile.run(request, model, renderer=pool)
+                    wall = time.perf_counter() - started
+                    verified, cleaned = outcome.verified, outcome.cleaned
+                    stages = {
+                        "fit": wall,
+                        "search": outcome.result.seconds,
+                        "verification": verified.seconds if verified else 0.0,
+                        "clean": cleaned.seconds if cleaned else 0.0,
+                        "renders": pool.renders - renders,
+                        "samples": (pool.samples - samples) * model.resolution**2 / 1e6,
+                        "cores": (cpu_seconds(pids) - cpu) / wall,
+                    }
+                    stages["rest"] = wall - stages["search"] - stages["verification"] - stages["clean"]
+                    for name, value in stages.items():
+                        rows.setdefault(name, []).append(value)
+                m = {name: float(np.median(values)) for name, values in rows.items()}
+                lines.append(
+                    f"| {os.path.basename(picture)} | {figures(rows['fit'])} | {m['search']:.2f} | "
+                    f"{m['verification']:.2f} | {m['rest']:.2f} | {m['clean']:.2f} | {m['renders']:.0f} | "
+                    f"{m['samples']:.2f} | {m['cores']:.2f} |"
+                )
+    return "\n".join(lines)
