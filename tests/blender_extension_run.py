@@ -3,7 +3,7 @@
 Usage: python blender_extension_run.py job.json report.json, in a fresh user folder ($BLENDER_USER_RESOURCES).
 job.json: {"zip", "command", "size", "spp", "fit_options", "imports": {name: exported script},
 "picture": {"script", "out"}, "refusals": [kind], "unwritable": [picture path], "fit": edited picture,
-"failures": [[command, edited]], "planted": {"edited", "silent", "writers": {kind: command}, "redirect"},
+"failures": [[command, edited]], "planted": {"edited", "silent", "writers": {kind: command}, "blocked", "redirect"},
 "follow": {"edited", "saved"}, "cancel": edited picture}.
 The scene: "source" (active, selected, holds the material to picture), "bare" (selected, no slots),
 "shared_a" (selected) and "shared_b" (not selected) sharing a mesh with the material "keep", and a selected light.
@@ -168,7 +168,12 @@ def main(job_path, report_path):
         report["planted"]["silent"] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["edited"]))
         report["planted"]["after_silent"] = material_state()
         report["planted"]["writers"] = {}
-        for kind, command in planted["writers"].items():  # each writes, as the output, what is not a params.json
+        writers = dict(planted["writers"])
+        prefs.command = writers.pop("params.json")  # a params.json of matfit's form, not to be kept beside the picture
+        report["planted"]["blocked"] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["blocked"]))
+        report["planted"]["after_blocked"] = material_state()
+        run_script(job["picture"]["script"])  # the earlier material again
+        for kind, command in writers.items():  # each writes, as the output, what is not a params.json
             prefs.command = command
             report["planted"]["writers"][kind] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["edited"]))
         report["planted"]["after_writers"] = material_state()

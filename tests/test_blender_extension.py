@@ -32,6 +32,10 @@ PICTURE_PRESET = "jade"  # transmission and a scattering medium: every part of t
 EDITED = str(shipped.EXAMPLES / "recoloured.png")
 REFUSALS = ("texture", "glass", "emission")
 STALE = {"neural_rmse": 99.0, "mitsuba_rmse": 99.0}  # the figures of a params.json that no fit of this run wrote
+WRITTEN = {
+    "params": {"base_color_r": 0.2, "spec_trans": 0.9, "density": 2.0, "medium_color_g": 0.5},
+    "neural_rmse": 1.5,
+}
 # "matfit" commands that exit 0 having written, as the output, something that is not matfit's params.json
 WRITERS = {
     "not JSON": "printf 'not json' > \"$out\"",
@@ -106,7 +110,11 @@ def session(tmp_path_factory):
     stale = params.params_document(presets.preset("gold"), **STALE)
     (folder / "planted.params.json").write_text(json.dumps(stale))
     writers = {}
-    for kind, write in WRITERS.items():
+    # and one that writes a params.json of matfit's form (names left out take their defaults), for a picture
+    # beside which NAME.params.json cannot be saved (a folder is in the way)
+    (folder / "blocked.png").write_bytes(open_bytes(EDITED))
+    (folder / "blocked.params.json").mkdir()
+    for kind, write in {**WRITERS, "params.json": f"printf '{json.dumps(WRITTEN)}' > \"$out\""}.items():
         writers[kind] = str(folder / f"writes {kind}")  # the -o path of the fit is the one written
         find_output = 'while [ $# -gt 0 ]; do [ "$1" = -o ] && out="$2"; shift; done'
         stale_file = folder / "planted.params.json"
@@ -141,6 +149,7 @@ def session(tmp_path_factory):
             "silent": str(silent),
             "redirect": " ".join([*FIT_OPTIONS, "-o", str(folder / "x.json"), "--blender", str(folder / "x.py")]),
             "writers": writers,
+            "blocked": str(folder / "blocked.png"),
         },
         "follow": {"edited": str(folder / "follow.png"), "saved": str(shipped.EXAMPLES / "desaturated.png")},
         "cancel": str(folder / "edited.png"),
@@ -342,6 +351,18 @@ def test_a_matfit_that_writes_no_params_json_of_its_own_is_one_line_and_changes_
     assert expected in line and line.startswith("Error: matfit")
     assert line.endswith("set the matfit command to matfit's own executable in Edit > Preferences > Add-ons > matfit")
     assert planted["after_writers"] == planted["before"]
+
+
+def test_a_params_json_that_cannot_be_kept_beside_the_picture_is_said_and_the_material_is_still_applied(session):
+    report, folder, output = session
+    assert report["planted"]["blocked"] == [["FINISHED"], None]
+    line = "Info: matfit: material 'matfit' on 3 selected mesh(es), neural RMSE 1.50, "
+    assert line + "blocked.params.json not saved (Is a directory)" in output.splitlines()
+    written = folder / "written.json"
+    written.write_text(json.dumps(WRITTEN))
+    assert_material_is(report["planted"]["after_blocked"], written)  # matfit's defaults where it names none
+    assert (folder / "blocked.params.json").is_dir() and not list((folder / "blocked.params.json").iterdir())
+    assert not [path.name for path in folder.iterdir() if path.name.startswith(".matfit-")]
 
 
 def test_fit_options_that_redirect_the_outputs_are_refused_and_apply_nothing(session):
