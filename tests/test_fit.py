@@ -253,3 +253,23 @@ def test_a_request_is_refused_before_any_work_with_the_one_line_error(tmp_path):
         fitfile.run(Request(picture), missing_model)
     assert Request(picture).rounds == CORRECTIONS and Request(picture, verified=False).rounds == 0
     assert Request(picture, corrections=1).rounds == 1
+
+
+def test_the_ranges_written_are_those_of_the_answer_written_and_no_render_has_no_noise(tmp_path):
+    # On glass, `fit --method nn --no-verify` wrote density 0.055 with a "decided" range [0, 0.029]: the ranges were the
+    # fit's best's, the values the clean answer's (its other parameters re-fitted); and answer.render_noise was 0.0
+    # where nothing was rendered.
+    from matfit import shipped
+    from matfit.fit import fitfile
+    from matfit.fit.request import Request
+    from matfit.render import engine, presets
+
+    picture = str(tmp_path / "glass.png")
+    engine.render_file(presets.preset("glass"), picture, 256, 64)
+    outcome, _ = fitfile.fit_file(Request(picture, settings=Settings(method="nn"), verified=False), str(shipped.MODEL))
+    document = outcome.document
+    assert document["answer"]["kept"] == "clean" and document["answer"]["features_off"]
+    for name, value in document["params"].items():
+        reported = document["ranges"]["parameters"][name]
+        assert reported["low"] <= value <= reported["high"], (name, value, reported)
+    assert document["answer"]["render_noise"] is None and document["answer"]["mitsuba_rmse"] == {}

@@ -163,7 +163,7 @@ def _fit_checked(
         outcome.variant = renderer.variant
     mitsuba_stages(outcome, request, model, weights, verifier=background or renderer, renderer=renderer)
     decide(outcome, model, model_path, weights, (background or renderer) if request.verified else None, request.answer)
-    refinement_stage(outcome, request, model, weights, renderer)
+    refinement_stage(outcome, request, model, model_path, weights, renderer)
     outcome.document = document(outcome, request, model_path)
     return outcome, renderer
 
@@ -260,16 +260,19 @@ def mitsuba_stages(outcome: Outcome, request: Request, model, weights, *, verifi
         outcome.rendered = images.srgb_encode(renderer.render(result.values, seed=verify.SEED))
 
 
-def refinement_stage(outcome: Outcome, request: Request, model, weights, renderer) -> None:
+def refinement_stage(outcome: Outcome, request: Request, model, model_path: str, weights, renderer) -> None:
     """Refines the answer (verification's, or the clean one) through Mitsuba's differentiable renderer, when asked:
-    the last stage, so the answer returned is the one refinement kept."""
+    the last stage, so the answer returned is the one refinement kept, with its own ranges."""
     if not request.refine_steps:
         return
     outcome.refined = refine.refine(
         outcome.unit, outcome.target, steps=request.refine_steps, weights=weights, renderer=renderer
     )
+    moved = not np.array_equal(outcome.unit, outcome.refined.unit)
     outcome.unit, outcome.rendered = outcome.refined.unit, outcome.refined.rendered
     answer_image(outcome, model, weights)
+    if moved:
+        measure_ranges(outcome, model, model_path, weights)
 
 
 def answer_image(outcome: Outcome, model, weights) -> None:
@@ -294,12 +297,12 @@ def verification_stage(request: Request, model, result, target, weights, rendere
 
 def decide(outcome: Outcome, model: models.Model, model_path: str, weights, renderer, answer: str) -> None:
     """Sets `outcome.ranges` (what the picture decides about the answer, `ranges.py`) and, with `answer="clean"`,
-    replaces the answer by the clean one (`clean.py`; judged against it in Mitsuba by `renderer`, if given)."""
-    decoding = ranges.Decoding(model.decoder.module)
-    tau, source = ranges.threshold(model_path, outcome.unit)
-    outcome.ranges = ranges.measure(decoding, model.decoder.variables, outcome.unit, weights, tau, source)
+    replaces the answer by the clean one (`clean.py`; judged against it in Mitsuba by `renderer`, if given), whose
+    ranges are then measured: the ranges written are always the answer's own."""
+    measure_ranges(outcome, model, model_path, weights)
     if answer != "clean":
         return
+    decoding = ranges.Decoding(model.decoder.module)
     rendered = outcome.verified.renders if outcome.verified is not None else ()  # the answer's batches
     cleaned = clean.clean(
         decoding,
@@ -318,6 +321,14 @@ def decide(outcome: Outcome, model: models.Model, model_path: str, weights, rend
         outcome.neural_rmse = float(images.rmse(outcome.image, outcome.target, weights))
         if cleaned.rendered is not None:
             outcome.rendered = cleaned.rendered
+        measure_ranges(outcome, model, model_path, weights)  # the re-fitted others may lie outside the best's ranges
+
+
+def measure_ranges(outcome: Outcome, model: models.Model, model_path: str, weights) -> None:
+    """Sets `outcome.ranges`: what the picture decides about the outcome's answer as it is now."""
+    tau, source = ranges.threshold(model_path, outcome.unit)
+    decoding = ranges.Decoding(model.decoder.module)
+    outcome.ranges = ranges.measure(decoding, model.decoder.variables, outcome.unit, weights, tau, source)
 
 
 def params_text(outcome: Outcome) -> str:
@@ -332,7 +343,7 @@ def answer_section(cleaned: clean.Cleaned) -> dict:
         "kept": cleaned.chosen,
         "features_off": list(cleaned.dropped),
         "mitsuba_rmse": {name: round(value, 3) for name, value in cleaned.figures.items()},
-        "render_noise": round(cleaned.noise, 3),
+        "render_noise": round(cleaned.noise, 3) if cleaned.figures else None,  # null: nothing was rendered
         "candidates": {  # nested, the simplest last; margin: standard errors behind the best (null: decided)
             name: {
                 "features_off": candidate["off"],
