@@ -299,7 +299,7 @@ def decide(outcome: Outcome, model: models.Model, model_path: str, weights, rend
     """Sets `outcome.ranges` (what the picture decides about the answer, `ranges.py`) and, with `answer="clean"`,
     replaces the answer by the clean one (`clean.py`; judged against it in Mitsuba by `renderer`, if given), whose
     ranges are then measured: the ranges written are always the answer's own."""
-    measure_ranges(outcome, model, model_path, weights)
+    found = measure_ranges(outcome, model, model_path, weights)
     if answer != "clean":
         return
     decoding = ranges.Decoding(model.decoder.module)
@@ -310,7 +310,7 @@ def decide(outcome: Outcome, model: models.Model, model_path: str, weights, rend
         outcome.unit,
         outcome.target,
         weights,
-        outcome.ranges,
+        found,
         renderer,
         rendered=rendered,
     )
@@ -324,11 +324,12 @@ def decide(outcome: Outcome, model: models.Model, model_path: str, weights, rend
         measure_ranges(outcome, model, model_path, weights)  # the re-fitted others may lie outside the best's ranges
 
 
-def measure_ranges(outcome: Outcome, model: models.Model, model_path: str, weights) -> None:
-    """Sets `outcome.ranges`: what the picture decides about the outcome's answer as it is now."""
+def measure_ranges(outcome: Outcome, model: models.Model, model_path: str, weights) -> ranges.Ranges:
+    """Sets and returns `outcome.ranges`: what the picture decides about the outcome's answer as it is now."""
     tau, source = ranges.threshold(model_path, outcome.unit)
     decoding = ranges.Decoding(model.decoder.module)
     outcome.ranges = ranges.measure(decoding, model.decoder.variables, outcome.unit, weights, tau, source)
+    return outcome.ranges
 
 
 def params_text(outcome: Outcome) -> str:
