@@ -54,6 +54,9 @@ class Studio:
     def close(self) -> None:
         """Stops taking jobs and removes the temporary folder."""
         self.worker.shutdown(wait=False, cancel_futures=True)
+        for renderer in self.renderers.values():
+            if hasattr(renderer, "close"):  # the render children of the model's resolution
+                renderer.close()
         with contextlib.suppress(OSError):
             for name in os.listdir(self.folder):
                 os.unlink(os.path.join(self.folder, name))
@@ -65,11 +68,14 @@ class Studio:
         """Returns the Mitsuba renderer of a size, loaded once (on the worker thread)."""
         if size not in self.renderers:
             from matfit.render.engine import Renderer
+            from matfit.render.process import Pool
 
-            # The model's resolution verifies fits: one thread, so the page's answer is the command line's, bit for bit;
-            # larger pictures render on every core.
-            threads = 1 if size == self.model.resolution else (os.cpu_count() or 1)
-            self.renderers[size] = Renderer(size, verify.SPP, self.variant, threads=threads)
+            if size == self.model.resolution:  # verifies fits: on every core, the command line's answer bit for bit
+                pool = Pool(self.variant)
+                pool.load(size, verify.SPP)
+                self.renderers[size] = pool
+            else:  # a large picture: one render on every core
+                self.renderers[size] = Renderer(size, verify.SPP, self.variant, threads=os.cpu_count() or 1)
         return self.renderers[size]
 
     def new_job(self, kind: str) -> Job:
