@@ -185,6 +185,7 @@ def judge(
     weights: np.ndarray | None,
     *,
     rendered: list[np.ndarray] | tuple = (),
+    spp: int = verify.SPP,
 ):
     """Returns {"chosen": the name kept ("best" or one of `pool`), "figures", "noise", "margins", "batches",
     "rendered"}: `best` and the candidates of `pool` (by name, simplest last) rendered in batches with verification's
@@ -192,7 +193,8 @@ def judge(
     deficit behind the best over their common batches, in standard errors (negative: ahead of it); those after the
     one kept are not rendered, so neither in `margins` nor in `figures`; `noise`: the render noise
     of the best's mean render (`render_noise`), recorded beside the figures. `rendered`: the batches of `best` that
-    verification rendered already (`verify.Verified.renders`), which are not rendered again."""
+    verification rendered already (`verify.Verified.renders`), which are not rendered again; `spp`: samples of a
+    batch, as verification's."""
     weights = verify.as_weights(target, weights)
     everyone = {"best": best, **pool}
     batches: dict[str, list[np.ndarray]] = {"best": list(rendered)}
@@ -201,7 +203,7 @@ def judge(
     for name in reversed(pool):  # the simplest first; a less simple one is rendered only when it is refused
         count = verify.BATCHES
         while True:
-            verify.render_batches(renderer, everyone, batches, ["best", name], count=count, spp=verify.SPP)
+            verify.render_batches(renderer, everyone, batches, ["best", name], count=count, spp=spp)
             margins[name] = deficit(batches["best"], batches[name], target, weights)
             if not 0 < margins[name] < verify.LEAD or len(batches[name]) >= verify.MAX_BATCHES:
                 break
@@ -239,10 +241,11 @@ def clean(
     renderer=None,
     *,
     rendered: list[np.ndarray] | tuple = (),
+    spp: int = verify.SPP,
 ) -> Cleaned:
     """Returns the clean answer of `answer` (unit cube), judged in Mitsuba against it with `renderer` (an
     `engine.Renderer`, `Background` or `Process` at the target's resolution; None: not judged, the simplest
-    candidate returned). `rendered`: verification's batches of `answer`, as for `judge`."""
+    candidate returned). `rendered`, `spp`: verification's batches of `answer` and their samples, as for `judge`."""
     started = time.perf_counter()
     answer = np.asarray(answer, np.float64)
     found_candidates = candidates(decode, variables, answer, weights, found)
@@ -261,7 +264,7 @@ def clean(
     )
     chosen = "clean-" + str(len(pool)) if pool else "best"
     if pool and renderer is not None:
-        judged = judge(renderer, answer, pool, target, weights, rendered=rendered)
+        judged = judge(renderer, answer, pool, target, weights, rendered=rendered, spp=spp)
         chosen = judged["chosen"]
         out.noise, out.batches, out.rendered = judged["noise"], judged["batches"], judged["rendered"]
         out.margins = judged["margins"]
