@@ -292,9 +292,18 @@ def test_a_render_pool_renders_each_picture_to_the_bits_of_one_child_whatever_th
             np.testing.assert_array_equal(pool.render(*requests[0]), expected[0])  # read once, rendered again
 
 
-def test_a_render_pool_needs_a_child():
+def test_a_render_pool_needs_a_child_and_has_one_a_core_or_one_for_a_gpu(monkeypatch):
     with pytest.raises(ValueError, match="at least one child"):
         process.Pool(children=0)
+    monkeypatch.setattr(process, "cores", lambda: 3)
+    with process.Pool("scalar_rgb") as pool:
+        assert pool.children == 3
+    monkeypatch.setattr(process, "cuda_devices", lambda: 1)  # the GPU takes every render: one child, one CUDA context
+    for variant in (None, engine.CUDA_VARIANT):
+        with process.Pool(variant) as pool:
+            assert pool.children == 1
+    with process.Pool(engine.LLVM_VARIANT) as pool:
+        assert pool.children == 3
 
 
 def test_a_render_process_that_cannot_start_raises_its_reason():

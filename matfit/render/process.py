@@ -25,7 +25,7 @@ import numpy as np
 
 from matfit import params, shipped
 from matfit.errors import RenderError
-from matfit.render.engine import Renderer, choose_variant, mitsuba
+from matfit.render.engine import CUDA_VARIANT, Renderer, choose_variant, cuda_devices, mitsuba
 
 if TYPE_CHECKING:
     from jaxtyping import Float
@@ -269,11 +269,13 @@ class Pool:
     crosses pixels that other threads write at the same time, in no fixed order.) Parallelism is across renders:
     verification asks for all the batches it needs (`prefetch`) before reading the first, and each request goes to
     the child with the fewest requests outstanding. It behaves as `Process` otherwise (`load`, `prefetch`,
-    `render`, `close`, a context manager); `children` None: one a core (`cores`).
+    `render`, `close`, a context manager); `children` None: one a core (`cores`), or one where the renders run on
+    an NVIDIA GPU (`cuda_ad_rgb`: one render uses the whole GPU, and each child would hold a CUDA context of its own).
     """
 
     def __init__(self, variant: str | None = None, children: int | None = None):
-        count = cores() if children is None else int(children)
+        on_gpu = variant == CUDA_VARIANT or (variant is None and cuda_devices() > 0)
+        count = (1 if on_gpu else cores()) if children is None else int(children)
         if count < 1:
             raise ValueError(f"a render pool needs at least one child, got {count}")
         self._children: list[Process] = []
