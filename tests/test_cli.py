@@ -616,11 +616,17 @@ def test_fit_with_physical_refinement(trained, target, tmp_path):
     assert refinement["steps"] == 2 and refinement["seconds"] > 0
     before, after = refinement["mitsuba_rmse_before"], refinement["mitsuba_rmse_after"]
     assert refinement["kept"] == (after < before)  # kept only when the independent render improves
-    assert document["mitsuba_rmse"] == min(before, after)
     # refinement starts from the point verification kept, whose estimate is recorded
     verification = document["verification"]
     assert verification["mitsuba_rmse"][verification["kept"]] > 0
-    assert "refined 2 steps" in result.output
+    # One figure per answer, the one that chose it, in params.json and in the summary line alike: a refinement not kept
+    # left verification's answer with its acceptance render's figure (2.575 in params.json, 1.93 in the line).
+    chosen = document["answer"]["mitsuba_rmse"].get(
+        document["answer"]["kept"], verification["mitsuba_rmse"][verification["kept"]]
+    )
+    assert document["mitsuba_rmse"] == (after if refinement["kept"] else chosen)
+    assert f"Mitsuba RMSE {document['mitsuba_rmse']:.2f} (verification kept {verification['kept']}" in result.output
+    assert f"refined 2 steps, {'kept' if refinement['kept'] else 'not kept'} (its acceptance renders: " in result.output
     assert document["mitsuba_variant"] == "llvm_ad_rgb"  # the variant of the fit's renderer, which differentiates
     assert_one_line_error(
         run("fit", target, "-o", tmp_path / "p3.json", "--model", trained, "--refine", 1, "--variant", "scalar_rgb"),

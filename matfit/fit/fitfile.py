@@ -66,16 +66,16 @@ class Outcome:
         """Returns one line on what was found and how well."""
         result, document = self.result, self.document
         mitsuba = ""
-        if self.verified is not None:
-            verified = self.verified
-            mitsuba = f", Mitsuba RMSE {verified.rmse:.2f} (start {verified.start_rmse:.2f}; kept {verified.chosen})"
-        elif "mitsuba_rmse" in document:
+        if "mitsuba_rmse" in document:  # the answer's one figure, params.json's: that of the stage that chose it
             mitsuba = f", Mitsuba RMSE {document['mitsuba_rmse']:.2f}"
+        if self.verified is not None:
+            mitsuba += f" (verification kept {self.verified.chosen}; start {self.verified.start_rmse:.2f})"
         if self.refined is not None:
             refined = self.refined
             kept = "kept" if refined.accepted else "not kept"
             mitsuba += (
-                f"; refined {refined.steps} steps: {refined.rmse_before:.2f} -> {refined.rmse_after:.2f} ({kept})"
+                f"; refined {refined.steps} steps, {kept} (its acceptance renders: {refined.rmse_before:.2f} -> "
+                f"{refined.rmse_after:.2f})"
             )
         if self.cleaned is not None and self.cleaned.dropped:
             cleaned = self.cleaned
@@ -392,7 +392,8 @@ def document(outcome: Outcome, request: Request, model_path: str) -> dict:
         mitsuba["answer"] = answer_section(cleaned)
     if outcome.refined is not None:
         refined = outcome.refined
-        mitsuba["mitsuba_rmse"] = round(refined.rmse, 3)  # the kept point's acceptance render
+        if refined.accepted or "mitsuba_rmse" not in mitsuba:  # else the answer is still the one an earlier stage chose
+            mitsuba["mitsuba_rmse"] = round(refined.rmse, 3)  # the kept point's acceptance render
         mitsuba["refinement"] = {
             "steps": refined.steps,
             "kept": refined.accepted,
