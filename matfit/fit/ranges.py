@@ -23,6 +23,9 @@ within [1/4, 2], up to the box and below the smallest move refused), and the oth
 re-optimised by a Gauss-Newton step with the answer's Jacobian (the chord method) before the next
 decode. An end is reported only where a decode found it within
 tau (`CHECKS` rounds): the range is the widest move the decoder confirmed, never the linear guess.
+So the ends are confirmed, not maximal: each is a material decoded within tau, a range known to lie
+within tau, and the parameter may reach further (the furthest end, the others free, is a
+non-convex search this does not settle); params.json says so (`ENDS`).
 A round decodes only the ends not yet settled (confirmed at the box's face, or confirmed and
 refused moves within SETTLED of each other), in batches of CHUNK ends, so one compiled program.
 
@@ -61,6 +64,7 @@ START = 0.5  # the decoder's check starts at this share of each linear end and g
 HOLD = 0.5  # an end outside tau keeps its move for the next round while its correction at least halves D
 GROWTH = 0.9  # a try outside tau is followed by one aimed at this share of tau, the response taken as linear
 LOOK_ALIKES = 4
+ENDS = "confirmed: each end decodes within threshold_rmse of the answer; the parameter may reach further"
 VERDICTS = ("decided", "partly", "free")
 
 
@@ -130,6 +134,7 @@ class Ranges:
         return {
             "threshold_rmse": round(self.threshold, 3),
             "threshold_source": self.source,
+            "ends": ENDS,
             "parameters": {
                 p.name: {
                     "low": round(float(low[i]), 6),
