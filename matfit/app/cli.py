@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import os
+import sys
 from importlib import metadata
 from pathlib import Path
 from typing import Annotated
@@ -220,12 +221,13 @@ def fit_command(
     answer: options.Answer = "clean",
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
+    from matfit.app import worker
     from matfit.render import engine as render_module
-    from matfit.render.process import Pool
 
     render_module.check_request(variant)
-    # Verification's Mitsuba starts in child processes now, on the other cores, while this one imports JAX.
-    with Pool(variant) if verify and not refine else contextlib.nullcontext() as renderer:
+    # Verification's Mitsuba starts in child processes now, on the other cores, while this one imports JAX
+    # (in `matfit worker`, the pool and the model are its warm ones).
+    with worker.pool(variant) if verify and not refine else contextlib.nullcontext() as renderer:
         from matfit.fit import batch, fitfile
         from matfit.fit.request import Outputs, Request
 
@@ -258,14 +260,32 @@ def fit_command(
         if several:
             requests = batch.plan([str(target) for target in targets], written, request)
             interrupt.set_message("each picture fitted so far is written; the one in hand is not")
-            failed = batch.fit_all(requests, str(model_path), renderer=renderer, done=report_fit)
+            failed = batch.fit_all(requests, worker.model(str(model_path)), renderer=renderer, done=report_fit)
             log(f"fitted {len(requests) - failed} of {len(requests)} pictures into {written}")
             if failed:
                 raise typer.Exit(2)
             return
-        outcome = fitfile.run(request, str(model_path), renderer=renderer)
+        outcome = fitfile.run(request, worker.model(str(model_path)), renderer=renderer)
     echo_lines(outcome.notices)
     log(outcome.summary(written))
+
+
+@command(name="worker", interrupted="the worker stopped; the fit in hand wrote nothing")
+def worker_command() -> None:
+    """Run `matfit fit` for each JSON request line on standard input, its model and Mitsuba kept warm between fits.
+
+    A request is {"id": 1, "arguments": ["fit", "edited.png", "-o", "params.json", ...]}; each answer is one JSON
+    line on standard output, {"id": 1, "exit": 0, "output": "..."}. Ends when standard input ends. The Blender
+    extension's (docs/blender.md).
+    """
+    from matfit.app import worker
+
+    # Replies go to the standard output this process was given; anything else written there (a library's own
+    # message, a render child's) goes to standard error instead.
+    sys.stdout.flush()
+    replies = os.fdopen(os.dup(sys.stdout.fileno()), "w", encoding="utf-8")
+    os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
+    worker.serve(app, sys.stdin.buffer, replies, on_close=interrupt.exit_now)
 
 
 def report_fit(request, outcome) -> None:
