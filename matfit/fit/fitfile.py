@@ -210,14 +210,17 @@ def fit_neural(request: Request, model: models.Model) -> search.Result:
 
 def request_target(request: Request, resolution: int) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
     """Returns `read_target`'s (target, mask weights or None, notices) for a request: its `pixels` when the picture
-    was read already (the mask sized by the picture file's header), else read from its file."""
+    was read already (the mask sized by the picture file's header), else read from its file; its `weights` when the
+    mask was read already."""
+    mask = request.mask if request.weights is None else None  # weights given: the mask was read already
     if request.pixels is None:
-        return read_target(request.target, resolution, mask=request.mask)
-    weights = None
-    if request.mask is not None:
-        width, height = images.header(request.target)[:2]
-        weights = read_mask(request.mask, (height, width), resolution)
-    return np.asarray(request.pixels), weights, []
+        target, weights, notices = read_target(request.target, resolution, mask=mask)
+    else:
+        target, weights, notices = np.asarray(request.pixels), None, []
+        if mask is not None:
+            width, height = images.header(request.target)[:2]
+            weights = read_mask(mask, (height, width), resolution)
+    return target, (weights if request.weights is None else np.asarray(request.weights)), notices
 
 
 def read_mask(path: str, shape: tuple[int, int], resolution: int) -> np.ndarray:
@@ -415,7 +418,7 @@ def document(outcome: Outcome, request: Request, model_path: str) -> dict:
         polish_steps=request.settings.polish_steps,
         model=display_path(model_path),
         target=request.target,
-        target_sha256=files.sha256(request.target),
+        target_sha256=request.target_sha256 or files.sha256(request.target),
         mask=request.mask,
         init=request.init,
         mitsuba_variant=outcome.variant,

@@ -3,7 +3,8 @@
 `matfit fit`, the page's fit job and the bench each build one `Request` and hand it to `fitfile.run`
 (which writes its `outputs`) or `fitfile.fit_file` (which writes nothing); `matfit sequence` builds one
 per frame (its picture already read, the previous frame's optimum among its candidates) and hands it
-to `fitfile.fit_neural` (the neural search alone). `Request.check` raises the one-line error of a bad
+to `fitfile.fit_neural` (the neural search alone). `matfit.fit` builds one for a picture file or an
+array (its pixels already read). `Request.check` raises the one-line error of a bad
 value before any work: no picture is read and no model loaded for a request that cannot run.
 """
 
@@ -86,6 +87,12 @@ class Request:
     pixels: np.ndarray | None = field(default=None, compare=False)
     # Unit-cube candidates (k, 19) that join best-of-n after the source material's (a sequence's previous optimum).
     candidates: np.ndarray | None = field(default=None, compare=False)
+    # The mask as the model's weights (R, R) when it was read already (an array given to `matfit.fit`); `mask` then
+    # only names it.
+    weights: np.ndarray | None = field(default=None, compare=False)
+    # The picture's SHA-256 for params.json when `target` names no file (an array given to `matfit.fit`); None: the
+    # file's.
+    target_sha256: str | None = None
 
     @property
     def rounds(self) -> int:
@@ -126,8 +133,9 @@ class Request:
                 f"{self.rounds} correction rounds need verification's renders: drop --no-verify or add --corrections 0",
                 field="corrections",
             )
-        for path, name in ((self.target, "target"), (self.mask, "mask")):
-            if path is not None and not os.path.isfile(path):
+        read = ((self.target, "target", self.pixels), (self.mask, "mask", self.weights))
+        for path, name, given in read:  # a picture or mask given as pixels names no file
+            if path is not None and given is None and not os.path.isfile(path):
                 raise ImageError(f"{name} {path} is not a file: give the picture's path", field=name)
 
     def initial_values(self) -> np.ndarray | None:
