@@ -1,1 +1,5 @@
-"""matfit: photorealistic principled-BSDF parameters from an edited picture of a material (see README.md)."""
+"""matfit: photorealistic principled-BSDF parameters from an edited picture of a material (README.md, docs/api.md)."""
+
+from matfit.api import Fit, Fitter, Material, MatfitError, Settings, fit, fit_sequence, load_model, render
+
+__all__ = ["Fit", "Fitter", "Material", "MatfitError", "Settings", "fit", "fit_sequence", "load_model", "render"]

@@ -1,0 +1,582 @@
+"""matfit's public API, re-exported by the package: fit a picture, edit and render a material, export it (docs/api.md).
+
+`fit` fits one picture (a file or a NumPy array) and returns a `Fit`; a `Fitter` keeps the model and the
+render processes loaded for many fits; `Material` is the 19 parameters by name, with their params.json,
+Mitsuba and Blender forms; `render` renders one in the test scene. Bad input raises `MatfitError` with the
+command line's one-line message. JAX, Mitsuba and OpenImageIO are imported by the functions that need them,
+so `import matfit` loads NumPy and the parameter table alone.
+
+`fit` and `render` share their names with the subpackages `matfit/fit/` and `matfit/render/`, and Python
+sets a package's attribute to its subpackage whenever that is imported: so the two functions are those
+subpackages made callable (`_callable`), and `matfit.fit.search` still names the module.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib
+import os
+import time
+import types
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
+
+import numpy as np
+import numpy.typing as npt
+
+from matfit import documents, params, shipped
+from matfit.errors import FitError, ImageError, MatfitError, ParameterError, RenderError
+from matfit.fit.methods import Method, Settings
+
+if TYPE_CHECKING:
+    from matfit.fit import fitfile, search
+    from matfit.fit.request import Request
+    from matfit.model.models import Model
+    from matfit.render.engine import Renderer
+    from matfit.render.process import Pool
+
+__all__ = [
+    "Fit",
+    "Fitter",
+    "Material",
+    "MatfitError",
+    "Settings",
+    "fit",
+    "fit_sequence",
+    "load_model",
+    "render",
+]
+
+Picture = str | os.PathLike[str] | npt.NDArray[Any]  # a picture file's path, or its pixels (`fit`)
+Array = npt.NDArray[np.float64]
+Image = npt.NDArray[np.float32]
+ARRAY = "array"  # params.json's `target` (and `mask`) of pixels given as an array
+
+
+def _default(name: str) -> float:
+    return float(params.DEFAULTS[params.INDEX[name]])
+
+
+@dataclass(frozen=True)
+class Material:
+    """A material: the 19 shader parameters by name, in physical units (`matfit params` lists their ranges).
+
+    Names left out take their defaults; a value out of its range raises `MatfitError`. Edit one with
+    `dataclasses.replace(material, roughness=0.1)`.
+    """
+
+    base_color_r: float = _default("base_color_r")
+    base_color_g: float = _default("base_color_g")
+    base_color_b: float = _default("base_color_b")
+    metallic: float = _default("metallic")
+    roughness: float = _default("roughness")
+    anisotropic: float = _default("anisotropic")
+    specular: float = _default("specular")
+    spec_tint: float = _default("spec_tint")
+    sheen: float = _default("sheen")
+    sheen_tint: float = _default("sheen_tint")
+    clearcoat: float = _default("clearcoat")
+    clearcoat_gloss: float = _default("clearcoat_gloss")
+    spec_trans: float = _default("spec_trans")
+    medium_color_r: float = _default("medium_color_r")
+    medium_color_g: float = _default("medium_color_g")
+    medium_color_b: float = _default("medium_color_b")
+    density: float = _default("density")
+    scattering: float = _default("scattering")
+    phase_g: float = _default("phase_g")
+
+    def __post_init__(self) -> None:
+        for name in params.NAMES:
+            value = getattr(self, name)
+            if isinstance(value, np.generic):  # a NumPy scalar (np.float32 is no float)
+                value = value.item()
+            object.__setattr__(self, name, params.check_value(name, value))
+
+    @classmethod
+    def from_array(cls, values: npt.ArrayLike) -> Material:
+        """Returns the material of 19 physical values in `params.NAMES` order (`array()`'s)."""
+        array = np.asarray(values, dtype=np.float64)
+        if array.shape != (params.COUNT,):
+            raise ParameterError(
+                f"a material is {params.COUNT} values, got shape {array.shape}: give one value a parameter, in the "
+                "order `matfit params` lists them"
+            )
+        return cls(*(float(value) for value in array))
+
+    @classmethod
+    def from_unit(cls, unit: npt.ArrayLike) -> Material:
+        """Returns the material of 19 unit-cube coordinates (each parameter's range mapped onto [0, 1])."""
+        return cls.from_array(params.from_unit(np.asarray(unit, dtype=np.float64)))
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, float]) -> Material:
+        """Returns the material of named values; names left out take their defaults, unknown names are refused."""
+        return cls.from_array(params.from_mapping(values))
+
+    @classmethod
+    def from_json(cls, text: str | bytes) -> Material:
+        """Returns the material of a params.json text (what `to_json` and `matfit fit` write, or a flat object)."""
+        return cls.from_array(params.parse_params_json(text))
+
+    @classmethod
+    def read(cls, path: str | os.PathLike[str]) -> Material:
+        """Returns the material of a params.json file."""
+        return cls.from_array(params.read_file(os.fspath(path)))
+
+    @classmethod
+    def preset(cls, name: str) -> Material:
+        """Returns a named material (`presets()` lists them)."""
+        from matfit.render import presets
+
+        return cls.from_array(presets.preset(name))
+
+    @classmethod
+    def presets(cls) -> dict[str, Material]:
+        """Returns every named material: gold, glass, jade, milk and the others of `matfit presets`."""
+        from matfit.render import presets
+
+        return {name: cls.preset(name) for name in presets.PRESETS}
+
+    def array(self) -> Array:
+        """Returns the 19 physical values, float64, in `params.NAMES` order."""
+        return np.array([getattr(self, name) for name in params.NAMES], dtype=np.float64)
+
+    def unit(self) -> Array:
+        """Returns the 19 unit-cube coordinates the networks and optimisers see."""
+        return np.asarray(params.to_unit(self.array()), dtype=np.float64)
+
+    def to_dict(self) -> dict[str, float]:
+        """Returns the named values."""
+        return {name: float(getattr(self, name)) for name in params.NAMES}
+
+    def to_json(self) -> str:
+        """Returns the material as params.json text: values rounded to 6 decimals, with their units."""
+        return documents.dumps(params.params_document(self.array()))
+
+    def to_mitsuba(self) -> dict[str, Any]:
+        """Returns {"bsdf": the principled BSDF, "interior": the homogeneous medium} as plain `mi.load_dict` data.
+
+        Spread it into a shape (`{"type": "sphere", **material.to_mitsuba()}`); the medium shows with a volumetric
+        integrator (`volpath`, `volpathmis`) on a closed shape, and only where the BSDF transmits (`spec_trans`).
+        """
+        from matfit.render import scene
+
+        values = self.array()
+        return {"bsdf": scene.bsdf(values), "interior": scene.medium(values)}
+
+    def to_mitsuba_xml(self) -> str:
+        """Returns a Mitsuba 3 XML scene to `<include>`: ids `matfit-material` (the BSDF) and `matfit-interior`."""
+        from matfit.render import export
+
+        return export.mitsuba_xml(self.array())
+
+    def to_blender_script(self, name: str = "matfit") -> str:
+        """Returns a Python script that builds the material, named `name`, on Blender 4.x's selected meshes."""
+        from matfit.render import export
+
+        try:
+            return export.blender_script(self.array(), name)
+        except MatfitError:
+            raise
+        except ValueError as error:  # the name
+            raise ParameterError(str(error), field="name") from None
+
+
+@dataclass(frozen=True, eq=False)
+class Fit:
+    """What a fit of a picture found: the material, how well it matches, and its params.json.
+
+    `mitsuba_rmse` is None and `verification` empty for a fit without verification; `ranges` is what the
+    picture decides about each parameter and `answer` how the clean answer was chosen (docs/fitting.md),
+    both as params.json holds them. RMSE on 0-255 sRGB values. The pictures are sRGB, (R, R, 3) at the
+    model's resolution: `target` as fitted, `image` the decoder's picture of the material, `rendered`
+    Mitsuba's (None where nothing was rendered).
+    """
+
+    material: Material
+    neural_rmse: float
+    mitsuba_rmse: float | None
+    verification: dict[str, Any]
+    ranges: dict[str, Any]
+    answer: dict[str, Any]
+    notices: tuple[str, ...]
+    summary: str
+    target: Image = field(repr=False)
+    image: Image = field(repr=False)
+    rendered: Image | None = field(repr=False)
+    document: dict[str, Any] = field(repr=False)
+
+    def to_json(self) -> str:
+        """Returns the fit's params.json text: for a picture file, what `matfit fit` writes, but for the timings."""
+        return documents.dumps(self.document)
+
+
+def _fit_of(outcome: fitfile.Outcome, name: str) -> Fit:
+    """Returns the `Fit` of a finished fit (its document's timings set)."""
+    document = outcome.document
+    rendered = None if outcome.rendered is None else np.asarray(outcome.rendered, np.float32)
+    return Fit(
+        Material.from_array(outcome.values),
+        float(outcome.neural_rmse),
+        document.get("mitsuba_rmse"),
+        dict(document.get("verification") or {}),
+        dict(document.get("ranges") or {}),
+        dict(document.get("answer") or {}),
+        tuple(outcome.notices),
+        outcome.summary(name),
+        np.asarray(outcome.target, np.float32),
+        np.asarray(outcome.image, np.float32),
+        rendered,
+        document,
+    )
+
+
+def load_model(path: str | os.PathLike[str] | None = None) -> Model:
+    """Returns the decoder and encoders of a model folder (None: the shipped model), for `Fitter` or `fit`."""
+    from matfit.fit import fitfile
+
+    return fitfile.load_model(str(shipped.MODEL) if path is None else os.fspath(path))
+
+
+def _linear(picture: npt.ArrayLike, name: str, *, linear: bool) -> tuple[Image, list[str]]:
+    """Returns (linear RGB float32 (H, W, 3), notices) of pixels given as an array, as `images.load` reads a file."""
+    try:
+        array = np.asarray(picture)
+    except (ValueError, TypeError) as error:
+        raise ImageError(
+            f"the {name} array cannot be read ({error}): give an (H, W, 3) NumPy array", field=name
+        ) from None
+    shapes = "(H, W, 3) RGB, (H, W, 4) with alpha, or (H, W) grey"
+    if array.ndim not in (2, 3) or (array.ndim == 3 and array.shape[2] not in (1, 2, 3, 4)) or 0 in array.shape:
+        raise ImageError(f"the {name} array has shape {array.shape}: give {shapes}", field=name)
+    kinds = "float sRGB in 0-1, uint8 0-255, uint16 0-65535, or linear float with linear=True"
+    if array.dtype.kind == "u" and array.dtype.itemsize in (1, 2) and not linear:
+        scaled = array.astype(np.float32) / np.float32(np.iinfo(array.dtype).max)
+    elif array.dtype.kind == "f":
+        scaled = array.astype(np.float32)
+    else:
+        raise ImageError(f"the {name} array holds {array.dtype} values: give {kinds}", field=name)
+    from matfit import images
+
+    if array.shape[0] * array.shape[1] > images.MAX_PIXELS:
+        raise ImageError(
+            f"the {name} array is {array.shape[1]}x{array.shape[0]}, more than {images.MAX_PIXELS / 1e6:.0f} Mpixel: "
+            "scale it down first",
+            field=name,
+        )
+    if not np.all(np.isfinite(scaled)):
+        raise ImageError(f"the {name} array contains NaN or infinite values: fix or clamp them first", field=name)
+    if not linear and (scaled.min() < 0 or scaled.max() > 1):
+        raise ImageError(
+            f"the {name} array's values run from {scaled.min():g} to {scaled.max():g}, outside sRGB's 0-1: divide "
+            "0-255 values by 255, or pass linear=True for linear (HDR) values",
+            field=name,
+        )
+    notices = []
+    channels = 1 if array.ndim == 2 else array.shape[2]
+    if channels in (1, 2):
+        notices.append(f"the {name} array is grey: replicated to RGB")
+        scaled = np.repeat(scaled.reshape(*array.shape[:2], -1)[:, :, :1], 3, axis=2)
+    elif channels == 4:
+        notices.append(f"the {name} array's alpha dropped (the colour is used as it is, not composited)")
+    pixels = scaled[:, :, :3]
+    return np.ascontiguousarray(pixels if linear else images.srgb_decode(pixels), np.float32), notices
+
+
+def _text(path: str | os.PathLike[str]) -> str:
+    """Returns a path as the command line passes it on: `str(Path(...))`, so that params.json names it alike."""
+    return str(Path(path))
+
+
+class Fitter:
+    """The model and the render processes loaded once, for many fits (the warm path); a context manager.
+
+    `model`: a model folder (None: the shipped model) or a loaded `load_model()`. `verify`: whether fits let Mitsuba
+    choose among their candidates by default; the render processes (one a core) start here when it does, before
+    the model loads. `close()` (or leaving the `with` block) ends them.
+    """
+
+    def __init__(
+        self, model: str | os.PathLike[str] | Model | None = None, *, verify: bool = True, variant: str | None = None
+    ) -> None:
+        from matfit.model import models
+        from matfit.render import engine
+
+        engine.check_request(variant)
+        self.variant = variant
+        self.verify = verify
+        self._pool: Pool | None = None
+        if verify:
+            self._renderer()  # Mitsuba starts in the children while JAX and the model load here
+        try:
+            self.model = model if isinstance(model, models.Model) else load_model(model)
+        except BaseException:
+            self.close()
+            raise
+
+    def _renderer(self) -> Pool:
+        if self._pool is None:
+            from matfit.render.process import Pool
+
+            self._pool = Pool(self.variant)
+        return self._pool
+
+    def close(self) -> None:
+        """Ends the render processes; a later verified fit starts new ones."""
+        if self._pool is not None:
+            self._pool.close()
+            self._pool = None
+
+    def __enter__(self) -> Fitter:
+        return self
+
+    def __exit__(self, *exception: object) -> None:
+        self.close()
+
+    def fit(
+        self,
+        picture: Picture,
+        *,
+        mask: Picture | None = None,
+        init: str | os.PathLike[str] | Material | None = None,
+        settings: Settings | None = None,
+        linear: bool = False,
+        verify: bool | None = None,
+        corrections: int | None = None,
+        answer: Literal["clean", "best"] = "clean",
+        refine: int = 0,
+        seed: int = 0,
+    ) -> Fit:
+        """Returns the fit of one picture with this fitter's model: `matfit.fit`, warm."""
+        from matfit.fit import fitfile
+
+        started = time.perf_counter()
+        verified = self.verify if verify is None else verify
+        request, notices = self._request(
+            picture, mask, init, settings, linear, verified, corrections, answer, refine, seed
+        )
+        renderer = self._renderer() if verified and not refine else None  # refinement renders in this process
+        outcome, _ = fitfile.fit_file(request, self.model, renderer=renderer)
+        outcome.notices[:0] = notices
+        outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
+        return _fit_of(outcome, request.target)
+
+    def _request(
+        self,
+        picture: Picture,
+        mask: Picture | None,
+        init: str | os.PathLike[str] | Material | None,
+        settings: Settings | None,
+        linear: bool,
+        verified: bool,
+        corrections: int | None,
+        answer: str,
+        refine: int,
+        seed: int,
+    ) -> tuple[Request, list[str]]:
+        """Returns (the request of one fit, notices of the pixels read here): a picture file's as `matfit fit` makes
+        it, an array's with its pixels as the model's target."""
+        from matfit.fit import search
+        from matfit.fit.request import Request
+
+        if settings is not None and not isinstance(settings, Settings):
+            raise FitError(f"settings {settings!r} is no matfit.Settings: give Settings(...) or None", field="settings")
+        initial = (
+            None if init is None else "Material" if isinstance(init, Material) else _text(init),
+            init.array() if isinstance(init, Material) else None,
+        )
+        resolution = self.model.resolution
+        target, pixels, digest, notices = ARRAY, None, None, list[str]()
+        size: tuple[int, int] | None = None  # an array's (height, width)
+        if isinstance(picture, str | os.PathLike):
+            if linear:
+                raise ImageError(
+                    "linear=True describes an array's values; a picture file says itself how it is encoded "
+                    "(EXR and HDR linear, the others sRGB): leave linear out",
+                    field="linear",
+                )
+            target = _text(picture)
+        else:
+            linear_pixels, notices = _linear(picture, "picture", linear=linear)
+            size = (linear_pixels.shape[0], linear_pixels.shape[1])
+            pixels, more = search.prepare_target(linear_pixels, resolution, "the picture array")
+            digest = hashlib.sha256(np.ascontiguousarray(np.asarray(picture)).tobytes()).hexdigest()
+            notices += more
+        named_mask, weights = None, None
+        if isinstance(mask, str | os.PathLike):
+            named_mask = _text(mask)
+            if size is not None:  # the mask of an array is sized by the array: read here
+                weights = search.prepare_mask(_read(named_mask, "mask"), size, resolution, named_mask)
+        elif mask is not None:
+            named_mask = ARRAY
+            mask_pixels = _linear(mask, "mask", linear=False)[0]
+            weights = search.prepare_mask(mask_pixels, size or _size(target), resolution, "array")
+        request = Request(
+            target,
+            named_mask,
+            initial[0],
+            init_values=initial[1],
+            seed=seed,
+            settings=settings or Settings(),
+            verified=verified,
+            corrections=corrections,
+            refine_steps=refine,
+            variant=self.variant,
+            answer=answer,
+            pixels=pixels,
+            weights=weights,
+            target_sha256=digest,
+        )
+        return request, notices
+
+
+def _read(path: str, name: str) -> Image:
+    """Returns a picture file's linear pixels (the one-line ImageError of a missing or unreadable one)."""
+    from matfit import images
+
+    if not os.path.isfile(path):
+        raise ImageError(f"{name} {path} is not a file: give the picture's path", field=name)
+    return np.asarray(images.load(path).pixels, np.float32)
+
+
+def _size(path: str) -> tuple[int, int]:
+    """Returns (height, width) of a picture file (the one-line ImageError of a missing or unreadable one)."""
+    from matfit import images
+
+    if not os.path.isfile(path):
+        raise ImageError(f"target {path} is not a file: give the picture's path", field="target")
+    width, height = images.header(path)[:2]
+    return height, width
+
+
+def fit(
+    picture: Picture,
+    *,
+    mask: Picture | None = None,
+    init: str | os.PathLike[str] | Material | None = None,
+    model: str | os.PathLike[str] | Model | None = None,
+    settings: Settings | None = None,
+    linear: bool = False,
+    verify: bool = True,
+    corrections: int | None = None,
+    answer: Literal["clean", "best"] = "clean",
+    refine: int = 0,
+    seed: int = 0,
+    variant: str | None = None,
+) -> Fit:
+    """Returns the fit of the material whose render looks most like `picture`: what `matfit fit` finds.
+
+    `picture`: a file's path (PNG, JPEG, TIFF, EXR) or its pixels, an (H, W, 3) array (or (H, W, 4), alpha
+    dropped): float sRGB in 0-1, uint8 0-255 or uint16, or linear float with `linear=True`. `mask`: the same
+    kinds, white where the fit looks. `init`: a params.json or a `Material` that joins the candidates.
+    `model`: a model folder or `load_model()`'s (None: the shipped one). `settings`, `verify`, `corrections`,
+    `answer`, `refine`, `seed`, `variant`: `matfit fit`'s options of those names, with its defaults. A picture
+    file gives the parameters of `matfit fit PICTURE -o params.json` bit for bit. For many pictures, a `Fitter`
+    loads the model once.
+    """
+    with Fitter(model, verify=verify and not refine, variant=variant) as fitter:
+        return fitter.fit(
+            picture,
+            mask=mask,
+            init=init,
+            settings=settings,
+            linear=linear,
+            verify=verify,
+            corrections=corrections,
+            answer=answer,
+            refine=refine,
+            seed=seed,
+        )
+
+
+def fit_sequence(
+    frames: Iterable[Picture],
+    *,
+    model: str | os.PathLike[str] | Model | None = None,
+    settings: Settings | None = None,
+    reinit: bool = True,
+    init: str | os.PathLike[str] | Material | None = None,
+    linear: bool = False,
+) -> list[Fit]:
+    """Returns the fits of a sequence of frames (paths or arrays) in order: `matfit sequence`'s, written nowhere.
+
+    Each frame is fitted by the neural search alone (no Mitsuba stage), from the encoders' guesses plus, with
+    `reinit`, the previous frame's answer (the first frame: `init`'s). `settings` None: `matfit sequence`'s
+    (hybrid, 100 evaluations).
+    """
+    from matfit.fit import fitfile
+
+    fitter = Fitter(model, verify=False)
+    settings = settings or Settings(Method.hybrid, 100)
+    start = None if init is None else (init if isinstance(init, Material) else Material.read(init)).unit()
+    previous = None if start is None else np.asarray(start, np.float32)
+    fits: list[Fit] = []
+    for frame in frames:
+        request, notices = fitter._request(frame, None, None, settings, linear, False, None, "best", 0, 0)
+        if request.pixels is None:  # a file: read as `matfit sequence` reads a frame
+            pixels, _, _ = fitfile.request_target(request, fitter.model.resolution)
+            request = dataclasses.replace(request, pixels=pixels)
+        candidates = None if previous is None else previous[None]
+        request = dataclasses.replace(request, candidates=candidates)
+        result: search.Result = fitfile.fit_neural(request, fitter.model)
+        outcome = fitfile.Outcome(
+            result, np.asarray(request.pixels), result.unit, result.image, result.rmse, notices=notices
+        )
+        outcome.document = fitfile.document(outcome, request, fitter.model.path)
+        fits.append(_fit_of(outcome, request.target))
+        previous = np.asarray(result.unit, np.float32) if reinit else None
+    return fits
+
+
+_renderers: dict[tuple[int, str | None], Renderer] = {}
+
+
+def render(material: Material, *, size: int = 256, spp: int = 256, seed: int = 0, variant: str | None = None) -> Image:
+    """Returns the material rendered by Mitsuba in the test scene: linear RGB float32 (size, size, 3).
+
+    `seed` makes the noise: the same arguments give the same picture. The scene is loaded once a size and kept.
+    `images.srgb_encode` (or `fit(..., linear=True)`) takes it from there.
+    """
+    from matfit.errors import check_range
+    from matfit.model import dataset
+    from matfit.render import engine
+
+    if not isinstance(material, Material):
+        raise ParameterError(
+            f"render takes a matfit.Material, got {type(material).__name__}: use Material.read(path), "
+            "Material.preset(name) or Material.from_dict(...)",
+            field="material",
+        )
+    check_range("size", size, dataset.MIN_RESOLUTION, 4096, RenderError)
+    check_range("spp", spp, 1, dataset.MAX_SPP, RenderError)
+    check_range("seed", seed, 0, params.MAX_SEED, RenderError)
+    key = (int(size), variant)
+    if key not in _renderers:
+        _renderers[key] = engine.Renderer(int(size), int(spp), variant)
+    return _renderers[key].render(material.array(), seed=seed, spp=spp)
+
+
+F = TypeVar("F", bound=Callable[..., Any])
+
+
+def _callable(package: str, function: F) -> F:
+    """Returns the subpackage `package` made callable as `function` (see the module docstring): the same object
+    whichever of the two an import binds to the name."""
+    module = importlib.import_module(package)  # the subpackage's __init__ is its docstring alone: cheap
+
+    class CallablePackage(types.ModuleType):
+        def __call__(self, *args: Any, **kwargs: Any) -> Any:
+            return function(*args, **kwargs)
+
+    module.__class__ = CallablePackage
+    module.__wrapped__ = function  # type: ignore[attr-defined]  # inspect.signature and help() read the function's
+    module.__doc__ = f"{function.__doc__}\n\nAlso the package {package}: {module.__doc__}"
+    return module  # type: ignore[return-value]
+
+
+if not TYPE_CHECKING:
+    fit = _callable("matfit.fit", fit)
+    render = _callable("matfit.render", render)
