@@ -3,7 +3,8 @@
 Usage: python blender_extension_run.py job.json report.json, in a fresh user folder ($BLENDER_USER_RESOURCES).
 job.json: {"zip", "command", "size", "spp", "fit_options", "imports": {name: exported script},
 "picture": {"script", "out"}, "refusals": [kind], "unwritable": [picture path], "fit": edited picture,
-"failures": [[command, edited]], "planted": {"edited", "silent", "writers": {kind: command}, "blocked", "redirect"},
+"failures": [[command, edited]], "worker": whether to fit again in the worker and after killing it,
+"planted": {"edited", "silent", "writers": {kind: command}, "blocked", "redirect", "crashes"},
 "follow": {"edited", "saved"}, "cancel": edited picture}.
 The scene: "source" (active, selected, holds the material to picture), "bare" (selected, no slots),
 "shared_a" (selected) and "shared_b" (not selected) sharing a mesh with the material "keep", and a selected light.
@@ -13,6 +14,7 @@ The report holds what each step gave back and the line each operator reported.
 import json
 import os
 import shutil
+import signal
 import sys
 import time
 
@@ -97,6 +99,19 @@ def slots():
     }
 
 
+def fit_again(edited, jobs):
+    """Returns what Fit of `edited` gave twice more: in the first Fit's worker, and after that worker was killed."""
+    first = jobs._worker[0].pid
+    start = time.monotonic()
+    outcome = operator(lambda: bpy.ops.matfit.fit(filepath=edited))
+    again = {"outcome": outcome, "seconds": time.monotonic() - start, "fitted": material_state()}
+    again["same_worker"] = jobs._worker[0].pid == first
+    os.kill(first, signal.SIGKILL)  # between two fits
+    outcome = operator(lambda: bpy.ops.matfit.fit(filepath=edited))
+    killed = {"outcome": outcome, "fitted": material_state(), "new_worker": jobs._worker[0].pid != first}
+    return {"again": again, "killed": killed}
+
+
 def main(job_path, report_path):
     with open(job_path) as file:
         job = json.load(file)
@@ -148,10 +163,14 @@ def main(job_path, report_path):
 
     if "fit" in job:
         build_scene()
+        start = time.monotonic()
         report["fit"] = operator(lambda: bpy.ops.matfit.fit(filepath=job["fit"]))
+        report["fit_seconds"] = time.monotonic() - start
         report["slots"] = slots()
         report["shared_mesh_materials"] = [m.name for m in bpy.data.objects["shared_a"].data.materials]
         report["fitted"] = material_state()
+        if job.get("worker"):  # the same fit again, in the session's worker; then with that worker killed
+            report["worker"] = fit_again(job["fit"], extension.jobs)
     report["failures"] = []
     for command, edited in job.get("failures", []):
         prefs.command = command
@@ -177,6 +196,12 @@ def main(job_path, report_path):
             prefs.command = command
             report["planted"]["writers"][kind] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["edited"]))
         report["planted"]["after_writers"] = material_state()
+        if "crashes" in planted:  # a worker that ends during every fit: started again once, then one line
+            run_script(job["picture"]["script"])
+            before = material_state()
+            prefs.command = planted["crashes"]
+            report["planted"]["crashes"] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["edited"]))
+            report["planted"]["crashes_unchanged"] = material_state() == before
         prefs.command, prefs.fit_options = job["command"], planted["redirect"]
         report["planted"]["redirect"] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["edited"]))
         report["planted"]["after_redirect"] = material_state()

@@ -109,6 +109,13 @@ def session(tmp_path_factory):
     (folder / "planted.blender.py").write_text(f"open({str(folder / 'executed')!r}, 'w').write('planted')\n")
     stale = params.params_document(presets.preset("gold"), **STALE)
     (folder / "planted.params.json").write_text(json.dumps(stale))
+    crashes = folder / "crashes"  # a "matfit worker" that says it is ready, then ends during every fit
+    crashes.write_text(
+        f"#!/bin/sh\necho started >> '{folder / 'crashes.count'}'\n"
+        'echo \'{"ready": "matfit worker", "protocol": 1}\'\nread request\n'
+        "echo 'Traceback (most recent call last):' >&2\necho 'RuntimeError: the worker crashed' >&2\nexit 3\n"
+    )
+    crashes.chmod(0o755)
     writers = {}
     # and one that writes a params.json of matfit's form (names left out take their defaults), for a picture
     # beside which NAME.params.json cannot be saved (a folder is in the way)
@@ -139,6 +146,7 @@ def session(tmp_path_factory):
         "refusals": list(REFUSALS),
         "unwritable": [str(folder / "pictures" / "refused.gif"), "/proc/picture.png", "/proc/matfit/picture.png"],
         "fit": str(folder / "edited.png"),
+        "worker": True,
         "failures": [
             [str(folder / "no-such-matfit"), str(folder / "edited.png")],
             [str(command), str(folder / "not-a-picture.png")],
@@ -150,6 +158,7 @@ def session(tmp_path_factory):
             "redirect": " ".join([*FIT_OPTIONS, "-o", str(folder / "x.json"), "--blender", str(folder / "x.py")]),
             "writers": writers,
             "blocked": str(folder / "blocked.png"),
+            "crashes": str(crashes),
         },
         "follow": {"edited": str(folder / "follow.png"), "saved": str(shipped.EXAMPLES / "desaturated.png")},
         "cancel": str(folder / "edited.png"),
@@ -393,3 +402,35 @@ def test_fit_applies_exactly_to_blender_of_the_params_json_its_own_job_wrote(ses
         f"Mitsuba RMSE {document['mitsuba_rmse']:.2f}"
     )
     assert line in output.splitlines()
+
+
+def test_a_second_fit_runs_in_the_same_worker_and_a_killed_worker_is_started_again(session):
+    report, folder, _ = session
+    again, killed = report["worker"]["again"], report["worker"]["killed"]
+    # the second Fit was sent to the worker the first started (the model and Mitsuba loaded), with the same answer
+    assert again["outcome"] == [["FINISHED"], None] and again["same_worker"]
+    assert again["fitted"] == report["fitted"]
+    # a worker killed between two fits: the next Fit starts another and succeeds, with the same answer
+    assert killed["outcome"] == [["FINISHED"], None] and killed["new_worker"]
+    assert killed["fitted"] == report["fitted"]
+    assert_material_is(killed["fitted"], folder / "edited.params.json")
+
+
+def test_a_worker_that_ends_during_every_fit_is_started_again_once_then_one_line(session):
+    report, folder, output = session
+    planted = report["planted"]
+    assert planted["crashes"] == [
+        ["CANCELLED"],
+        f"Error: matfit ({folder / 'crashes'}) failed: error: its worker ended during the fit, twice (exit code 3): "
+        "RuntimeError: the worker crashed",
+    ]
+    assert planted["crashes_unchanged"] and "Traceback" not in output
+    assert (folder / "crashes.count").read_text().split() == ["started", "started"]
+
+
+def test_a_command_without_a_worker_runs_each_fit_as_its_own_process_said_once(session):
+    _, folder, output = session
+    # the "matfit" commands that write a file (and know no `matfit worker`) fitted as before, and said so once each
+    for command in (folder / "silent", folder / "writes params.json"):
+        note = f"Info: matfit: '{command}' has no `matfit worker` (an older matfit?): each fit starts matfit"
+        assert output.splitlines().count(note) == 1

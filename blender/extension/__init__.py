@@ -6,8 +6,9 @@ runs the matfit command line (its path in the extension's preferences) in a subp
   blender_mapping, the table the export writes with, and renders it in matfit's test scene
   (`matfit render`) to a PNG;
 - `matfit.fit`: fits the edited picture (`matfit fit ... -o params.json` into the job's own new
-  folder) and builds the material from that params.json through blender_mapping.to_blender
-  (`material.write`), as the exported script would, on the selected meshes. No script is run: a
+  folder, run by the session's `matfit worker`, which keeps the model and Mitsuba loaded) and builds
+  the material from that params.json through blender_mapping.to_blender (`material.write`), as the
+  exported script would, on the selected meshes. No script is run: a
   params.json this job did not write, or none, is one report line and the material stays as it was.
 From the panel both run in the background (a timer polls the subprocess, its last line in the status
 bar, Esc cancels); called from Python (`bpy.ops.matfit.fit(filepath=...)`, as headless Blender and
@@ -142,6 +143,9 @@ class _Background:
         return True
 
     def _end(self, context):
+        note = getattr(self._job, "note", None)  # a fit run without matfit's worker says so, once
+        if note:
+            self.report({"INFO"}, note)
         try:
             self.finish(context, self._job)
         except Exception as error:  # every failure is one report line, never a traceback
@@ -262,7 +266,7 @@ def start_fit(context, path):
             )
     folder = jobs.new_folder()
     arguments = ["fit", edited, "--size", str(prefs.size), "--spp", str(prefs.spp), *options]
-    job = jobs.Job(prefs.command, [*arguments, "-o", os.path.join(folder, "params.json")], folder)
+    job = jobs.WorkerJob(prefs.command, [*arguments, "-o", os.path.join(folder, "params.json")], folder)
     job.outputs = {"params": saved}
     return job
 
@@ -301,12 +305,14 @@ class Follower:
             raise jobs.JobError("matfit: fit an edited picture once first: Follow watches that file")
         self.seen = os.stat(self.path).st_mtime_ns
         self.job = None
+        self.note = None  # a fit run without matfit's worker says so, once
 
     def step(self, context):
         """Finishes a fit that has ended and starts one if the file changed; returns the finished fit's line."""
         line = None
         if self.job is not None and self.job.poll() is not None:
             job, self.job = self.job, None
+            self.note = job.note
             line = finish_fit(context, job)
         changed = os.stat(self.path).st_mtime_ns
         if self.job is None and changed != self.seen:
@@ -362,6 +368,9 @@ class MATFIT_OT_follow(bpy.types.Operator):  # noqa: N801 (Blender's naming of o
                 self.report({"INFO"}, line)
         except Exception as error:  # every failure is one report line, never a traceback
             self.report({"ERROR"}, one_line(error))
+        if self._follower.note:
+            self.report({"INFO"}, self._follower.note)
+            self._follower.note = None
         context.workspace.status_text_set(self._follower.status())
         return {"PASS_THROUGH"}
 
@@ -395,6 +404,7 @@ def register():
 
 
 def unregister():
+    jobs.stop_workers()
     del bpy.types.Scene.matfit
     for cls in reversed(CLASSES):
         bpy.utils.unregister_class(cls)

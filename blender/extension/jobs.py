@@ -4,9 +4,21 @@ Each job owns a fresh private temporary folder (`Job.folder`, made with mkdtemp:
 name) for the files it writes; the extension reads its outputs only from there, so a file that this
 run did not write (left from an older fit, or planted beside a picture) is never read, and the
 folder is removed when the job is done with (`Job.remove`).
+
+A fit runs in matfit's worker (`WorkerJob`): one `matfit worker` process a Blender session (`Worker`),
+started by the first fit and kept, so that the model, JAX's compiled programs and Mitsuba's scene
+stay loaded; it is sent each fit's command line as one JSON line and answers with its exit code and
+output. A worker that ends during a fit is started again once for that fit; ending again is the
+fit's one error line, its last words on standard error. A matfit command that has no worker (an
+older matfit: it ends without saying it is ready) runs each fit as a process of its own (`Job`),
+said once in a report line. `stop_workers` ends the worker when Blender quits or the extension is
+turned off; a worker whose Blender ended any other way sees its standard input end and ends too.
 """
 
+import atexit
 import collections
+import contextlib
+import json
 import os
 import shlex
 import shutil
@@ -36,6 +48,19 @@ def command_words(command):
     if os.path.isfile(path):
         return [path]
     return split(command)
+
+
+def cannot_run(command, error):
+    """Returns the JobError of a matfit command that could not be started (`error`: the OSError)."""
+    quote = " (a path with spaces runs as it is only when the file exists)" if " " in command.strip() else ""
+    return JobError(f"matfit: cannot run {command!r} ({error.strerror or error}){quote}: {FIX}")
+
+
+def failure(command, code, lines):
+    """Returns the JobError of a matfit run that ended with `code`: its last `error:` line, or its last line."""
+    errors = [line for line in lines if line.startswith("error:")]
+    last = (errors or list(lines) or [f"exit code {code}"])[-1]
+    return JobError(f"matfit ({command}) failed: {last}")
 
 
 def new_folder():
@@ -69,8 +94,7 @@ class Job:
             )
         except OSError as error:
             self.remove()
-            quote = " (a path with spaces runs as it is only when the file exists)" if " " in command.strip() else ""
-            raise JobError(f"matfit: cannot run {command!r} ({error.strerror or error}){quote}: {FIX}") from None
+            raise cannot_run(command, error) from None
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 
@@ -111,6 +135,253 @@ class Job:
         self.wait()
         code = self._process.returncode
         if code != 0:
-            errors = [line for line in self._lines if line.startswith("error:")]
-            last = (errors or list(self._lines) or [f"exit code {code}"])[-1]
-            raise JobError(f"matfit ({self.command}) failed: {last}")
+            raise failure(self.command, code, self._lines)
+
+
+class Worker:
+    """One `matfit worker` process of a matfit command: requests written to it as JSON lines, its answers read by a
+    thread (so that nothing waits on it), the last lines of its standard error kept for an error line."""
+
+    LIMIT = 1 << 20  # bytes of one answer line read: a fit's output is a few lines
+    STOP_SECONDS = 2.0  # how long `stop` waits for the worker to end by itself before ending it
+
+    def __init__(self, command):
+        words = command_words(command)
+        if not words:
+            raise JobError(f"matfit: no matfit command: {FIX}")
+        self.command = command
+        self.started = time.monotonic()
+        self.ready = False  # it said it is a matfit worker
+        self.ended = False  # its standard output ended: it ended, or is ending
+        self.errors = collections.deque(maxlen=20)
+        self._answers = {}
+        self._next = 0
+        try:
+            # A session of its own: a Ctrl-C in Blender's terminal reaches Blender, whose end ends the worker.
+            self._process = subprocess.Popen(
+                [*words, "worker"],
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                start_new_session=True,
+            )
+        except OSError as error:
+            raise cannot_run(command, error) from None
+        threading.Thread(target=self._read_answers, daemon=True).start()
+        self._errors_reader = threading.Thread(target=self._read_errors, daemon=True)
+        self._errors_reader.start()
+
+    @property
+    def pid(self):
+        return self._process.pid
+
+    def _read_answers(self):
+        stream = self._process.stdout
+        while line := stream.readline(self.LIMIT):
+            try:
+                answer = json.loads(line)
+            except ValueError:
+                continue  # not an answer (a line cut at LIMIT, or something else's): the fit then has none
+            if not isinstance(answer, dict):
+                continue
+            if answer.get("ready") == "matfit worker":
+                self.ready = True
+            elif isinstance(answer.get("exit"), int) and isinstance(answer.get("output"), str):
+                self._answers[answer.get("id")] = (answer["exit"], answer["output"])
+        self.ended = True
+
+    def _read_errors(self):
+        for line in self._process.stderr:
+            text = line.decode("utf-8", errors="replace").strip()
+            if text:
+                self.errors.append(text)
+
+    def send(self, arguments):
+        """Sends the command line `arguments` (["fit", ...]); returns the request's id (no answer comes if it ended)."""
+        self._next += 1
+        line = json.dumps({"id": self._next, "arguments": list(arguments)}) + "\n"
+        try:
+            self._process.stdin.write(line.encode())
+            self._process.stdin.flush()
+        except (OSError, ValueError):  # it ended: the job sees it end without an answer
+            pass
+        return self._next
+
+    def answer(self, identifier):
+        """Returns (exit code, output) of the request `identifier` once answered, else None."""
+        return self._answers.pop(identifier, None)
+
+    def code(self):
+        """Returns the worker's exit code, or None while it runs."""
+        return self._process.poll()
+
+    def last_error(self):
+        """Returns the last line the worker wrote on standard error, or None (once read: its render children, which
+        share that pipe, may hold it open a moment longer)."""
+        self._errors_reader.join(1.0)
+        return self.errors[-1] if self.errors else None
+
+    def stop(self, wait=True):
+        """Ends the worker: closes its standard input (it ends by itself), then ends it if it has not within
+        STOP_SECONDS (at once without `wait`: it is busy with a fit nobody wants)."""
+        with contextlib.suppress(OSError):
+            self._process.stdin.close()
+        try:
+            self._process.wait(self.STOP_SECONDS if wait else 0.0)
+            return
+        except subprocess.TimeoutExpired:
+            self._process.terminate()
+        try:
+            self._process.wait(self.STOP_SECONDS)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+            self._process.wait()
+
+
+_worker = [None]  # the session's Worker, or None
+_no_worker = set()  # matfit commands that ended without saying they are a worker (an older matfit)
+
+
+def worker(command, fresh=False):
+    """Returns the session's worker of `command`, started if need be (`fresh`: a new one in any case); the worker of
+    another command is stopped once this one has started."""
+    current = _worker[0]
+    if current is not None and current.command == command and not current.ended and not fresh:
+        return current
+    started = Worker(command)
+    if current is not None:
+        current.stop(wait=False)
+    _worker[0] = started
+    return started
+
+
+def stop_workers():
+    """Ends the session's worker (Blender quits, or the extension is turned off)."""
+    current, _worker[0] = _worker[0], None
+    if current is not None:
+        current.stop()
+
+
+atexit.register(stop_workers)
+
+
+class WorkerJob:
+    """A fit sent to the session's `Worker`, with `Job`'s methods: polled or waited for, cancelled, checked.
+
+    `folder` as `Job`'s. A worker that ends during the fit is started again and sent the fit once more; a command
+    that is no worker runs the fit as a `Job`, and `note` then says so (once a session).
+    """
+
+    READY_SECONDS = 120.0  # a worker that has not said it is ready by then is taken for no worker
+    WAIT_SECONDS = 3600.0  # `wait` gives up on a worker that answers nothing for this long
+
+    def __init__(self, command, arguments, folder=None):
+        self.folder = folder or new_folder()
+        self.command, self.arguments = command, arguments
+        self.started = time.monotonic()
+        self.note = None
+        self._job = None  # the Job it runs as, with a command that has no worker
+        self._worker = None
+        self._answer = None  # (exit code, output lines)
+        self._error = None  # the JobError of a worker that could not be started again
+        self._restarted = False
+        try:
+            if command in _no_worker:
+                self._job = Job(command, arguments, self.folder)
+            else:
+                self._send(worker(command))
+        except BaseException:
+            self.remove()
+            raise
+
+    def _send(self, chosen):
+        self._worker, self._id = chosen, chosen.send(self.arguments)
+
+    def path(self, name):
+        """Returns the path of `name` in the job's own folder."""
+        return os.path.join(self.folder, name)
+
+    def poll(self):
+        """Returns the exit code, or None while the fit runs."""
+        if self._job is not None:
+            return self._job.poll()
+        if self._answer is None and self._error is None:
+            try:
+                self._step()
+            except JobError as error:  # a worker that cannot be started again
+                self._error = error
+        if self._job is not None:
+            return self._job.poll()
+        return 1 if self._error is not None else None if self._answer is None else self._answer[0]
+
+    def _step(self):
+        chosen = self._worker
+        ended = chosen.ended  # before the answer: a worker answers, then may end
+        answer = chosen.answer(self._id)
+        if answer is not None:
+            code, output = answer
+            self._answer = (code, [line.strip() for line in output.splitlines() if line.strip()])
+            return
+        if not ended:
+            if not chosen.ready and time.monotonic() - chosen.started > self.READY_SECONDS:
+                chosen.stop(wait=False)  # it ends; the next poll runs the fit as a process of its own
+            return
+        chosen.stop(wait=False)  # reaped
+        if not chosen.ready:  # no `matfit worker` there: each fit is a process of its own
+            _no_worker.add(self.command)
+            self.note = f"matfit: {self.command!r} has no `matfit worker` (an older matfit?): each fit starts matfit"
+            self._job = Job(self.command, self.arguments, self.folder)
+            return
+        if not self._restarted:
+            self._restarted = True
+            self._send(worker(self.command, fresh=True))
+            return
+        said = chosen.last_error()
+        self._answer = (
+            chosen.code() or 1,
+            [f"error: its worker ended during the fit, twice (exit code {chosen.code()}){f': {said}' if said else ''}"],
+        )
+
+    def wait(self):
+        if self._job is not None:
+            return self._job.wait()
+        deadline = time.monotonic() + self.WAIT_SECONDS
+        while self.poll() is None:
+            if self._job is not None:
+                return self._job.wait()
+            if time.monotonic() > deadline:
+                self._worker.stop(wait=False)
+                self._answer = (1, [f"error: its worker answered nothing in {self.WAIT_SECONDS:.0f} s"])
+                return
+            time.sleep(0.05)
+
+    def status(self):
+        """Returns the status bar's text: what runs, for how long."""
+        if self._job is not None:
+            return self._job.status()
+        return f"matfit {self.arguments[0]} running for {time.monotonic() - self.started:.0f} s: in matfit's worker"
+
+    def cancel(self):
+        if self._job is not None:
+            self._job.cancel()
+            return
+        if self._answer is None and self._error is None:  # it is busy with this fit: end it, the next starts one
+            if _worker[0] is self._worker:
+                _worker[0] = None
+            self._worker.stop(wait=False)
+        self.remove()
+
+    def remove(self):
+        """Removes the job's folder and what matfit wrote there."""
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+    def check(self):
+        """Raises JobError with matfit's own error line if the fit failed."""
+        self.wait()
+        if self._job is not None:
+            return self._job.check()
+        if self._error is not None:
+            raise self._error
+        code, lines = self._answer
+        if code != 0:
+            raise failure(self.command, code, lines)
