@@ -226,16 +226,10 @@ def page_code() -> str:
 def test_the_pages_examples_run_as_written(tmp_path):
     edits = tmp_path / "edits"
     edits.mkdir()
-    for name in ("recoloured.png", "desaturated.png"):
-        shutil.copy(shipped.EXAMPLES / name, edits / name)
+    shutil.copy(PICTURE, edits / PICTURE.name)  # one picture: the folder's loop is the same for more
     before = set(os.listdir(tmp_path))
     run = subprocess.run([sys.executable, "-c", page_code()], cwd=tmp_path, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     written = set(os.listdir(tmp_path)) - before
     assert written == {"params.json", "rougher.exr", "material.xml", "material.py"}, written
-    assert sorted(os.listdir(edits)) == [
-        "desaturated.params.json",
-        "desaturated.png",
-        "recoloured.params.json",
-        "recoloured.png",
-    ]
+    assert sorted(os.listdir(edits)) == ["recoloured.params.json", "recoloured.png"]
