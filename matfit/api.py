@@ -114,7 +114,8 @@ class Material:
     @classmethod
     def from_dict(cls, values: Mapping[str, float]) -> Material:
         """Returns the material of named values; names left out take their defaults, unknown names are refused."""
-        return cls.from_array(params.from_mapping(values))
+        plain = {name: value.item() if isinstance(value, np.generic) else value for name, value in values.items()}
+        return cls.from_array(params.from_mapping(plain))
 
     @classmethod
     def from_json(cls, text: str | bytes) -> Material:
