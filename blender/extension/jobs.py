@@ -144,6 +144,7 @@ class Worker:
 
     LIMIT = 1 << 20  # bytes of one answer line read: a fit's output is a few lines
     STOP_SECONDS = 2.0  # how long `stop` waits for the worker to end by itself before ending it
+    QUICK_SECONDS = 0.2  # the same, when Blender is waiting (a worker replaced, a fit cancelled)
 
     def __init__(self, command):
         words = command_words(command)
@@ -222,12 +223,12 @@ class Worker:
         return self.errors[-1] if self.errors else None
 
     def stop(self, wait=True):
-        """Ends the worker: closes its standard input (it ends by itself), then ends it if it has not within
-        STOP_SECONDS (at once without `wait`: it is busy with a fit nobody wants)."""
+        """Ends the worker: closes its standard input (it ends by itself, at once when idle), then ends it if it has
+        not within STOP_SECONDS (QUICK_SECONDS without `wait`: it may be busy with a fit nobody wants)."""
         with contextlib.suppress(OSError):
             self._process.stdin.close()
         try:
-            self._process.wait(self.STOP_SECONDS if wait else 0.0)
+            self._process.wait(self.STOP_SECONDS if wait else self.QUICK_SECONDS)
             return
         except subprocess.TimeoutExpired:
             self._process.terminate()
