@@ -12,8 +12,8 @@ import matfit
 
 PACKAGE = Path(matfit.__file__).resolve().parent
 PARTS = ("base", "render", "model", "fit", "app")  # lowest first
-# `python -m matfit` runs the command line, and the package's public API (`matfit`, `matfit.api`) is what a user's script
-# calls: they sit above everything.
+# `python -m matfit` runs the command line, and the package's public API (`matfit`, `matfit.api`) is what a user's
+# script calls: they sit above everything.
 ENTRY_POINTS = {"matfit.__main__": "app", "matfit": "app", "matfit.api": "app"}
 # Import circles that are known and named; each must still exist (the last test), so a fixed one is removed here.
 ALLOWED_CIRCLES: tuple[set[str], ...] = ()
