@@ -292,6 +292,11 @@ def test_corrupt_datasets_name_the_fix(tmp_path, reference):
     os.truncate(tmp_path / "images.npy", 1000)
     with pytest.raises(DatasetError, match=r"images\.npy is missing or corrupt"):
         dataset.open_dataset(str(tmp_path))
+    (tmp_path / "images.npy").write_bytes((reference / "images.npy").read_bytes())
+    (tmp_path / "done.npy").unlink()
+    os.mkfifo(tmp_path / "done.npy")  # opened by name, a FIFO that no one writes blocked the reader for ever
+    with pytest.raises(DatasetError, match=r"done\.npy is missing or corrupt \(.*FIFO.*\)"):
+        dataset.open_dataset(str(tmp_path))
 
 
 @pytest.fixture(scope="module")

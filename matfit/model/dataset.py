@@ -275,6 +275,7 @@ def open_dataset(path: str, writable: bool = False) -> Dataset:
     for name, shape in expected.items():
         file = os.path.join(path, name)
         try:
+            files.check_input(file)  # a FIFO planted here would block np.load's open for ever
             arrays[name] = np.load(file, mmap_mode=mode)
         except (OSError, ValueError) as error:
             raise DatasetError(
