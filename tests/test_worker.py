@@ -123,3 +123,24 @@ def test_parse_refuses_what_is_not_a_request(line, refusal):
 
 def test_outside_a_worker_fit_gets_the_model_path_back():
     assert worker.model("some/model") == "some/model"
+
+
+def test_a_fit_that_fails_keeps_the_warm_pool_unless_a_child_ended(monkeypatch):
+    from matfit.errors import ImageError
+
+    warm = worker.Warm()
+    monkeypatch.setattr(worker, "_warm", warm)
+    try:
+        with pytest.raises(ImageError), worker.pool("scalar_rgb") as first:
+            raise ImageError("the picture cannot be read")  # the picture's fault: the children are fine
+        assert warm.pools["scalar_rgb"] is first and first.healthy()
+        with worker.pool("scalar_rgb") as again:
+            assert again is first
+            first._children[0]._child.kill()
+            first._children[0]._child.wait(timeout=30)
+        assert not first.healthy()
+        with pytest.raises(ImageError), worker.pool("scalar_rgb") as same:
+            raise ImageError("a render failed")  # a child has ended: the pool is not kept for the next fit
+        assert same is first and "scalar_rgb" not in warm.pools
+    finally:
+        warm.close()

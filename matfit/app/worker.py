@@ -6,11 +6,12 @@ It reads one JSON request a line on standard input, `{"id": 1, "arguments": ["fi
 and answers one JSON line on standard output, `{"id": 1, "exit": code, "output": what matfit fit printed}`.
 Its first line, before any request, is `{"ready": "matfit worker", "protocol": 1}`. Between requests it
 keeps (`Warm`) the models loaded (by path, as long as their files are unchanged) and one render `Pool`
-per variant, so only the first fit pays for loading them; a fit that fails closes the pool (its children
-may be what failed) and the next one starts another. Only `fit` is run; anything else, or a line that is
-not such a request (not JSON, unknown fields, longer than MAX_REQUEST), is answered with exit code 2 and
-one `error:` line, never a crash. The worker ends when its standard input ends: between fits at once,
-during a fit at once too (`on_close`: the `matfit` process ends as Ctrl-C would end it).
+per variant, so only the first fit pays for loading them; a fit that fails keeps the pool while every child
+runs (the picture was at fault) and closes it otherwise (the next fit starts another). Only `fit` is run;
+anything else, or a line that is not such a request (not JSON, unknown fields, longer than MAX_REQUEST), is
+answered with exit code 2 and one `error:` line, never a crash. The worker ends when its standard input
+ends: between fits at once, during a fit at once too (`on_close`: the `matfit` process ends as Ctrl-C would
+end it).
 
 Nothing heavy is imported here: `fit_command` asks `pool` and `model` for its renderer and model, which
 are the worker's warm ones while `serve` runs, and a new pool (closed after the fit) and the path
@@ -56,7 +57,8 @@ _warm: Warm | None = None  # set while `serve` runs
 @contextlib.contextmanager
 def pool(variant: str | None) -> Iterator[Any]:
     """Yields a render `Pool` of `variant` for one `matfit fit`: the worker's warm one, kept after a fit that ends
-    well and closed after one that fails; outside a worker, a new pool closed after the fit."""
+    well or fails with every child running (a picture that cannot be read), closed after one that lost a child;
+    outside a worker, a new pool closed after the fit."""
     from matfit.render.process import Pool
 
     if _warm is None:
@@ -68,9 +70,10 @@ def pool(variant: str | None) -> Iterator[Any]:
         warm = _warm.pools[variant] = Pool(variant)
     try:
         yield warm
-    except BaseException:  # typer.Exit of a failed picture too: a child may be what failed
-        _warm.pools.pop(variant, None)
-        warm.close()
+    except BaseException:  # typer.Exit of a failed picture too: kept while every child runs, else started again
+        if not warm.healthy():
+            _warm.pools.pop(variant, None)
+            warm.close()
         raise
 
 

@@ -328,6 +328,11 @@ class Pool:
         self.prefetch(values, seed, spp)
         return self._owners.pop(Background._key(values, seed, spp)).render(values, seed, spp)
 
+    def healthy(self) -> bool:
+        """Returns whether every child is running and none has failed to start: a pool fit to keep for the next fit
+        after one that failed (the picture's fault, not the renderer's)."""
+        return all(child._failure is None and child._child.poll() is None for child in self._children)
+
     def renderer(self) -> Pool:
         """Returns this pool once every child has started (raises the first failure to start)."""
         for child in self._children:
