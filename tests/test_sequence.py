@@ -107,8 +107,11 @@ def test_a_frame_request_fits_as_the_direct_search_and_a_bad_one_is_refused(tmp_
         fitfile.fit_neural(
             Request(frames[1], refine_steps=2, outputs=Outputs(str(tmp_path / "p.json")), **frame), model
         )
-    with pytest.raises(ImageError, match=r"target .*gone\.png is not a file"):
-        fitfile.fit_neural(Request(str(tmp_path / "gone.png"), pixels=target, **frame), model)
+    with pytest.raises(ImageError, match=r"target .*gone\.png is not a file"):  # no pixels: its file is read
+        fitfile.fit_neural(Request(str(tmp_path / "gone.png"), **frame), model)
+    # pixels given are the picture: the name is only a label, as for an array fitted through the API
+    named = fitfile.fit_neural(Request(str(tmp_path / "gone.png"), pixels=target, **frame), model)
+    np.testing.assert_array_equal(named.unit, direct.unit)
     bad = dict(frame, settings=search.Settings(method="hybrid", evaluations=40, starts=0))
     with pytest.raises(FitError, match="starts 0 is out of range"):
         fitfile.fit_neural(Request(frames[1], pixels=target, **bad), model)
