@@ -60,12 +60,15 @@ class Counted:
         return self.renderer.render(values, seed, spp)
 
 
-def stages(model, renderer, result, target: np.ndarray, spp: int) -> dict:
-    """Returns what the default fit's Mitsuba stages keep at `spp` samples a batch, with their cost."""
+def stages(model, renderer, result, target: np.ndarray, size: str) -> dict:
+    """Returns what the default fit's Mitsuba stages keep at `size` samples a batch ("32"; "32/64": the rounds'
+    residual renders at 64), with their cost."""
+    spp, _, residual = size.partition("/")
+    spp, residual_spp = int(spp), int(residual or spp)
     renderer = Counted(renderer)
     started = time.perf_counter()
     verified = verify.correct_then_verify(
-        renderer, result, target, model=model, corrections=methods.CORRECTIONS, spp=spp
+        renderer, result, target, model=model, corrections=methods.CORRECTIONS, spp=spp, residual_spp=residual_spp
     )
     verifying = time.perf_counter() - started
     decoding = ranges.Decoding(model.decoder.module)
@@ -89,17 +92,19 @@ def stages(model, renderer, result, target: np.ndarray, spp: int) -> dict:
         "verify_seconds": verifying,
         "seconds": time.perf_counter() - started,
         "renders": renders,
-        "samples": renders * spp,
+        "samples": sum(int(key[2] or spp) for key in renderer.keys),
     }
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--results", default="samples_judged.json", help="checkpoint of finished cases (JSON)")
-    parser.add_argument("--spp", default="64,32,16", help="batch sizes to compare, comma-separated")
+    parser.add_argument(
+        "--spp", default="64,32,16", help="batch sizes to compare, comma-separated (32/64: residuals at 64)"
+    )
     parser.add_argument("--count", type=int, default=None, help="only the first COUNT cases")
     arguments = parser.parse_args()
-    sizes = [int(x) for x in arguments.spp.split(",")]
+    sizes = arguments.spp.split(",")
     model = fitfile.load_model(str(shipped.MODEL))
     results: dict = {}
     if os.path.isfile(arguments.results):
@@ -108,23 +113,23 @@ def main() -> None:
     with Pool() as renderer:
         renderer.load(model.resolution, verify.SPP)
         for k, (name, values, seed) in enumerate(cases()[: arguments.count]):
-            if name in results and all(str(spp) in results[name] for spp in sizes):
+            if name in results and all(size in results[name] for size in sizes):
                 continue
             target = images.srgb_encode(renderer.render(values, seed=int(seed), spp=TARGET_SPP))
             result = search.neural_search(model, target, settings=search.Settings())
             row = results.get(name, {})
             judged: dict[bytes, float] = {}
-            for spp in sizes:
-                if str(spp) in row:
+            for size in sizes:
+                if size in row:
                     continue
-                out = stages(model, renderer, result, target, spp)
+                out = stages(model, renderer, result, target, size)
                 key = np.asarray(out["unit"], np.float64).tobytes()
                 if key not in judged:
                     judged[key] = noise_free(renderer, np.asarray(out["unit"]), target, k)
                 out["judged"] = judged[key]
-                row[str(spp)] = out
+                row[size] = out
                 print(
-                    f"{name} {spp:3d} spp: {out['judged']:.3f} kept {out['kept']}, {out['renders']} renders, "
+                    f"{name} {size} spp: {out['judged']:.3f} kept {out['kept']}, {out['renders']} renders, "
                     f"{out['seconds']:.1f} s",
                     flush=True,
                 )
@@ -134,11 +139,11 @@ def main() -> None:
             os.replace(arguments.results + ".tmp", arguments.results)
     for label in ("presets", "reachable"):
         rows = [row for name, row in results.items() if name.startswith("reachable-") == (label == "reachable")]
-        for spp in sizes:
-            done = [row[str(spp)] for row in rows if str(spp) in row]
+        for size in sizes:
+            done = [row[size] for row in rows if size in row]
             if done:
                 print(
-                    f"mean {label} ({len(done)}) {spp} spp: judged {np.mean([r['judged'] for r in done]):.3f}, "
+                    f"mean {label} ({len(done)}) {size} spp: judged {np.mean([r['judged'] for r in done]):.3f}, "
                     f"renders {np.mean([r['renders'] for r in done]):.1f}, "
                     f"seconds {np.mean([r['seconds'] for r in done]):.2f}"
                 )

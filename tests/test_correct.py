@@ -143,3 +143,22 @@ def test_the_rounds_start_from_the_better_estimate_and_a_worse_last_round_is_not
     assert checked.figures[origin] == pytest.approx(255 * offsets[origin], rel=0.05)
     assert (origin, verify.SEED) in scripted.asked and (None, verify.SEED + 1) in scripted.asked
     assert [seed for name, seed in scripted.asked if name is None and seed < verify.BATCH_SEED] == [verify.SEED + 1]
+
+
+def test_residual_renders_take_their_own_samples_and_the_start_then_its_own_seed_render(model):
+    target = np.full((R, R, 3), 0.4, np.float32)
+    result = search.neural_search(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
+    pool = verify.candidates(result, count=verify.CORRECTED_CANDIDATES)
+    offsets = {"start": 0.05, "end-1": 0.10}
+    scripted = Noisy(target, {name: (params.from_unit(pool[name]), offsets[name], 0.02) for name in pool})
+    samples = []
+    render = scripted.render
+    scripted.render = lambda values, seed=0, spp=None: samples.append((seed, spp)) or render(values, seed, spp)
+    checked = verify.correct_then_verify(scripted, result, target, model=model, corrections=2, spp=16, residual_spp=64)
+    assert checked.chosen == "start"
+    # both rounds' starting renders with SEED at 64 (compared like with like), the second round's residual at 64,
+    # every batch at 16
+    residuals = [(seed, spp) for seed, spp in samples if seed < verify.BATCH_SEED]
+    assert sorted(residuals) == [(verify.SEED, 64), (verify.SEED, 64), (verify.SEED + 1, 64)]
+    assert {spp for seed, spp in samples if seed >= verify.BATCH_SEED} == {16}
+    assert ("start", verify.SEED) in scripted.asked and ("end-1", verify.SEED) in scripted.asked

@@ -120,12 +120,14 @@ def correct_then_verify(
     weights: np.ndarray | None = None,
     count: int = CORRECTED_CANDIDATES,
     spp: int = SPP,
+    residual_spp: int | None = None,
 ) -> Verified:
     """Returns, as `verify_candidates`, the candidate kept among the fit's `count` candidates and the last of
     `corrections` rounds of `correct.correction_round` ("corrected-1", ...) from the better of them
     (`where_rounds_start`): the correction stage, then the verification stage.
 
-    `model`: the fit's, whose decoder the rounds fit with.
+    `model`: the fit's, whose decoder the rounds fit with. `residual_spp`: samples of the rounds' residual renders
+    (None: `spp`, as a batch's).
     """
     check_corrections(corrections)
     if not corrections:
@@ -136,7 +138,16 @@ def correct_then_verify(
     contenders = list(pool)
     batches: dict[str, list[np.ndarray]] = {}
     last, corrected = correction_rounds(
-        renderer, model, result, pool, batches, target, weights, corrections=corrections, spp=spp
+        renderer,
+        model,
+        result,
+        pool,
+        batches,
+        target,
+        weights,
+        corrections=corrections,
+        spp=spp,
+        residual_spp=residual_spp or spp,
     )
     verified = judge(renderer, pool, [*contenders, last], batches, target, weights, spp=spp, started=started)
     verified.decoded, verified.corrections = corrected, corrections
@@ -167,12 +178,23 @@ def render_batches(renderer, pool, batches: dict[str, list[np.ndarray]], names, 
 
 
 def correction_rounds(
-    renderer, model, result, pool, batches, target, weights, *, corrections: int, spp: int
+    renderer,
+    model,
+    result,
+    pool,
+    batches,
+    target,
+    weights,
+    *,
+    corrections: int,
+    spp: int,
+    residual_spp: int | None = None,
 ) -> tuple[str, dict[str, np.ndarray]]:
     """Returns (the name of the last round's point, phi of each round's point by name) after adding each round's
     point to `pool`: `corrections` rounds of `correct.correction_round`, each from the last one's point
-    (`correct.py`)."""
-    name, image = where_rounds_start(renderer, pool, batches, target, weights, spp=spp)
+    (`correct.py`); the residual renders have `residual_spp` samples (None: `spp`)."""
+    residual_spp = residual_spp or spp
+    name, image = where_rounds_start(renderer, pool, batches, target, weights, spp=spp, residual_spp=residual_spp)
     unit = pool[name]
     decoded = result.decoded(unit)
     decoded = model.decode(unit)[0] if decoded is None else decoded
@@ -182,7 +204,7 @@ def correction_rounds(
         name = f"corrected-{k + 1}"
         pool[name], corrected[name] = unit, decoded
         if k + 1 < corrections:  # the next round's residual, from a render with this round's own seed
-            image = render_candidate(renderer, unit, seed=SEED + k + 1, spp=spp)
+            image = render_candidate(renderer, unit, seed=SEED + k + 1, spp=residual_spp)
     return name, corrected
 
 
@@ -215,24 +237,37 @@ def judge(renderer, pool, contenders: list[str], batches, target, weights, *, sp
     )
 
 
-def where_rounds_start(renderer, pool, batches, target, weights, *, spp: int = SPP) -> tuple[str, np.ndarray]:
+def where_rounds_start(
+    renderer, pool, batches, target, weights, *, spp: int = SPP, residual_spp: int | None = None
+) -> tuple[str, np.ndarray]:
     """Returns (where the rounds of correction start: the start or the best end, its render with SEED for the first
     round's residual).
 
     No answer is decided here (the start, the best end and the last round are all judged after the rounds), so one
     render of each does: the best end's with SEED (the residual's, if it starts there) against the start's first
-    batch. Choosing by the estimate instead started from the truly better point, yet the rounds from it ended worse
+    batch; with `residual_spp` other than `spp` (a batch noisier or less noisy than a residual render) the start's
+    SEED render at `residual_spp` instead of its batch, both asked for at once. Choosing by the estimate instead
+    started from the truly better point, yet the rounds from it ended worse
     on some targets (jade among them, `scripts/verification_judged.py`): how well the rounds go depends on more than
     where they start.
     """
+    residual_spp = residual_spp or spp
+    if residual_spp != spp and "end-1" in pool:  # a batch is not as noisy as the residual: both with SEED, at once
+        values = {name: params.from_unit(pool[name]) for name in ("end-1", "start")}
+        for value in values.values():
+            renderer.prefetch(value, SEED, residual_spp)
+        rendered = {name: render_candidate(renderer, pool[name], seed=SEED, spp=residual_spp) for name in values}
+        errors = {name: float(images.rmse(image, target, weights)) for name, image in rendered.items()}
+        name = "end-1" if errors["end-1"] < errors["start"] else "start"
+        return name, rendered[name]
     start = batches.setdefault("start", [])
     start[:1] = start[:1] or [render_candidate(renderer, pool["start"], seed=BATCH_SEED, spp=spp)]
     figure = float(images.rmse(start[0], target, weights))
     if "end-1" in pool:
-        image = render_candidate(renderer, pool["end-1"], seed=SEED, spp=spp)
+        image = render_candidate(renderer, pool["end-1"], seed=SEED, spp=residual_spp)
         if float(images.rmse(image, target, weights)) < figure:
             return "end-1", image
-    return "start", render_candidate(renderer, pool["start"], seed=SEED, spp=spp)
+    return "start", render_candidate(renderer, pool["start"], seed=SEED, spp=residual_spp)
 
 
 def squared_error(
