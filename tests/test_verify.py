@@ -182,8 +182,12 @@ def test_prefetch_start_asks_for_the_very_renders_verify_makes_of_the_start():
     start = np.asarray(to_unit(presets.preset("jade")), np.float32)  # float32, as the fit hands it over
     expected = params.from_unit(np.asarray(start, np.float64))  # what `verify.candidates` renders
     seeds = {verify.BATCH_SEED + j for j in range(verify.BATCHES)}  # its first batches, with or without corrections
+    # Every background is kept until none renders: freeing one's scene on this thread while another's thread renders
+    # crashed Mitsuba once (a segmentation fault in CI).
+    backgrounds = []
     for corrections in (0, 2):
         background = Background(R, 4)
+        backgrounds.append(background)
         verify.prefetch_start(background, start, corrections=corrections, spp=4)
         keys = set(background._prefetched)
         assert keys == {Background._key(expected, seed, 4) for seed in seeds}
