@@ -66,7 +66,9 @@ async def http_error(request: Request, problem: HTTPException) -> Response:
     if problem.status_code == 404:
         message = f"no {request.url.path} here: open / for the page (its API: {', '.join(API)})"
     elif problem.status_code == 405:
-        allowed = (problem.headers or {}).get("Allow", "another method")
+        # Starlette names a route's methods in a set's order, HEAD beside GET: sorted, HEAD left implied by GET
+        named = {method.strip() for method in (problem.headers or {}).get("Allow", "").split(",") if method.strip()}
+        allowed = ", ".join(sorted(named - {"HEAD"} if "GET" in named else named)) or "another method"
         message = f"{where} is not served: {request.url.path} takes {allowed}"
     else:
         message = f"{where}: {problem.detail}"
