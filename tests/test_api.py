@@ -129,7 +129,10 @@ def test_render_is_the_renderers_picture(renderer):
     gold = matfit.Material.preset("gold")
     image = matfit.render(gold, size=16, spp=4, seed=3, variant=renderer.variant)
     assert image.shape == (16, 16, 3) and image.dtype == np.float32
-    np.testing.assert_array_equal(image, matfit.render(gold, size=16, spp=4, seed=3, variant=renderer.variant))
+    # rendered on every core: the same picture up to the last bits the threads' order changes (docs/fitting.md)
+    again = matfit.render(gold, size=16, spp=4, seed=3, variant=renderer.variant)
+    np.testing.assert_allclose(image, again, rtol=0, atol=1e-5)
+    assert not np.allclose(image, matfit.render(gold, size=16, spp=4, seed=4, variant=renderer.variant), atol=1e-3)
 
 
 def test_bad_pictures_raise_matfit_errors_with_the_command_lines_messages(fitter, tmp_path):
