@@ -162,3 +162,37 @@ def test_residual_renders_take_their_own_samples_and_the_start_then_its_own_seed
     assert sorted(residuals) == [(verify.SEED, 64), (verify.SEED, 64), (verify.SEED + 1, 64)]
     assert {spp for seed, spp in samples if seed >= verify.BATCH_SEED} == {16}
     assert ("start", verify.SEED) in scripted.asked and ("end-1", verify.SEED) in scripted.asked
+
+
+def test_the_best_ends_batches_are_asked_for_beside_each_render_the_rounds_wait_for(model):
+    # The judge renders the best end's batches whatever the rounds do: each is asked for right after a render the
+    # rounds wait for (a second render child makes it meanwhile), and none is rendered twice or in vain.
+    target = np.full((R, R, 3), 0.4, np.float32)
+    result = search.neural_search(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
+    pool = verify.candidates(result, count=verify.CORRECTED_CANDIDATES)
+    offsets = {"start": 0.10, "end-1": 0.05}
+    scripted = Noisy(target, {name: (params.from_unit(pool[name]), offsets[name], 0.02) for name in pool})
+    calls = []
+    render = scripted.render
+    named = {name: params.from_unit(pool[name]) for name in pool}
+
+    def name_of(values):
+        return next((name for name, known in named.items() if np.allclose(known, values)), None)
+
+    scripted.prefetch = lambda values, seed=0, spp=None: calls.append(("ask", name_of(values), seed))
+    scripted.render = lambda values, seed=0, spp=None: (
+        calls.append(("render", name_of(values), seed)) or render(values, seed, spp)
+    )
+    checked = verify.correct_then_verify(scripted, result, target, model=model, corrections=2)
+    assert checked.chosen == "end-1" and checked.batches["end-1"] == verify.BATCHES
+    waits = [(verify.SEED, "end-1"), (verify.SEED + 1, None)]  # the rounds start at the best end; round 2's residual
+    for j, (seed, name) in enumerate(waits):
+        at = calls.index(("ask", name, seed))
+        assert calls[at + 1] == ("ask", "end-1", verify.BATCH_SEED + j)
+        assert calls.index(("render", name, seed)) > at + 1
+    judged = calls.index(("render", None, verify.BATCH_SEED))  # the judge's first render of the last round's point
+    assert calls.index(("ask", "end-1", verify.BATCH_SEED + 1)) < judged
+    renders = [call[1:] for call in calls if call[0] == "render"]
+    assert sorted(seed for name, seed in renders if name == "end-1") == sorted(
+        [verify.SEED, *(verify.BATCH_SEED + j for j in range(verify.BATCHES))]
+    )

@@ -292,6 +292,24 @@ def test_a_render_pool_renders_each_picture_to_the_bits_of_one_child_whatever_th
             np.testing.assert_array_equal(pool.render(*requests[0]), expected[0])  # read once, rendered again
 
 
+def test_a_render_pool_sends_a_request_to_a_child_that_finished_though_its_picture_was_not_read_yet():
+    # A finished render waits in its pipe until `render` asks for it: that child is idle, and gets the next request,
+    # not the one still rendering.
+    material = presets.preset("jade")
+    with process.Pool(children=2) as pool:
+        pool.load(16, 4)
+        first, second = pool._children
+        pool.prefetch(material, seed=1, spp=4000)  # about a second of work for the first child
+        pool.prefetch(material, seed=2, spp=1)  # a moment's for the second
+        deadline = time.monotonic() + 60
+        while second.outstanding() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert second.outstanding() == 0 and first.outstanding() == 1  # its picture arrived, unread; the first renders
+        pool.prefetch(material, seed=3, spp=1)
+        assert (first.outstanding(), second.outstanding()) == (1, 1)
+        assert pool.render(material, seed=2, spp=1).shape == (16, 16, 3)  # read from what arrived
+
+
 def test_a_render_pool_needs_a_child_and_has_one_a_core_or_one_for_a_gpu(monkeypatch):
     with pytest.raises(ValueError, match="at least one child"):
         process.Pool(children=0)

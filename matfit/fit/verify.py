@@ -192,9 +192,16 @@ def correction_rounds(
 ) -> tuple[str, dict[str, np.ndarray]]:
     """Returns (the name of the last round's point, phi of each round's point by name) after adding each round's
     point to `pool`: `corrections` rounds of `correct.correction_round`, each from the last one's point
-    (`correct.py`); the residual renders have `residual_spp` samples (None: `spp`)."""
+    (`correct.py`); the residual renders have `residual_spp` samples (None: `spp`).
+
+    The rounds wait for one render at a time, and the judge after them renders the best end's BATCHES batches
+    whatever the rounds do: each of those is asked for beside a render the rounds wait for (`Spare`), so that a
+    second render child makes it meanwhile. The images are the same whoever makes them, and when."""
     residual_spp = residual_spp or spp
-    name, image = where_rounds_start(renderer, pool, batches, target, weights, spp=spp, residual_spp=residual_spp)
+    spare = Spare(renderer, pool, ["end-1"] if "end-1" in pool else [], spp=spp)
+    name, image = where_rounds_start(
+        renderer, pool, batches, target, weights, spp=spp, residual_spp=residual_spp, spare=spare
+    )
     unit = pool[name]
     decoded = result.decoded(unit)
     decoded = model.decode(unit)[0] if decoded is None else decoded
@@ -204,8 +211,28 @@ def correction_rounds(
         name = f"corrected-{k + 1}"
         pool[name], corrected[name] = unit, decoded
         if k + 1 < corrections:  # the next round's residual, from a render with this round's own seed
-            image = render_candidate(renderer, unit, seed=SEED + k + 1, spp=residual_spp)
+            image = spare.beside(unit, seed=SEED + k + 1, spp=residual_spp)
     return name, corrected
+
+
+class Spare:
+    """Batches the judge will render whatever happens (BATCHES of each of `names` in `pool`), asked for one at a time
+    beside a render the caller waits for (`beside`): on a `process.Pool` the two go to two children, and the spare
+    one is ready when the judge asks for it. On one renderer it is made after the awaited one, in the time the
+    caller then computes."""
+
+    def __init__(self, renderer, pool: dict[str, np.ndarray], names: list[str], *, spp: int):
+        self.renderer, self.spp = renderer, spp
+        self.waiting = [(pool[name], BATCH_SEED + j) for name in names for j in range(BATCHES)]
+
+    def beside(self, unit: np.ndarray, *, seed: int, spp: int) -> np.ndarray:
+        """Returns `render_candidate`'s render of `unit`, asked for first, then the next spare batch."""
+        values = params.from_unit(unit)
+        self.renderer.prefetch(values, seed, spp)
+        if self.waiting:
+            spare, spare_seed = self.waiting.pop(0)
+            self.renderer.prefetch(params.from_unit(spare), spare_seed, self.spp)
+        return render_candidate(self.renderer, unit, seed=seed, spp=spp)
 
 
 def judge(renderer, pool, contenders: list[str], batches, target, weights, *, spp: int, started: float) -> Verified:
@@ -238,7 +265,15 @@ def judge(renderer, pool, contenders: list[str], batches, target, weights, *, sp
 
 
 def where_rounds_start(
-    renderer, pool, batches, target, weights, *, spp: int = SPP, residual_spp: int | None = None
+    renderer,
+    pool,
+    batches,
+    target,
+    weights,
+    *,
+    spp: int = SPP,
+    residual_spp: int | None = None,
+    spare: Spare | None = None,
 ) -> tuple[str, np.ndarray]:
     """Returns (where the rounds of correction start: the start or the best end, its render with SEED for the first
     round's residual).
@@ -249,9 +284,10 @@ def where_rounds_start(
     SEED render at `residual_spp` instead of its batch, both asked for at once. Choosing by the estimate instead
     started from the truly better point, yet the rounds from it ended worse
     on some targets (jade among them, `scripts/verification_judged.py`): how well the rounds go depends on more than
-    where they start.
+    where they start. `spare`: batches to ask for beside each render waited for (`Spare`), or None.
     """
     residual_spp = residual_spp or spp
+    spare = spare or Spare(renderer, pool, [], spp=spp)
     if residual_spp != spp and "end-1" in pool:  # a batch is not as noisy as the residual: both with SEED, at once
         values = {name: params.from_unit(pool[name]) for name in ("end-1", "start")}
         for value in values.values():
@@ -264,10 +300,10 @@ def where_rounds_start(
     start[:1] = start[:1] or [render_candidate(renderer, pool["start"], seed=BATCH_SEED, spp=spp)]
     figure = float(images.rmse(start[0], target, weights))
     if "end-1" in pool:
-        image = render_candidate(renderer, pool["end-1"], seed=SEED, spp=residual_spp)
+        image = spare.beside(pool["end-1"], seed=SEED, spp=residual_spp)
         if float(images.rmse(image, target, weights)) < figure:
             return "end-1", image
-    return "start", render_candidate(renderer, pool["start"], seed=SEED, spp=residual_spp)
+    return "start", spare.beside(pool["start"], seed=SEED, spp=residual_spp)
 
 
 def squared_error(

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import select
 import signal
 import struct
 import subprocess
@@ -116,7 +117,8 @@ def start_child(
     finally:
         os.close(requests_read)
         os.close(replies_write)
-    return child, os.fdopen(requests_write, "wb"), os.fdopen(replies_read, "rb")
+    # Replies unbuffered: what the pipe holds is all that arrived, so `select` tells whether a reply waits (`Process`).
+    return child, os.fdopen(requests_write, "wb"), os.fdopen(replies_read, "rb", buffering=0)
 
 
 class Process:
@@ -186,6 +188,13 @@ class Process:
         if isinstance(answer, RenderError):
             raise answer
         return answer
+
+    def outstanding(self) -> int:
+        """Returns how many requests the child has not answered yet: the replies that arrived are read first (without
+        waiting), so a render finished but not yet asked for by `render` does not count."""
+        while self._pending and self._failure is None and select.select([self._replies], [], [], 0)[0]:
+            self._receive()
+        return len(self._pending)
 
     def renderer(self) -> Process:
         """Returns this process once the child has started (raises its failure to start): as `Background.renderer`."""
@@ -315,7 +324,7 @@ class Pool:
         """Asks the least busy child for a render now, for a later `render` of the same arguments."""
         key = Background._key(values, seed, spp)
         if key not in self._owners:
-            child = min(self._children, key=lambda each: len(each._pending))  # the first of the least busy
+            child = min(self._children, key=Process.outstanding)  # the first of those with the fewest renders to make
             child.prefetch(values, seed, spp)
             self._owners[key] = child
             self.renders += 1
@@ -414,17 +423,16 @@ def write_message(file, header: dict, array: np.ndarray | None = None) -> None:
 def read_message(file) -> tuple[dict, np.ndarray | None]:
     """Returns (header, array or None) of the next message `write_message` wrote; EOFError when the pipe ended."""
 
-    def exactly(size: int) -> bytes:
-        data = file.read(size)
-        if len(data) != size:
-            raise EOFError("the pipe ended inside a message")
+    def exactly(size: int, *, first: bool = False) -> bytes:
+        data = b""
+        while len(data) < size:  # an unbuffered pipe returns what has arrived: read on until the message is whole
+            more = file.read(size - len(data))
+            if not more:
+                raise EOFError("the pipe ended" if first and not data else "the pipe ended inside a message")
+            data += more
         return data
 
-    sizes = file.read(FRAME.size)
-    if not sizes:
-        raise EOFError("the pipe ended")
-    if len(sizes) != FRAME.size:
-        raise EOFError("the pipe ended inside a message")
+    sizes = exactly(FRAME.size, first=True)
     text_size, data_size = FRAME.unpack(sizes)
     header = json.loads(exactly(text_size))
     if not data_size:
