@@ -65,19 +65,21 @@ CHECK_EVERY = 5  # steps between the host's checks for convergence of every star
 WORKERS = 2  # threads sharing the starts (at most one per processor): see the module's docstring
 
 
-def _two_loop(g: jax.Array, s: jax.Array, y: jax.Array, rho: jax.Array, newest: jax.Array, gamma: jax.Array):
+def _two_loop(
+    g: jax.Array, s: jax.Array, y: jax.Array, rho: jax.Array, newest: jax.Array, gamma: jax.Array
+) -> jax.Array:
     """Returns H g for the L-BFGS inverse-Hessian H of the stored pairs (rho 0 marks an empty slot)."""
     memory = s.shape[0]
     order = (newest - jnp.arange(memory)) % memory  # newest first
 
-    def backward(q, k):
+    def backward(q: jax.Array, k: jax.Array) -> tuple[jax.Array, jax.Array]:
         i = order[k]
         a = rho[i] * jnp.dot(s[i], q)
         return q - a * y[i], a
 
     q, alphas = jax.lax.scan(backward, g, jnp.arange(memory))
 
-    def forward(r, k):
+    def forward(r: jax.Array, k: jax.Array) -> tuple[jax.Array, None]:
         i = order[memory - 1 - k]
         b = rho[i] * jnp.dot(y[i], r)
         return r + s[i] * (alphas[memory - 1 - k] - b), None
@@ -96,7 +98,9 @@ def _first_scale(x: jax.Array, g: jax.Array) -> jax.Array:
     return INITIAL_STEP / jnp.maximum(jnp.max(jnp.abs(_free_gradient(x, g))), 1e-12)
 
 
-def _direction(x, g, s, y, rho, newest, gamma):
+def _direction(
+    x: jax.Array, g: jax.Array, s: jax.Array, y: jax.Array, rho: jax.Array, newest: jax.Array, gamma: jax.Array
+) -> jax.Array:
     """Returns the search direction at x: -H g on the free variables, zero on the held ones."""
     masked = _free_gradient(x, g)
     free = masked != 0.0
@@ -192,7 +196,9 @@ def step(fn: Callable[[jax.Array, Any], jax.Array], state: dict, args: Any, tole
     return jax.vmap(partial(_update, tolerance=tolerance))(state, f_t, g_t)
 
 
-def _run(fn: Callable[[jax.Array, Any], jax.Array], state: dict, args: Any, steps: int, tolerance: float):
+def _run(
+    fn: Callable[[jax.Array, Any], jax.Array], state: dict, args: Any, steps: int, tolerance: float
+) -> tuple[dict[str, np.ndarray], int]:
     """Returns (the state after at most `steps` steps, on the host; the steps taken) from a host state: it stops early
     once every start converged.
 
@@ -221,7 +227,15 @@ def _pool(threads: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(threads, thread_name_prefix="matfit-gradient")
 
 
-def _run_shared(fn, starts: np.ndarray, args: Any, steps: int, tolerance: float, memory: int, workers: int):
+def _run_shared(
+    fn: Callable[[jax.Array, Any], jax.Array],
+    starts: np.ndarray,
+    args: Any,
+    steps: int,
+    tolerance: float,
+    memory: int,
+    workers: int,
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Returns (the state of every start, the steps each one took) after `_run` over the starts split among `workers`
     threads (the caller's thread runs the first share)."""
     shares = [share for share in np.array_split(starts, min(workers, len(starts))) if len(share)]

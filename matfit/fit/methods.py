@@ -65,7 +65,7 @@ class Settings:
     iterations: int = 60  # L-BFGS-B steps of the best start, one value-and-gradient each (`gradient.py`)
     narrow_after: int = 35  # every start's L-BFGS-B steps; then the best alone (docs/fitting.md#the-gradient-stage)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         try:  # accept the plain strings too ("hybrid"), as the library's callers write them
             object.__setattr__(self, "method", Method(self.method))
         except ValueError:

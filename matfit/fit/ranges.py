@@ -44,7 +44,7 @@ import json
 import math
 import os
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, TypeAlias
 
 import jax
 import jax.numpy as jnp
@@ -52,6 +52,15 @@ import numpy as np
 
 from matfit import documents, images, params, programs, shipped
 from matfit.errors import WeightsError
+
+if TYPE_CHECKING:
+    from collections.abc import Callable
+
+    import flax.linen as nn
+    from jaxtyping import PyTree
+
+    # phi: unit-cube parameters (n, 19) and the decoder's variables -> sRGB images (n, R, R, 3); `Decoding` for a model
+    Decode: TypeAlias = Callable[[jax.Array, PyTree], jax.Array]
 
 DECIDED_WIDTH = 0.25  # a range spanning at most a quarter of the parameter's box is "decided"
 FACE = 1e-6  # how close (unit cube) a confirmed end must lie to a face of the box for "free"
@@ -76,14 +85,14 @@ class Decoding:
     compiled program is reused, and with a faithful repr, so it can be stored (`programs.py`).
     """
 
-    module: Any
+    module: nn.Module
 
-    def __call__(self, unit: jax.Array, variables: Any) -> jax.Array:
-        return self.module.apply(variables, unit)
+    def __call__(self, unit: jax.Array, variables: PyTree) -> jax.Array:
+        return self.module.apply(variables, unit)  # type: ignore[return-value]  # a tuple only with `mutable`
 
 
 @programs.jit(static_argnames=("decode",))
-def decoded(decode, unit, variables):
+def decoded(decode: Decode, unit: jax.Array, variables: PyTree) -> jax.Array:
     """Returns `decode(unit, variables)` compiled as one program (an eager call compiles each of its operations)."""
     return decode(unit, variables)
 
@@ -164,14 +173,16 @@ def verdicts_of(low: np.ndarray, high: np.ndarray) -> tuple[str, ...]:
     return tuple(out)
 
 
-def box_quadratic(hessian, linear, z, low, high, fixed):
+def box_quadratic(
+    hessian: jax.Array, linear: jax.Array, z: jax.Array, low: jax.Array, high: jax.Array, fixed: jax.Array
+) -> jax.Array:
     """Returns z minimising z^T H z + 2 b^T z over low <= z <= high, the coordinates where `fixed` (bool (19,)) is
     true held, by coordinate descent from z.
 
     A coordinate the quadratic does not see (H_jj = 0) stays where it is.
     """
 
-    def sweep(_, z):
+    def sweep(_: jax.Array, z: jax.Array) -> jax.Array:
         for j in range(z.shape[0]):  # unrolled: one loop iteration per sweep costs far less than one per coordinate
             curvature = hessian[j, j]
             slope = hessian[j] @ z + linear[j]
@@ -183,20 +194,22 @@ def box_quadratic(hessian, linear, z, low, high, fixed):
     return jax.lax.fori_loop(0, SWEEPS, sweep, z)
 
 
-def _linear_end(hessian, low, high, index, sign, threshold):
+def _linear_end(
+    hessian: jax.Array, low: jax.Array, high: jax.Array, index: jax.Array, sign: jax.Array, threshold: jax.Array
+) -> jax.Array:
     """Returns the point z (relative to the answer) at the linearised end of parameter `index` in direction `sign`."""
     count = low.shape[0]
     bound = jnp.where(sign > 0, high[index], -low[index])
     zero = jnp.zeros(count, hessian.dtype)
 
-    def profile(t, z):
+    def profile(t: jax.Array, z: jax.Array) -> tuple[jax.Array, jax.Array]:
         z = z.at[index].set(sign * t)
         z = box_quadratic(hessian, zero, z, low, high, jnp.arange(count) == index)
         return z, z @ hessian @ z
 
     z_full, cost_full = profile(bound, zero)
 
-    def halve(_, carry):
+    def halve(_: jax.Array, carry: tuple[jax.Array, jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array, jax.Array]:
         below, above, z_below = carry
         middle = 0.5 * (below + above)
         z, cost = profile(middle, z_below)
@@ -207,13 +220,13 @@ def _linear_end(hessian, low, high, index, sign, threshold):
     return jnp.where(cost_full <= threshold**2, z_full, z_bisected)
 
 
-def _directions(count: int, dtype) -> tuple[jax.Array, jax.Array]:
+def _directions(count: int, dtype: np.dtype) -> tuple[jax.Array, jax.Array]:
     """Returns (parameter, sign) of every end: each parameter's low end (-1), then its high end (+1)."""
     return jnp.repeat(jnp.arange(count), 2), jnp.tile(jnp.array([-1.0, 1.0], dtype), count)
 
 
 @programs.jit(static_argnames=("decode",))
-def _linearise(decode, variables, answer, weights):
+def _linearise(decode: Decode, variables: PyTree, answer: jax.Array, weights: jax.Array) -> dict[str, jax.Array]:
     """Returns the answer's picture, the decoder's Jacobian there, the Gauss-Newton Hessian and its scale."""
     picture = decode(answer[None], variables)[0]
     jacobian = jax.jacfwd(lambda x: decode(x[None], variables)[0])(answer)  # (R, R, 3, 19)
@@ -224,7 +237,7 @@ def _linearise(decode, variables, answer, weights):
 
 
 @programs.jit
-def _linear_ends(hessian, answer, threshold):
+def _linear_ends(hessian: jax.Array, answer: jax.Array, threshold: jax.Array) -> jax.Array:
     """Returns the linearised answer's end points relative to the answer (2 * 19, 19; `_directions`' order).
 
     A program of its own, apart from the decoder's: it depends on no model, so one compiled program serves them all.
@@ -236,8 +249,20 @@ def _linear_ends(hessian, answer, threshold):
 
 @programs.jit(static_argnames=("decode",))
 def _check(
-    decode, variables, answer, linear, weights, threshold, ends, moves, best_move, refused, indices, signs, previous
-):
+    decode: Decode,
+    variables: PyTree,
+    answer: jax.Array,
+    linear: dict[str, jax.Array],
+    weights: jax.Array,
+    threshold: jax.Array,
+    ends: jax.Array,
+    moves: jax.Array,
+    best_move: jax.Array,
+    refused: jax.Array,
+    indices: jax.Array,
+    signs: jax.Array,
+    previous: jax.Array,
+) -> dict[str, jax.Array]:
     """One round of the decoder's check of the ends given (n of them; `indices`, `signs` say which): decodes them,
     keeps the widest move confirmed within tau (`best_move`) and the narrowest refused, and returns the next tries,
     the others corrected by a Gauss-Newton step with the answer's Jacobian (the chord method).
@@ -264,7 +289,7 @@ def _check(
     residual = (decoded - picture[None]) * weights[None, :, :, None]
     gradients = linear["scale"] * jnp.einsum("nhwc,hwcj->nj", residual, jacobian)
 
-    def correct(z, gradient, index, sign, move):
+    def correct(z: jax.Array, gradient: jax.Array, index: jax.Array, sign: jax.Array, move: jax.Array) -> jax.Array:
         step = jnp.zeros_like(z).at[index].set(sign * move - z[index])
         linear_term = gradient + hessian @ step  # the chord model of the residual after the parameter's move
         held = jnp.arange(count) == index
@@ -291,7 +316,14 @@ def chunks(active: np.ndarray) -> list[np.ndarray]:
     return out
 
 
-def _checked(decode, variables, answer, linear, weights, threshold) -> dict[str, np.ndarray]:
+def _checked(
+    decode: Decode,
+    variables: PyTree,
+    answer: np.ndarray,
+    linear: dict[str, np.ndarray],
+    weights: np.ndarray,
+    threshold: np.float32,
+) -> dict[str, np.ndarray]:
     """Returns the decoder's check of the linearised ends (`linear`: `_linearise`'s and `_linear_ends`'): CHECKS
     rounds of `_check` over the ends not yet settled, each end's widest move confirmed within tau, its material and
     D there.
@@ -346,8 +378,8 @@ def _checked(decode, variables, answer, linear, weights, threshold) -> dict[str,
 
 
 def measure(
-    decode,
-    variables: Any,
+    decode: Decode,
+    variables: PyTree,
     answer: np.ndarray,
     weights: np.ndarray | None,
     threshold: float,
@@ -398,7 +430,9 @@ def measure(
     )
 
 
-def look_alikes(points: np.ndarray, answer: np.ndarray, verdicts: tuple[str, ...], count: int = LOOK_ALIKES):
+def look_alikes(
+    points: np.ndarray, answer: np.ndarray, verdicts: tuple[str, ...], count: int = LOOK_ALIKES
+) -> list[tuple[int, int]]:
     """Returns [(parameter, 0 low / 1 high)] of the `count` end points furthest from the answer (unit cube),
     one per parameter, parameters the picture leaves free after the others."""
     distance = np.linalg.norm(points - answer[None, None], axis=-1)  # (19, 2)

@@ -40,12 +40,18 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from matfit import images, params
 from matfit.errors import FitError, RenderError
 from matfit.render import engine, scene
+
+if TYPE_CHECKING:
+    from types import ModuleType
+
+    import mitsuba as mi
 
 SPP = 16  # samples per pixel of a refinement step's gradient: noisy, but Adam averages them over steps
 PRIMAL = 4  # the step's image (the residual) takes PRIMAL x SPP samples: see the module docstring
@@ -78,7 +84,7 @@ class Refined:
         return self.rmse_after if self.accepted else self.rmse_before
 
 
-def physical(unit) -> list:
+def physical(unit: mi.Float) -> list[mi.Float]:
     """Returns the 19 physical values (Dr.Jit Floats) of a Dr.Jit Float of 19 unit-cube coordinates.
 
     The map is `params.from_unit`'s, low + u (high - low), with the bounds read from `params`.
@@ -92,7 +98,7 @@ def physical(unit) -> list:
     ]
 
 
-def medium_textures(values: list) -> tuple:
+def medium_textures(values: list[mi.Float]) -> tuple[mi.Color3f, mi.Color3f]:
     """Returns (sigma_t / MEDIUM_SCALE, albedo) as Color3f for physical Dr.Jit values: `scene.medium_textures`."""
     import drjit as dr
     import mitsuba as mi
@@ -108,7 +114,7 @@ def medium_textures(values: list) -> tuple:
     return mi.Color3f(*sigma_t), mi.Color3f(scattering, scattering, scattering)
 
 
-def set_material(scene_parameters, values: list) -> None:
+def set_material(scene_parameters: mi.SceneParameters, values: list[mi.Float]) -> None:
     """Writes physical Dr.Jit values into a loaded test scene, as `engine.Renderer.set_material` writes NumPy ones."""
     import mitsuba as mi
 
@@ -123,7 +129,7 @@ def set_material(scene_parameters, values: list) -> None:
     scene_parameters.update()
 
 
-def srgb_rmse(linear, target, weights):
+def srgb_rmse(linear: mi.TensorXf, target: mi.TensorXf, weights: mi.TensorXf) -> mi.TensorXf:
     """Returns `images.rmse` of a linear Dr.Jit image (H, W, 3) against an sRGB `target`, as a Dr.Jit Float.
 
     `weights` (H, W, 3) sum to 1 (`normalised_weights`). sRGB encoding after clipping to [0, 1]; the
@@ -133,7 +139,12 @@ def srgb_rmse(linear, target, weights):
     import drjit as dr
 
     x = dr.clip(linear, 0.0, 1.0)
-    encoded = dr.select(x <= 0.0031308, 12.92 * x, 1.055 * dr.power(dr.maximum(x, 0.0031308), 1.0 / 2.4) - 0.055)
+    # Dr.Jit's stubs type `dr.power` of an array as `object` (it returns the array's type)
+    encoded = dr.select(
+        x <= 0.0031308,
+        12.92 * x,
+        1.055 * dr.power(dr.maximum(x, 0.0031308), 1.0 / 2.4) - 0.055,  # type: ignore[operator]
+    )
     return 255.0 * dr.sqrt(dr.sum(weights * dr.square(encoded - target), axis=None))
 
 
@@ -144,7 +155,9 @@ def normalised_weights(weights: np.ndarray) -> np.ndarray:
 
 
 @lru_cache(maxsize=2)
-def _differentiable_scene(resolution: int, requested: str | None = None):
+def _differentiable_scene(
+    resolution: int, requested: str | None = None
+) -> tuple[ModuleType, mi.Scene, mi.SceneParameters]:
     """Returns (mi, scene, traversed parameters) of the test scene under `prbvolpath`, loaded once per resolution.
 
     `requested`: the variant of the renderer that the fit verifies with (None: `engine.choose_variant`'s); a
@@ -163,7 +176,14 @@ def _differentiable_scene(resolution: int, requested: str | None = None):
     return mi, loaded, mi.traverse(loaded)
 
 
-def check(unit: np.ndarray, target: np.ndarray, steps: int, weights: np.ndarray | None, spp: int, renderer) -> None:
+def check(
+    unit: np.ndarray,
+    target: np.ndarray,
+    steps: int,
+    weights: np.ndarray | None,
+    spp: int,
+    renderer: engine.Renderer | None,
+) -> None:
     """Raises FitError naming the value and the fix if refinement cannot run on these inputs."""
     if isinstance(steps, bool) or not isinstance(steps, int | np.integer) or steps < 0:
         raise FitError(f"refinement steps {steps!r} must be a whole number >= 0: use 0 to skip refinement", "steps")
@@ -234,7 +254,16 @@ def refine(
     )
 
 
-def _descend(start, target, weights, steps, spp, seed, rate, variant=None) -> tuple[np.ndarray, list[float]]:
+def _descend(
+    start: np.ndarray,
+    target: np.ndarray,
+    weights: np.ndarray,
+    steps: int,
+    spp: int,
+    seed: int,
+    rate: float,
+    variant: str | None = None,
+) -> tuple[np.ndarray, list[float]]:
     """Returns the point of lowest loss among those that `steps` projected Adam steps from `start` visited, and the
     losses (step k's loss is that of the point before its update, so the start is a candidate too)."""
     if steps == 0:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from matfit import images
@@ -28,7 +30,14 @@ def compose(panels: list[tuple[np.ndarray, str]], size: int = TILE, caption: int
 VERDICT_COLOURS = {"decided": (0.3, 0.8, 0.3), "partly": (0.9, 0.7, 0.2), "free": (0.45, 0.45, 0.45)}
 
 
-def ranges_panel(names, unit, low, high, verdicts, size: int = TILE) -> np.ndarray:
+def ranges_panel(
+    names: Sequence[str],
+    unit: np.ndarray,
+    low: np.ndarray,
+    high: np.ndarray,
+    verdicts: Sequence[str],
+    size: int = TILE,
+) -> np.ndarray:
     """Returns an sRGB size x size panel with one row per parameter: its name, then a bar over its whole range
     with the range the picture allows coloured by verdict (green decided, amber partly, grey free) and the
     answer as a white tick (docs/fitting.md#what-the-picture-decides)."""

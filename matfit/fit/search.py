@@ -33,7 +33,7 @@ import itertools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import jax
 import jax.numpy as jnp
@@ -46,6 +46,9 @@ from matfit.fit.methods import Box, Method, Settings
 from matfit.model import models
 
 if TYPE_CHECKING:
+    # flax types `nn.Module.apply` as returning the output or (output, variables), a tuple only with `mutable`: where
+    # a decoder's output is used as the array it is, mypy is told to ignore that (`type: ignore`)
+    import flax.linen as nn
     from jaxtyping import Float
 
 __all__ = [
@@ -115,14 +118,24 @@ def objective(x: Float[jax.Array, " 19"], args: tuple) -> Float[jax.Array, ""]:
     return error + PENALTY * outside
 
 
-def neural_polish(decoder, variables, target, weights, x: jax.Array, steps: int, rate: float) -> jax.Array:
+def neural_polish(
+    decoder: nn.Module,
+    variables: dict,
+    target: jax.Array,
+    weights: jax.Array,
+    x: jax.Array,
+    steps: int,
+    rate: float,
+) -> jax.Array:
     """Returns the best point of `steps` projected Adam steps on E from x (x itself if none is better)."""
     import optax  # only for the opt-in polish: every cold start would pay for its import
 
     tx = optax.adam(rate)
-    loss = jax.value_and_grad(lambda y: images.rmse(decoder.apply(variables, y), target, weights))
+    loss = jax.value_and_grad(lambda y: images.rmse(decoder.apply(variables, y), target, weights))  # type: ignore[arg-type]
 
-    def body(_, carry):
+    def body(
+        _: jax.Array, carry: tuple[jax.Array, optax.OptState, jax.Array, jax.Array]
+    ) -> tuple[jax.Array, optax.OptState, jax.Array, jax.Array]:
         y, state, best, best_value = carry
         value, grad = loss(y)
         better = value < best_value
@@ -131,7 +144,7 @@ def neural_polish(decoder, variables, target, weights, x: jax.Array, steps: int,
         return jnp.clip(optax.apply_updates(y, updates), 0.0, 1.0), state, best, best_value
 
     y, _, best, best_value = jax.lax.fori_loop(0, steps, body, (x, tx.init(x), x, jnp.inf))
-    last = images.rmse(decoder.apply(variables, y), target, weights)
+    last = images.rmse(decoder.apply(variables, y), target, weights)  # type: ignore[arg-type]
     return jnp.where(last < best_value, y, best)
 
 
@@ -147,23 +160,23 @@ def decoded_rmse(y: Float[jax.Array, " 19"], args: tuple) -> Float[jax.Array, ""
 
 @programs.jit(static_argnames=("decoder", "encoders", "settings"))
 def _best_of_n(
-    decoder,
-    encoders,
+    decoder: nn.Module,
+    encoders: tuple[nn.Module, ...],
     settings: Settings,
-    decoder_variables,
-    encoder_variables,
-    target,
-    encoder_target,
-    weights,
-    extra,
-    start,
-):
+    decoder_variables: dict,
+    encoder_variables: tuple[dict, ...],
+    target: jax.Array,
+    encoder_target: jax.Array,
+    weights: jax.Array,
+    extra: jax.Array,
+    start: jax.Array,
+) -> dict[str, jax.Array]:
     guesses = [
         encoder.apply(variables, encoder_target[None])[0]
         for encoder, variables in zip(encoders, encoder_variables, strict=True)
     ]
     candidates = jnp.concatenate([jnp.stack(guesses), extra]) if guesses else extra
-    candidate_images = decoder.apply(decoder_variables, candidates)
+    candidate_images: jax.Array = decoder.apply(decoder_variables, candidates)  # type: ignore[assignment]
     candidate_errors = images.rmse(candidate_images, target, weights)
     chosen = jnp.argmin(candidate_errors)
     # The fit's end points (sorted by `_polish_and_sort`): what Mitsuba verification chooses among.
@@ -175,7 +188,9 @@ def _best_of_n(
         y0 = start if settings.method == Method.optimize else candidates[chosen]
         solver = simplex.NelderMead(adaptive=settings.adaptive, initial_step=settings.initial_step)
 
-        def fn(y, args):  # the module and box mode are structure; the data travels in args
+        def fn(
+            y: jax.Array, args: tuple[dict, jax.Array, jax.Array]
+        ) -> jax.Array:  # the module and box mode are structure; the data travels in args
             return objective(y, (decoder, *args, settings.box))
 
         solution = simplex.minimise(fn, y0, (decoder_variables, target, weights), settings.evaluations, solver)
@@ -204,21 +219,28 @@ class DecodedObjective:
     and with a repr that names the module, so its traced step can be stored (`programs.py`).
     """
 
-    decoder: Any
+    decoder: nn.Module
 
     def __call__(self, y: jax.Array, args: tuple) -> jax.Array:
         return decoded_rmse(y, (self.decoder, *args))
 
 
-def gradient_objective(decoder) -> DecodedObjective:
+def gradient_objective(decoder: nn.Module) -> DecodedObjective:
     """Returns E(y) for `decoder` as a function of (y, (variables, target, weights))."""
     return DecodedObjective(decoder)
 
 
 @programs.jit(static_argnames=("decoder", "settings"))
-def _polish_and_sort(decoder, settings: Settings, decoder_variables, target, weights, ends):
+def _polish_and_sort(
+    decoder: nn.Module,
+    settings: Settings,
+    decoder_variables: dict,
+    target: jax.Array,
+    weights: jax.Array,
+    ends: jax.Array,
+) -> dict[str, jax.Array]:
     """Returns the end points sorted by neural RMSE (after the optional polish), and their images."""
-    end_images = decoder.apply(decoder_variables, ends)
+    end_images: jax.Array = decoder.apply(decoder_variables, ends)  # type: ignore[assignment]
     end_errors = images.rmse(end_images, target, weights)
     if settings.polish_steps:
         polished = neural_polish(
@@ -231,7 +253,7 @@ def _polish_and_sort(decoder, settings: Settings, decoder_variables, target, wei
             settings.polish_rate,
         )
         ends = jnp.concatenate([polished[None], ends])
-        end_images = decoder.apply(decoder_variables, ends)
+        end_images = decoder.apply(decoder_variables, ends)  # type: ignore[assignment]
         end_errors = images.rmse(end_images, target, weights)
     order = jnp.argsort(end_errors)
     ends, end_errors, end_images = ends[order], end_errors[order], end_images[order]
@@ -324,7 +346,11 @@ def neural_search(
 
 
 def checked_inputs(
-    model: models.Model, settings: Settings, target, weights, extra
+    model: models.Model,
+    settings: Settings,
+    target: Float[np.ndarray, "R R 3"],
+    weights: Float[np.ndarray, "R R"] | None,
+    extra: Float[np.ndarray, "k 19"] | None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Returns (target, weights, extra candidates, the media grid or none) as float32 arrays, or raises FitError
     naming what is wrong with them."""
@@ -348,7 +374,15 @@ def checked_inputs(
     return target, weights, extra, media
 
 
-def best_of_n_stage(model: models.Model, settings: Settings, target, encoder_target, weights, extra, start) -> dict:
+def best_of_n_stage(
+    model: models.Model,
+    settings: Settings,
+    target: Float[np.ndarray, "R R 3"],
+    encoder_target: Float[np.ndarray, "32 32 3"],
+    weights: Float[np.ndarray, "R R"],
+    extra: Float[np.ndarray, "k 19"],
+    start: Float[np.ndarray, " 19"],
+) -> dict:
     """Returns the compiled first stage's outputs as host arrays (`_best_of_n`): best-of-n over the encoders' guesses
     and `extra`, then Nelder-Mead for the simplex methods, and the gradient stage's starts."""
     out = _best_of_n(
@@ -366,7 +400,13 @@ def best_of_n_stage(model: models.Model, settings: Settings, target, encoder_tar
     return jax.device_get(out)  # host arrays between the compiled stages: no JAX operation outside them
 
 
-def gradient_stage(model: models.Model, settings: Settings, target, weights, starts) -> tuple[np.ndarray, float]:
+def gradient_stage(
+    model: models.Model,
+    settings: Settings,
+    target: Float[np.ndarray, "R R 3"],
+    weights: Float[np.ndarray, "R R"],
+    starts: Float[np.ndarray, "k 19"],
+) -> tuple[np.ndarray, float]:
     """Returns (the end points of projected L-BFGS from `starts` (`gradient.minimise`), the value-and-gradients
     spent)."""
     data = (model.decoder.variables, target, weights)
@@ -377,7 +417,14 @@ def gradient_stage(model: models.Model, settings: Settings, target, weights, sta
 
 
 def search_result(
-    model: models.Model, settings: Settings, out: dict, names: list[str], start, target, weights, seconds: float
+    model: models.Model,
+    settings: Settings,
+    out: dict,
+    names: list[str],
+    start: Float[np.ndarray, " 19"],
+    target: Float[np.ndarray, "R R 3"],
+    weights: Float[np.ndarray, "R R"],
+    seconds: float,
 ) -> Result:
     """Returns the `Result` of the compiled stages' outputs `out`; for `optimize`, its start is the random `start`."""
     unit = np.asarray(out["unit"], np.float64)

@@ -229,7 +229,15 @@ def fit_sequence(
         raise
 
 
-def _fit_frames(model, frames, out, settings, reinit, progress, init) -> list[Frame]:
+def _fit_frames(
+    model: models.Model,
+    frames: list[str],
+    out: str,
+    settings: search.Settings,
+    reinit: bool,
+    progress: Callable[[int, int, Frame], None] | None,
+    init: np.ndarray | None,
+) -> list[Frame]:
     expected = run_settings(settings, reinit, model)
     results: list[Frame] = []
     for index, path in enumerate(frames):

@@ -31,13 +31,17 @@ search inside the box is the objective's business (a barrier or a clip-plus-pena
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, PyTree, Scalar
+
+if TYPE_CHECKING:
+    # The objective as optimistix hands it to a solver: fn(y, args) returns (value, aux)
+    SolverFn: TypeAlias = Callable[[Array, PyTree], tuple[Scalar, Any]]
 
 REFLECT, EXPAND, OUTSIDE, INSIDE, SHRINK = range(5)
 
@@ -165,7 +169,16 @@ class NelderMead(optx.AbstractMinimiser):
     lower: float = 0.0
     upper: float = 1.0
 
-    def init(self, fn, y, args, options, f_struct, aux_struct, tags) -> _State:
+    def init(
+        self,
+        fn: SolverFn,
+        y: Array,
+        args: PyTree,
+        options: dict[str, Any],
+        f_struct: jax.ShapeDtypeStruct,
+        aux_struct: PyTree[jax.ShapeDtypeStruct],
+        tags: frozenset[object],
+    ) -> _State:
         if y.ndim != 1:
             raise ValueError(f"NelderMead needs a 1-D y, got shape {y.shape}")
         simplex = initial_simplex(y, self.initial_step, self.lower, self.upper)
@@ -183,7 +196,9 @@ class NelderMead(optx.AbstractMinimiser):
             converged=jnp.array(False),
         )
 
-    def step(self, fn, y, args, options, state: _State, tags) -> tuple[Array, _State, Any]:
+    def step(
+        self, fn: SolverFn, y: Array, args: PyTree, options: dict[str, Any], state: _State, tags: frozenset[object]
+    ) -> tuple[Array, _State, Any]:
         n = y.shape[0]
         coefficient = coefficients(n, self.adaptive)
         simplex, values, centroid, reflected, point = trial_point(state, coefficient)
@@ -216,10 +231,23 @@ class NelderMead(optx.AbstractMinimiser):
             jnp.abs(values - values[best]) <= f_scale
         )
 
-    def terminate(self, fn, y, args, options, state: _State, tags):
-        return state.converged, optx.RESULTS.successful
+    def terminate(
+        self, fn: SolverFn, y: Array, args: PyTree, options: dict[str, Any], state: _State, tags: frozenset[object]
+    ) -> tuple[Array, optx.RESULTS]:
+        # an item of RESULTS; mypy reads the members of an enumeration that extends lineax's as their messages (str)
+        return state.converged, optx.RESULTS.successful  # type: ignore[return-value]
 
-    def postprocess(self, fn, y, aux, args, options, state: _State, tags, result):
+    def postprocess(
+        self,
+        fn: SolverFn,
+        y: Array,
+        aux: Any,
+        args: PyTree,
+        options: dict[str, Any],
+        state: _State,
+        tags: frozenset[object],
+        result: optx.RESULTS,
+    ) -> tuple[Array, Any, dict[str, Array]]:
         point, value = best_so_far(state)
         return point, aux, {"evaluations": state.evaluations, "value": value}
 
