@@ -32,7 +32,7 @@ from matfit.errors import FitError, ImageError, MatfitError, ParameterError, Ren
 from matfit.fit.methods import Method, Settings
 
 if TYPE_CHECKING:
-    from matfit.fit import fitfile, search
+    from matfit.fit import search, stages
     from matfit.fit.request import Request
     from matfit.model.models import Model
     from matfit.render.engine import Renderer
@@ -215,7 +215,7 @@ class Fit:
         return documents.dumps(self.document)
 
 
-def _fit_of(outcome: fitfile.Outcome, name: str) -> Fit:
+def _fit_of(outcome: stages.Outcome, name: str) -> Fit:
     """Returns the `Fit` of a finished fit (its document's timings set)."""
     document = outcome.document
     rendered = None if outcome.rendered is None else np.asarray(outcome.rendered, np.float32)
@@ -508,7 +508,7 @@ def fit_sequence(
     `reinit`, the previous frame's answer (the first frame: `init`'s). `settings` None: `matfit sequence`'s
     (hybrid, 100 evaluations).
     """
-    from matfit.fit import fitfile
+    from matfit.fit import document, fitfile, stages
 
     fitter = Fitter(model, verify=False)
     settings = settings or Settings(Method.hybrid, 100)
@@ -523,10 +523,10 @@ def fit_sequence(
         candidates = None if previous is None else previous[None]
         request = dataclasses.replace(request, candidates=candidates)
         result: search.Result = fitfile.fit_neural(request, fitter.model)
-        outcome = fitfile.Outcome(
+        outcome = stages.Outcome(
             result, np.asarray(request.pixels), result.unit, result.image, result.rmse, notices=notices
         )
-        outcome.document = fitfile.document(outcome, request, fitter.model.path)
+        outcome.document = document.build(outcome, request, fitter.model.path)
         fits.append(_fit_of(outcome, request.target))
         previous = np.asarray(result.unit, np.float32) if reinit else None
     return fits

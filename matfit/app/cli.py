@@ -522,10 +522,10 @@ def bench(
 ) -> None:
     """Reproduce the paper's evaluation tables on the built-in edit suite (quick version by default)."""
     from matfit.app.bench import suite_report
-    from matfit.fit import fitfile
+    from matfit.fit import document, fitfile
 
     model = fitfile.load_model(str(model_path))
-    label = fitfile.display_path(str(model_path))
+    label = document.display_path(str(model_path))
     typer.echo(suite_report.run_suite(model, label, str(out), full, log=log))
 
 
@@ -533,7 +533,7 @@ def bench(
 def bench_serve(model_path: options.Model = options.DEFAULT_MODEL, fits: options.Fits = 100) -> None:
     """Time the page: a saved file to its result, a slider to its preview; memory after 10 fits and after --fits."""
     from matfit.app.bench import page
-    from matfit.fit import fitfile
+    from matfit.fit import document, fitfile
 
     model = fitfile.load_model(str(model_path))
-    typer.echo(page.serve_speed(model, fitfile.display_path(str(model_path)), fits, log=log))
+    typer.echo(page.serve_speed(model, document.display_path(str(model_path)), fits, log=log))

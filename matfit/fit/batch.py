@@ -14,7 +14,7 @@ from dataclasses import replace
 
 from matfit import files
 from matfit.errors import MatfitError, OutputError
-from matfit.fit import fitfile
+from matfit.fit import fitfile, stages
 from matfit.fit.request import Outputs, Request
 from matfit.model import models
 
@@ -101,7 +101,7 @@ def fit_all(
     model: models.Model | str,
     *,
     renderer=None,
-    done: Callable[[Request, fitfile.Outcome | MatfitError], None] | None = None,
+    done: Callable[[Request, stages.Outcome | MatfitError], None] | None = None,
 ) -> int:
     """Fits every request in turn with one model and `renderer` (a `process.Pool` or `Process`, or None) and writes
     its outputs (`fitfile.run`); returns how many failed. `done(request, outcome or error)` hears of each picture as
@@ -111,7 +111,7 @@ def fit_all(
     failed = 0
     for request in requests:
         try:
-            outcome: fitfile.Outcome | MatfitError = fitfile.run(request, model, renderer=renderer)
+            outcome: stages.Outcome | MatfitError = fitfile.run(request, model, renderer=renderer)
         except MatfitError as error:
             outcome = error
             failed += 1

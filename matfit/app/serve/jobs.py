@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from matfit import documents, images, params
-from matfit.fit import fitfile
+from matfit.fit import document, stages
 from matfit.render import export
 
 FILES = {
@@ -35,7 +35,7 @@ class Job:
     error: str | None = None
     status: int = 200  # the HTTP status of the job's answer: 4xx for the user's errors
     result: dict | None = None
-    outcome: fitfile.Outcome | None = None
+    outcome: stages.Outcome | None = None
     cancelled: threading.Event = field(default_factory=threading.Event)
     created: float = field(default_factory=time.perf_counter)
     finished: float | None = None
@@ -61,7 +61,7 @@ def png_bytes(srgb: np.ndarray) -> bytes:
     return images.encode(images.srgb_decode(np.clip(np.asarray(srgb, np.float32), 0.0, 1.0)), ".png")
 
 
-def fit_result(outcome: fitfile.Outcome) -> dict:
+def fit_result(outcome: stages.Outcome) -> dict:
     """Returns the page's view of a fit: figures, the five pictures of the report, the 19 parameters."""
     from matfit.fit import report
 
@@ -108,11 +108,11 @@ def page_ranges(section: dict | None) -> dict | None:
     }
 
 
-def fit_files(outcome: fitfile.Outcome) -> dict[str, bytes]:
+def fit_files(outcome: stages.Outcome) -> dict[str, bytes]:
     """Returns the files the CLI writes for the same fit (`fit -o params.json --report --mitsuba-xml --blender`)."""
     return {
-        "params.json": fitfile.params_text(outcome).encode(),
+        "params.json": document.params_text(outcome).encode(),
         "material.xml": export.mitsuba_xml(outcome.values).encode(),
         "material.py": export.blender_script(outcome.values).encode(),
-        "report.png": png_bytes(fitfile.report_picture(outcome)),
+        "report.png": png_bytes(document.report_picture(outcome)),
     }

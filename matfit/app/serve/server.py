@@ -12,7 +12,7 @@ from matfit.app.serve.routes import create_app
 from matfit.app.serve.studio import Studio
 from matfit.app.serve.watch import check_watch
 from matfit.errors import OutputError
-from matfit.fit import fitfile
+from matfit.fit import document, fitfile
 
 
 def check_listen(host: str, port: int) -> None:
@@ -71,7 +71,7 @@ def serve(
     check_listen(host, port)
     check_request(variant)
     model = fitfile.load_model(model_path)
-    studio = Studio(model, fitfile.display_path(model_path), variant=variant)
+    studio = Studio(model, document.display_path(model_path), variant=variant)
     studio.worker.submit(studio.warm_up).result()
     app = create_app(studio, watch)
     config = uvicorn.Config(app, host=host, port=port, log_level="warning", timeout_graceful_shutdown=1)
