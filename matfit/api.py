@@ -28,7 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from matfit import documents, params, shipped
-from matfit.errors import FitError, ImageError, MatfitError, ParameterError, RenderError
+from matfit.errors import FitError, ImageError, MatfitError, ParameterError, RenderError, WeightsError, check_range
 from matfit.fit.methods import Method, Settings
 
 if TYPE_CHECKING:
@@ -239,6 +239,12 @@ def load_model(path: str | os.PathLike[str] | None = None) -> Model:
     """Returns the decoder and encoders of a model folder (None: the shipped model), for `Fitter` or `fit`."""
     from matfit.fit import fitfile
 
+    if path is not None and not isinstance(path, str | os.PathLike):
+        raise WeightsError(
+            f"model {_shown(path)} is no model folder: give a folder's path, load_model()'s model, or None for the "
+            "shipped one",
+            field="model",
+        )
     return fitfile.load_model(str(shipped.MODEL) if path is None else os.fspath(path))
 
 
@@ -290,6 +296,20 @@ def _linear(picture: npt.ArrayLike, name: str, *, linear: bool) -> tuple[Image, 
 def _text(path: str | os.PathLike[str]) -> str:
     """Returns a path as the command line passes it on: `str(Path(...))`, so that params.json names it alike."""
     return str(Path(path))
+
+
+def _shown(value: object) -> str:
+    """Returns how an error message names a value: its repr if that is short and one line, else its type."""
+    text = repr(value)
+    return text if len(text) <= 40 and "\n" not in text else f"of type {type(value).__name__}"
+
+
+def _whole(field: str, value: object, low: int, high: int, error: type[MatfitError]) -> int:
+    """Returns `value` as an int: a whole number in [low, high], else `error` naming it and the range."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise error(f"{field} {_shown(value)} is not a whole number: use {low} to {high}", field=field)
+    check_range(field, int(value), low, high, error)
+    return int(value)
 
 
 class Fitter:
@@ -384,7 +404,16 @@ class Fitter:
         from matfit.fit.request import Request
 
         if settings is not None and not isinstance(settings, Settings):
-            raise FitError(f"settings {settings!r} is no matfit.Settings: give Settings(...) or None", field="settings")
+            raise FitError(
+                f"settings {_shown(settings)} is no matfit.Settings: give Settings(...) or None", field="settings"
+            )
+        if init is not None and not isinstance(init, str | os.PathLike | Material):
+            raise ParameterError(
+                f"init {_shown(init)} is no params.json path or matfit.Material: give one, or "
+                "Material.from_array(values) of the 19 values in `matfit params` order",
+                field="init",
+            )
+        seed = _whole("seed", seed, 0, params.MAX_SEED, FitError)
         initial = (
             None if init is None else "Material" if isinstance(init, Material) else _text(init),
             init.array() if isinstance(init, Material) else None,
@@ -541,7 +570,6 @@ def render(material: Material, *, size: int = 256, spp: int = 256, seed: int = 0
     `seed` makes the noise: the same arguments give the same picture. The scene is loaded once a size and kept.
     `images.srgb_encode` (or `fit(..., linear=True)`) takes it from there.
     """
-    from matfit.errors import check_range
     from matfit.model import dataset
     from matfit.render import engine
 
@@ -551,12 +579,12 @@ def render(material: Material, *, size: int = 256, spp: int = 256, seed: int = 0
             "Material.preset(name) or Material.from_dict(...)",
             field="material",
         )
-    check_range("size", size, dataset.MIN_RESOLUTION, 4096, RenderError)
-    check_range("spp", spp, 1, dataset.MAX_SPP, RenderError)
-    check_range("seed", seed, 0, params.MAX_SEED, RenderError)
-    key = (int(size), variant)
+    size = _whole("size", size, dataset.MIN_RESOLUTION, 4096, RenderError)
+    spp = _whole("spp", spp, 1, dataset.MAX_SPP, RenderError)
+    seed = _whole("seed", seed, 0, params.MAX_SEED, RenderError)
+    key = (size, variant)
     if key not in _renderers:
-        _renderers[key] = engine.Renderer(int(size), int(spp), variant)
+        _renderers[key] = engine.Renderer(size, spp, variant)
     return _renderers[key].render(material.array(), seed=seed, spp=spp)
 
 

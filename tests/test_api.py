@@ -10,6 +10,7 @@ import re
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -121,6 +122,10 @@ def test_material_exports_are_the_command_lines(tmp_path):
 def test_render_checks_its_arguments_before_rendering():
     with pytest.raises(matfit.MatfitError, match="size 4 is out of range: use 8 to 4096"):
         matfit.render(matfit.Material(), size=4)
+    with pytest.raises(matfit.MatfitError, match=r"^size 16.5 is not a whole number: use 8 to 4096$"):
+        matfit.render(matfit.Material(), size=16.5)  # type: ignore[arg-type]
+    with pytest.raises(matfit.MatfitError, match=r"^seed '0' is not a whole number: use 0 to 4294967295$"):
+        matfit.render(matfit.Material(), seed="0")  # type: ignore[arg-type]
     with pytest.raises(matfit.MatfitError, match=r"render takes a matfit.Material, got str:"):
         matfit.render("gold")  # type: ignore[arg-type]
 
@@ -135,24 +140,145 @@ def test_render_is_the_renderers_picture(renderer):
     assert not np.allclose(image, matfit.render(gold, size=16, spp=4, seed=4, variant=renderer.variant), atol=1e-3)
 
 
+def raised(call: Callable[[], object]) -> str:
+    """Returns the message of the MatfitError that `call()` raises (no other exception), checked to be one line."""
+    with pytest.raises(matfit.MatfitError) as error:
+        call()
+    message = str(error.value)
+    assert message and "\n" not in message, message
+    return message
+
+
+KINDS = "give float sRGB in 0-1, uint8 0-255, uint16 0-65535, or linear float with linear=True"
+SHAPES = "give (H, W, 3) RGB, (H, W, 4) with alpha, or (H, W) grey"
+FINITE = "contains NaN or infinite values: fix or clamp them first"
+NEGATIVE = (
+    "values run from -0.5 to -0.5, outside sRGB's 0-1: divide 0-255 values by 255, or pass "
+    "linear=True for linear (HDR) values"
+)
+
+
+@pytest.mark.parametrize(
+    ("picture", "linear", "message"),
+    [
+        pytest.param(np.zeros((64, 64, 5), np.float32), False, f"has shape (64, 64, 5): {SHAPES}", id="5-channels"),
+        pytest.param(np.zeros((0, 0, 3), np.float32), False, f"has shape (0, 0, 3): {SHAPES}", id="empty"),
+        pytest.param(np.zeros(4, np.float32), False, f"has shape (4,): {SHAPES}", id="1-d"),
+        pytest.param(None, False, f"has shape (): {SHAPES}", id="none"),
+        pytest.param([[1, 2], [3]], False, "cannot be read (", id="ragged"),
+        pytest.param(np.zeros((4, 4, 3), object), False, f"holds object values: {KINDS}", id="object"),
+        pytest.param(np.zeros((4, 4, 3), complex), False, f"holds complex128 values: {KINDS}", id="complex"),
+        pytest.param(np.zeros((4, 4, 3), bool), False, f"holds bool values: {KINDS}", id="bool"),
+        pytest.param(np.full((4, 4, 3), "0"), False, f"holds <U1 values: {KINDS}", id="str"),
+        pytest.param(np.zeros((4, 4, 3), np.int64), False, f"holds int64 values: {KINDS}", id="int64"),
+        pytest.param(np.zeros((4, 4, 3), np.uint16), True, f"holds uint16 values: {KINDS}", id="uint16-linear"),
+        pytest.param(np.full((4, 4, 3), np.nan, np.float32), False, FINITE, id="nan"),
+        pytest.param(np.full((4, 4, 3), np.inf, np.float32), False, FINITE, id="inf"),
+        pytest.param(np.full((4, 4, 3), -np.inf, np.float32), True, FINITE, id="inf-linear"),
+        pytest.param(np.full((4, 4, 3), -0.5, np.float32), False, NEGATIVE, id="negative"),
+        pytest.param(
+            np.linspace(0, 255, 48).reshape(4, 4, 3),
+            False,
+            "values run from 0 to 255, outside sRGB's 0-1: divide 0-255 values by 255",
+            id="0-255",
+        ),
+    ],
+)
+def test_a_bad_array_raises_a_matfit_error_naming_it_and_the_fix(fitter, picture, linear, message):
+    assert re.search(
+        f"^the picture array('s)? {re.escape(message)}", raised(lambda: fitter.fit(picture, linear=linear))
+    )
+
+
+def test_a_grey_array_is_fitted_as_its_rgb(fitter):
+    grey = np.linspace(0.2, 0.8, 64 * 64, dtype=np.float32).reshape(64, 64)
+    as_grey = fitter.fit(grey, answer="best")
+    assert as_grey.notices[0] == "the picture array is grey: replicated to RGB"
+    assert as_grey.material == fitter.fit(np.repeat(grey[:, :, None], 3, axis=2), answer="best").material
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        pytest.param(
+            {"mask": np.ones((8, 8), np.float32)},
+            "the mask array is 8x8, the target is 16x16: make the mask the same",
+            id="mask-array-size",
+        ),
+        pytest.param(
+            {"mask": "mask.png"},
+            "the mask mask.png is 8x8, the target is 16x16: make the mask the same size",
+            id="mask-file-size",
+        ),
+        pytest.param({"mask": "folder"}, "mask folder is not a file: give the picture's path", id="mask-folder"),
+        pytest.param(
+            {"mask": np.full((16, 16), np.nan, np.float32)},
+            "the mask array contains NaN or infinite values",
+            id="mask-nan",
+        ),
+        pytest.param(
+            {"init": [0.1, 0.2]},
+            "init [0.1, 0.2] is no params.json path or matfit.Material: give one, or",
+            id="init-list",
+        ),
+        pytest.param(
+            {"init": np.zeros(19)}, "init of type ndarray is no params.json path or matfit.Material", id="init-array"
+        ),
+        pytest.param(
+            {"init": "init.json"}, 'init.json: "params" must be a JSON object of names and values', id="init-length"
+        ),
+        pytest.param(
+            {"init": "folder"},
+            "cannot read folder: it is a folder, not a regular file: give a params.json",
+            id="init-folder",
+        ),
+        pytest.param({"seed": -1}, "seed -1 is out of range: use 0 to 4294967295", id="seed-negative"),
+        pytest.param({"seed": "1"}, "seed '1' is not a whole number: use 0 to 4294967295", id="seed-text"),
+        pytest.param(
+            {"settings": np.zeros((9, 9))},
+            "settings of type ndarray is no matfit.Settings: give Settings(",
+            id="settings",
+        ),
+    ],
+)
+def test_bad_arguments_of_an_array_raise_matfit_errors_naming_them_and_the_fix(
+    fitter, tmp_path, monkeypatch, arguments, message
+):
+    monkeypatch.chdir(tmp_path)
+    images.write("mask.png", np.ones((8, 8, 3), np.float32))
+    Path("init.json").write_text('{"params": [0.1, 0.2, 0.3]}')  # a material of 3 values, not 19 named
+    Path("folder").mkdir()
+    assert message in raised(lambda: fitter.fit(np.full((16, 16, 3), 0.5, np.float32), **arguments))
+
+
+@pytest.mark.parametrize(
+    ("folder", "option", "name"),
+    [(True, "model", None), (False, "init", "init.json"), (False, "model", "model.txt"), (False, "model", "empty")],
+    ids=["folder-picture", "init-length", "model-file", "model-empty-folder"],
+)
+def test_bad_files_raise_the_command_lines_message(tiny_model, tmp_path, folder, option, name):
+    (tmp_path / "init.json").write_text("[0.1, 0.2, 0.3]")  # three values: no params.json
+    (tmp_path / "model.txt").write_text("no model")
+    (tmp_path / "empty").mkdir()
+    picture = tmp_path if folder else PICTURE
+    given = {"model": tiny_model, option: tiny_model if name is None else tmp_path / name}
+    options = [argument for key, value in given.items() for argument in (f"--{key}", value)]
+    expected = cli_error("fit", picture, "-o", tmp_path / "p.json", "--no-verify", *options)
+    assert raised(lambda: matfit.fit(picture, verify=False, **given)) == expected
+    assert not (tmp_path / "p.json").exists()
+
+
+def test_a_model_that_is_no_folder_raises_a_matfit_error():
+    expected = "model 3 is no model folder: give a folder's path, load_model()'s model, or None for the shipped one"
+    assert raised(lambda: matfit.load_model(3)) == expected  # type: ignore[arg-type]
+    assert raised(lambda: matfit.fit(PICTURE, model=3, verify=False)) == expected  # type: ignore[arg-type]
+
+
 def test_bad_pictures_raise_matfit_errors_with_the_command_lines_messages(fitter, tmp_path):
     missing = tmp_path / "missing.png"
     with pytest.raises(matfit.MatfitError) as error:
         fitter.fit(missing)
     assert str(error.value) == cli_error("fit", missing, "-o", tmp_path / "p.json", "--no-verify")
-    bad = {
-        "has shape (4, 4, 5): give (H, W, 3) RGB": np.zeros((4, 4, 5), np.float32),
-        "has shape (4,)": np.zeros(4, np.float32),
-        "holds int64 values: give float sRGB in 0-1, uint8 0-255": np.zeros((4, 4, 3), np.int64),
-        "contains NaN or infinite values": np.full((4, 4, 3), np.nan, np.float32),
-        "values run from 0 to 255, outside sRGB's 0-1: divide 0-255 values by 255": np.linspace(0, 255, 48).reshape(
-            4, 4, 3
-        ),
-        "cannot be read": [[1, 2], [3]],
-    }
-    for message, picture in bad.items():
-        with pytest.raises(matfit.MatfitError, match=re.escape(message)):
-            fitter.fit(picture)  # type: ignore[arg-type]
     with pytest.raises(matfit.MatfitError, match="linear=True describes an array's values"):
         fitter.fit(PICTURE, linear=True)
     with pytest.raises(matfit.MatfitError, match=r"settings 3 is no matfit\.Settings"):

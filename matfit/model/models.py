@@ -96,8 +96,9 @@ class Model:
 def load_model(directory: str) -> Model:
     """Returns the decoder and every encoder found in a model directory (at least one encoder)."""
     if not os.path.isdir(directory):
+        found = "is not a folder" if os.path.lexists(directory) else "does not exist"
         raise WeightsError(
-            f"model directory {directory} does not exist: train one with `matfit train`, "
+            f"model directory {directory} {found}: train one with `matfit train`, "
             "or leave out --model to use the shipped one"
         )
     decoder = load(weights_path(directory, DECODER), name=DECODER)
