@@ -381,7 +381,7 @@ class Fitter:
         )
         renderer = self._renderer() if verified and not refine else None  # refinement renders in this process
         outcome, _ = fitfile.fit_file(request, self.model, renderer=renderer)
-        outcome.notices[:0] = notices
+        outcome = dataclasses.replace(outcome, notices=(*notices, *outcome.notices))
         outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
         return _fit_of(outcome, request.target)
 
@@ -537,7 +537,7 @@ def fit_sequence(
     `reinit`, the previous frame's answer (the first frame: `init`'s). `settings` None: `matfit sequence`'s
     (hybrid, 100 evaluations).
     """
-    from matfit.fit import document, fitfile, stages
+    from matfit.fit import fitfile, stages
 
     fitter = Fitter(model, verify=False)
     settings = settings or Settings(Method.hybrid, 100)
@@ -552,10 +552,7 @@ def fit_sequence(
         candidates = None if previous is None else previous[None]
         request = dataclasses.replace(request, candidates=candidates)
         result: search.Result = fitfile.fit_neural(request, fitter.model)
-        outcome = stages.Outcome(
-            result, np.asarray(request.pixels), result.unit, result.image, result.rmse, notices=notices
-        )
-        outcome.document = document.build(outcome, request, fitter.model.path)
+        outcome = stages.neural_outcome(request, result, np.asarray(request.pixels), fitter.model.path, notices)
         fits.append(_fit_of(outcome, request.target))
         previous = np.asarray(result.unit, np.float32) if reinit else None
     return fits

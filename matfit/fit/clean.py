@@ -49,7 +49,7 @@ ALIKE = 1e-5  # relative difference of two estimates that is rounding (two rende
 NEUTRAL_TOLERANCE = 0.01  # of a parameter's range: a value this close to its neutral one counts as neutral
 
 
-@dataclass
+@dataclass(frozen=True)
 class Cleaned:
     """The clean answer and how it was chosen."""
 
@@ -250,33 +250,38 @@ def clean(
     answer = np.asarray(answer, np.float64)
     found_candidates = candidates(decode, variables, answer, weights, found)
     pool = {f"clean-{k + 1}": unit for k, (_, unit, _) in enumerate(found_candidates)}
-    out = Cleaned(
-        unit=answer,
-        simplest=found_candidates[-1][1] if found_candidates else answer,
-        best=answer,
-        dropped=found_candidates[-1][0] if found_candidates else (),
-        chosen="clean" if found_candidates else "best",
-        free_before=free_away_from_neutral(answer, found.verdicts),
-        candidates={
-            f"clean-{k + 1}": {"off": list(names), "distance": distance}
-            for k, (names, _, distance) in enumerate(found_candidates)
-        },
-    )
+    described = {
+        f"clean-{k + 1}": {"off": list(names), "distance": distance}
+        for k, (names, _, distance) in enumerate(found_candidates)
+    }
     chosen = "clean-" + str(len(pool)) if pool else "best"
+    judged: dict = {}
+    figures: dict[str, float] = {}
     if pool and renderer is not None:
         judged = judge(renderer, answer, pool, target, weights, rendered=rendered, spp=spp)
         chosen = judged["chosen"]
-        out.noise, out.batches, out.rendered = judged["noise"], judged["batches"], judged["rendered"]
-        out.margins = judged["margins"]
         shown = chosen if chosen != "best" else f"clean-{len(pool)}"
-        out.figures = {"clean": judged["figures"][shown], "best": judged["figures"]["best"]}
+        figures = {"clean": judged["figures"][shown], "best": judged["figures"]["best"]}
         for name in judged["margins"]:  # the candidates judged: the simplest, and less simple ones while refused
-            out.candidates[name]["mitsuba"] = judged["figures"][name]
-            out.candidates[name]["margin"] = judged["margins"][name]
+            described[name]["mitsuba"] = judged["figures"][name]
+            described[name]["margin"] = judged["margins"][name]
+    unit = pool[chosen] if chosen != "best" else answer
+    dropped = found_candidates[-1][0] if found_candidates else ()
     if chosen != "best":
-        out.unit = pool[chosen]
-        out.dropped = found_candidates[int(chosen.split("-")[1]) - 1][0]
-    out.chosen = "best" if chosen == "best" else "clean"
-    out.free_after = free_away_from_neutral(out.unit, found.verdicts)
-    out.seconds = time.perf_counter() - started
-    return out
+        dropped = found_candidates[int(chosen.split("-")[1]) - 1][0]
+    return Cleaned(
+        unit=unit,
+        simplest=found_candidates[-1][1] if found_candidates else answer,
+        best=answer,
+        dropped=dropped,
+        chosen="best" if chosen == "best" else "clean",
+        figures=figures,
+        margins=judged.get("margins", {}),
+        noise=judged.get("noise", 0.0),
+        batches=judged.get("batches", {}),
+        rendered=judged.get("rendered"),
+        free_before=free_away_from_neutral(answer, found.verdicts),
+        free_after=free_away_from_neutral(unit, found.verdicts),
+        seconds=time.perf_counter() - started,
+        candidates=described,
+    )

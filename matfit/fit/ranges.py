@@ -97,7 +97,7 @@ def decoded(decode: Decode, unit: jax.Array, variables: PyTree) -> jax.Array:
     return decode(unit, variables)
 
 
-@dataclass
+@dataclass(frozen=True)
 class Ranges:
     """What the picture decides about each parameter of an answer (see the module docstring)."""
 

@@ -64,7 +64,7 @@ BETAS = (0.9, 0.999)
 EPSILON = 1e-8
 
 
-@dataclass
+@dataclass(frozen=True)
 class Refined:
     """What refinement did: the point kept, its render, both Mitsuba RMSEs, whether the refined point was kept."""
 

@@ -267,7 +267,7 @@ def _polish_and_sort(
     }
 
 
-@dataclass
+@dataclass(frozen=True)
 class Result:
     """What a fit found and how."""
 

@@ -1,14 +1,17 @@
-"""The stages of a fit, in order: the neural search, Mitsuba's verification (after rounds of correction), the
-ranges, the clean answer, refinement; then the params.json document (`document.py`).
-
-`fit_stages` runs them for a request whose inputs were read (`fitfile`): each stage takes what it needs and
-sets the answer of an `Outcome`.
+"""The stages of a fit, in order, each a function of what it needs that returns a frozen value: the neural search
+(`search.Result`), Mitsuba's verification after rounds of correction (`verify.Verified`), the ranges
+(`ranges.Ranges`), the clean answer (`clean.Cleaned`), refinement (`refine.Refined`); each stage that may change
+the answer returns the next `Answer`. `fit_stages` runs them for a request whose inputs were read (`fitfile`) and
+returns the `Outcome`, with its params.json document (`document.py`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -18,26 +21,61 @@ from matfit.fit import clean, document, ranges, refine, search, verify
 from matfit.fit.request import Request
 from matfit.model import models
 from matfit.render import engine as render
+from matfit.render.engine import Renders
 from matfit.render.process import Background, Pool, Process
 
+Weights = np.ndarray | None  # the mask's per-pixel weights (R, R) at the model's resolution, or None: every pixel
 
-@dataclass
+
+@dataclass(frozen=True)
+class Answer:
+    """The answer as a stage leaves it: the material, its decoded picture and figure, its Mitsuba render and ranges."""
+
+    unit: np.ndarray  # the material (unit cube, (19,))
+    image: np.ndarray  # phi(unit), sRGB (R, R, 3)
+    neural_rmse: float  # of `image` against the target (weighted by the mask, if any)
+    rendered: np.ndarray | None = None  # its Mitsuba render, sRGB (R, R, 3), or None: not rendered
+    ranges: ranges.Ranges | None = None  # what the picture decides about it, or None: not measured yet
+
+
+@dataclass(frozen=True)
 class Outcome:
-    """A finished fit of an image file: the answer, how it was found, the target as fitted, the params.json document."""
+    """A finished fit of an image file: the answer, what each stage returned, the target as fitted, the document."""
 
     result: search.Result
     target: np.ndarray  # sRGB (R, R, 3) at the model's resolution
-    unit: np.ndarray  # the answer (unit cube): the fit's best, or what Mitsuba verification preferred
-    image: np.ndarray  # phi(answer), sRGB
-    neural_rmse: float
+    answer: Answer
     verified: verify.Verified | None = None
-    refined: refine.Refined | None = None
-    rendered: np.ndarray | None = None  # sRGB Mitsuba render of the answer at the model's resolution
-    variant: str | None = None  # the Mitsuba variant that verified, refined or rendered the answer; None: no Mitsuba
-    ranges: ranges.Ranges | None = None  # what the picture decides about the fit's answer
     cleaned: clean.Cleaned | None = None  # the clean answer and how it was chosen (`answer="clean"`)
-    document: dict = field(default_factory=dict)
-    notices: list[str] = field(default_factory=list)
+    refined: refine.Refined | None = None
+    variant: str | None = None  # the Mitsuba variant that verified, refined or rendered the answer; None: no Mitsuba
+    notices: tuple[str, ...] = ()
+    document: dict[str, Any] = field(default_factory=dict)  # params.json (`document.build`)
+
+    @property
+    def unit(self) -> np.ndarray:
+        """The answer (unit cube): the fit's best, what Mitsuba verification preferred, the clean or refined one."""
+        return self.answer.unit
+
+    @property
+    def image(self) -> np.ndarray:
+        """phi(answer), sRGB."""
+        return self.answer.image
+
+    @property
+    def neural_rmse(self) -> float:
+        """The answer's neural RMSE against the target."""
+        return self.answer.neural_rmse
+
+    @property
+    def rendered(self) -> np.ndarray | None:
+        """The answer's Mitsuba render at the model's resolution (sRGB), or None."""
+        return self.answer.rendered
+
+    @property
+    def ranges(self) -> ranges.Ranges | None:
+        """What the picture decides about the answer."""
+        return self.answer.ranges
 
     @property
     def values(self) -> np.ndarray:
@@ -81,26 +119,56 @@ def fit_stages(
     model: models.Model,
     model_path: str,
     target: np.ndarray,
-    weights: np.ndarray | None,
+    weights: Weights,
     notices: list[str],
     renderer: render.Renderer | Process | Pool | None,
 ) -> tuple[Outcome, render.Renderer | Process | Pool | None]:
     """Returns (what the stages found for a checked request's target and mask weights, with its params.json
-    document; the renderer used): the search, then Mitsuba's stages, then the document."""
+    document; the renderer used): the search, then Mitsuba's stages, the ranges, the clean answer, refinement."""
     extra = request.extra_candidates()
     background, renderer = start_renderer(request, model.resolution, renderer)
     result = search_stage(request, model, target, weights, extra, background)
-    outcome = Outcome(result, target, result.unit, result.image, result.rmse, notices=notices)
+    notices = list(notices)
     if background is not None:
         renderer = background.renderer()
         notices.extend([renderer.notice] if renderer.notice else [])
-    if renderer is not None:
-        outcome.variant = renderer.variant
-    mitsuba_stages(outcome, request, model, weights, verifier=background or renderer, renderer=renderer)
-    decide(outcome, model, model_path, weights, (background or renderer) if request.verified else None, request.answer)
-    refinement_stage(outcome, request, model, model_path, weights, renderer)
-    outcome.document = document.build(outcome, request, model_path)
-    return outcome, renderer
+    verifier: Renders | None = background or renderer
+    verified = verification_stage(request, model, result, target, weights, verifier) if request.verified else None
+    answer = verified_answer(result, verified, model, target, weights)
+    if verified is None and renderer is not None and not request.refine_steps:
+        answer = dataclasses.replace(
+            answer, rendered=images.srgb_encode(renderer.render(result.values, seed=verify.SEED))
+        )
+    answer = dataclasses.replace(answer, ranges=ranges_stage(model, model_path, answer.unit, weights))
+    cleaned = None
+    if request.answer == "clean":
+        cleaned = clean_stage(model, answer, target, weights, verifier if request.verified else None, verified)
+        answer = clean_answer(answer, cleaned, model, model_path, target, weights)
+    refined = None
+    if request.refine_steps:
+        assert isinstance(renderer, render.Renderer), "start_renderer gives refinement a Renderer"
+        refined = refine.refine(answer.unit, target, steps=request.refine_steps, weights=weights, renderer=renderer)
+        answer = refined_answer(answer, refined, result, verified, model, model_path, target, weights)
+    outcome = Outcome(
+        result,
+        target,
+        answer,
+        verified,
+        cleaned,
+        refined,
+        renderer.variant if renderer is not None else None,
+        tuple(notices),
+    )
+    return dataclasses.replace(outcome, document=document.build(outcome, request, model_path)), renderer
+
+
+def neural_outcome(
+    request: Request, result: search.Result, target: np.ndarray, model_path: str, notices: Iterable[str] = ()
+) -> Outcome:
+    """Returns the `Outcome`, with its document, of a request that ran the neural search alone (`fitfile.fit_neural`:
+    a sequence's frame)."""
+    outcome = Outcome(result, target, Answer(result.unit, result.image, result.rmse), notices=tuple(notices))
+    return dataclasses.replace(outcome, document=document.build(outcome, request, model_path))
 
 
 def start_renderer(
@@ -129,7 +197,14 @@ def neural_stage(request: Request, model, target, *, weights, extra, on_start=No
     )
 
 
-def search_stage(request: Request, model, target, weights, extra, background) -> search.Result:
+def search_stage(
+    request: Request,
+    model: models.Model,
+    target: np.ndarray,
+    weights: Weights,
+    extra: np.ndarray | None,
+    background: Renders | None,
+) -> search.Result:
     """Returns the search's result (best-of-n, then the request's method); verification's renders of its start
     begin on `background` meanwhile. Raises FitError for a model whose decoded images are not finite."""
     on_start = None
@@ -144,44 +219,6 @@ def search_stage(request: Request, model, target, weights, extra, background) ->
     return result
 
 
-def mitsuba_stages(outcome: Outcome, request: Request, model, weights, *, verifier, renderer) -> None:
-    """Sets the answer of `outcome` after verification (after the rounds of correction); without verification or
-    refinement, the render of the fit's answer when a renderer was made."""
-    result, target = outcome.result, outcome.target
-    if request.verified:
-        outcome.verified = verification_stage(request, model, result, target, weights, verifier)
-        outcome.unit, outcome.rendered = outcome.verified.unit, outcome.verified.rendered
-        answer_image(outcome, model, weights)
-    elif renderer is not None and not request.refine_steps:
-        outcome.rendered = images.srgb_encode(renderer.render(result.values, seed=verify.SEED))
-
-
-def refinement_stage(outcome: Outcome, request: Request, model, model_path: str, weights, renderer) -> None:
-    """Refines the answer (verification's, or the clean one) through Mitsuba's differentiable renderer, when asked:
-    the last stage, so the answer returned is the one refinement kept, with its own ranges."""
-    if not request.refine_steps:
-        return
-    outcome.refined = refine.refine(
-        outcome.unit, outcome.target, steps=request.refine_steps, weights=weights, renderer=renderer
-    )
-    moved = not np.array_equal(outcome.unit, outcome.refined.unit)
-    outcome.unit, outcome.rendered = outcome.refined.unit, outcome.refined.rendered
-    answer_image(outcome, model, weights)
-    if moved:
-        measure_ranges(outcome, model, model_path, weights)
-
-
-def answer_image(outcome: Outcome, model, weights) -> None:
-    """Sets the decoded image and neural RMSE of the answer: one the fit (or verification's rounds) decoded, else
-    decoded now."""
-    decoded = outcome.result.decoded(outcome.unit)
-    verified = outcome.verified
-    if decoded is None and verified is not None and np.array_equal(outcome.unit, verified.unit):
-        decoded = verified.decoded.get(verified.chosen)
-    outcome.image = model.decode(outcome.unit)[0] if decoded is None else decoded
-    outcome.neural_rmse = float(images.rmse(outcome.image, outcome.target, weights))
-
-
 def verification_stage(request: Request, model, result, target, weights, renderer) -> verify.Verified:
     """Returns the candidate Mitsuba keeps: among the fit's, or after the request's rounds of correction."""
     if request.rounds:
@@ -191,38 +228,90 @@ def verification_stage(request: Request, model, result, target, weights, rendere
     return verify.verify_candidates(renderer, result, target, weights=weights)
 
 
-def decide(outcome: Outcome, model: models.Model, model_path: str, weights, renderer, answer: str) -> None:
-    """Sets `outcome.ranges` (what the picture decides about the answer, `ranges.py`) and, with `answer="clean"`,
-    replaces the answer by the clean one (`clean.py`; judged against it in Mitsuba by `renderer`, if given), whose
-    ranges are then measured: the ranges written are always the answer's own."""
-    found = measure_ranges(outcome, model, model_path, weights)
-    if answer != "clean":
-        return
+def verified_answer(
+    result: search.Result, verified: verify.Verified | None, model: models.Model, target: np.ndarray, weights: Weights
+) -> Answer:
+    """Returns the answer after the search and verification: the candidate verification kept, with its mean render,
+    or the search's best without verification (unrendered)."""
+    if verified is None:
+        return Answer(result.unit, result.image, result.rmse)
+    image, error = decoded_answer(verified.unit, result, verified, model, target, weights)
+    return Answer(verified.unit, image, error, verified.rendered)
+
+
+def decoded_answer(
+    unit: np.ndarray,
+    result: search.Result,
+    verified: verify.Verified | None,
+    model: models.Model,
+    target: np.ndarray,
+    weights: Weights,
+) -> tuple[np.ndarray, float]:
+    """Returns (phi(unit), its neural RMSE against the target): a picture the fit (or verification's rounds) decoded,
+    else decoded now."""
+    decoded = result.decoded(unit)
+    if decoded is None and verified is not None and np.array_equal(unit, verified.unit):
+        decoded = verified.decoded.get(verified.chosen)
+    image = model.decode(unit)[0] if decoded is None else decoded
+    return image, float(images.rmse(image, target, weights))
+
+
+def ranges_stage(model: models.Model, model_path: str, unit: np.ndarray, weights: Weights) -> ranges.Ranges:
+    """Returns what the picture decides about the answer `unit` (`ranges.measure`, with the model's threshold)."""
+    tau, source = ranges.threshold(model_path, unit)
     decoding = ranges.Decoding(model.decoder.module)
-    rendered = outcome.verified.renders if outcome.verified is not None else ()  # the answer's batches
-    cleaned = clean.clean(
-        decoding,
-        model.decoder.variables,
-        outcome.unit,
-        outcome.target,
-        weights,
-        found,
-        renderer,
-        rendered=rendered,
+    return ranges.measure(decoding, model.decoder.variables, unit, weights, tau, source)
+
+
+def clean_stage(
+    model: models.Model,
+    answer: Answer,
+    target: np.ndarray,
+    weights: Weights,
+    renderer: Renders | None,
+    verified: verify.Verified | None,
+) -> clean.Cleaned:
+    """Returns the clean answer of `answer` (`clean.py`), judged against it in Mitsuba by `renderer` (None: not
+    judged), verification's batches of it reused."""
+    assert answer.ranges is not None, "the clean answer starts from the answer's ranges"
+    rendered = verified.renders if verified is not None else ()  # the answer's batches
+    decoding = ranges.Decoding(model.decoder.module)
+    return clean.clean(
+        decoding, model.decoder.variables, answer.unit, target, weights, answer.ranges, renderer, rendered=rendered
     )
-    outcome.cleaned = cleaned
-    if cleaned.chosen == "clean" and cleaned.dropped:
-        outcome.unit = cleaned.unit
-        outcome.image = model.decode(cleaned.unit)[0]
-        outcome.neural_rmse = float(images.rmse(outcome.image, outcome.target, weights))
-        if cleaned.rendered is not None:
-            outcome.rendered = cleaned.rendered
-        measure_ranges(outcome, model, model_path, weights)  # the re-fitted others may lie outside the best's ranges
 
 
-def measure_ranges(outcome: Outcome, model: models.Model, model_path: str, weights) -> ranges.Ranges:
-    """Sets and returns `outcome.ranges`: what the picture decides about the outcome's answer as it is now."""
-    tau, source = ranges.threshold(model_path, outcome.unit)
-    decoding = ranges.Decoding(model.decoder.module)
-    outcome.ranges = ranges.measure(decoding, model.decoder.variables, outcome.unit, weights, tau, source)
-    return outcome.ranges
+def clean_answer(
+    answer: Answer, cleaned: clean.Cleaned, model: models.Model, model_path: str, target: np.ndarray, weights: Weights
+) -> Answer:
+    """Returns the answer after the clean answer's judgement: the clean one, if kept, with its own picture, render and
+    ranges (the re-fitted others may lie outside the best's ranges); else `answer`."""
+    if cleaned.chosen != "clean" or not cleaned.dropped:
+        return answer
+    image = model.decode(cleaned.unit)[0]
+    rendered = cleaned.rendered if cleaned.rendered is not None else answer.rendered
+    return Answer(
+        cleaned.unit,
+        image,
+        float(images.rmse(image, target, weights)),
+        rendered,
+        ranges_stage(model, model_path, cleaned.unit, weights),
+    )
+
+
+def refined_answer(
+    answer: Answer,
+    refined: refine.Refined,
+    result: search.Result,
+    verified: verify.Verified | None,
+    model: models.Model,
+    model_path: str,
+    target: np.ndarray,
+    weights: Weights,
+) -> Answer:
+    """Returns the answer after refinement (the last stage): the point it kept, with that point's acceptance render,
+    picture and (when it moved) its own ranges."""
+    image, error = decoded_answer(refined.unit, result, verified, model, target, weights)
+    moved = not np.array_equal(answer.unit, refined.unit)
+    found = ranges_stage(model, model_path, refined.unit, weights) if moved else answer.ranges
+    return Answer(refined.unit, image, error, refined.rendered, found)

@@ -59,7 +59,7 @@ MAX_BATCHES = 8  # the most batches of a candidate whose difference from the lea
 LEAD = 2.0  # standard errors by which a difference is decided without more batches
 
 
-@dataclass
+@dataclass(frozen=True)
 class Verified:
     """Which candidate Mitsuba preferred, and the figures of the decision."""
 
@@ -150,8 +150,7 @@ def correct_then_verify(
         residual_spp=residual_spp or spp,
     )
     verified = judge(renderer, pool, [*contenders, last], batches, target, weights, spp=spp, started=started)
-    verified.decoded, verified.corrections = corrected, corrections
-    return verified
+    return dataclasses.replace(verified, decoded=corrected, corrections=corrections)
 
 
 def as_weights(target: np.ndarray, weights: np.ndarray | None) -> np.ndarray:

@@ -21,7 +21,7 @@ import os
 import re
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -258,6 +258,22 @@ SCALAR_BSDF_PARAMETERS = (
     "clearcoat_gloss",
     "spec_trans",
 )
+
+
+class Renders(Protocol):
+    """What the stages of a fit ask of whatever renders for them: `Renderer` here, or `process.Background`,
+    `process.Process` and `process.Pool` beside the caller. Every image depends only on its material, seed and
+    samples, so which kind made it, and when, never changes an answer."""
+
+    def prefetch(self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None) -> None:
+        """Asks for a render now, for a later `render` of the same arguments (a kind that renders only when asked
+        ignores it)."""
+
+    def render(
+        self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None
+    ) -> Float[np.ndarray, "R R 3"]:
+        """Returns the linear float32 (H, W, 3) image of a material (physical parameters) rendered with `seed`."""
+        ...
 
 
 class Renderer:
