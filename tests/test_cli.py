@@ -14,7 +14,7 @@ from typer.testing import CliRunner
 
 from matfit import images, params, shipped
 from matfit.app.cli import app
-from matfit.fit import methods, verify
+from matfit.fit import batch, methods, verify
 from matfit.fit import search as fit
 from matfit.model import architectures, weight_files
 from matfit.render import engine, presets
@@ -545,6 +545,7 @@ def test_fit_of_several_pictures_writes_one_params_json_each_and_goes_on_past_a_
     result = run("fit", target, broken, copy, "-o", out, "--model", trained, "--iterations", 10, "--report", "r.png")
     assert result.exit_code == 2, result.output
     assert sorted(path.name for path in out.iterdir()) == [
+        ".matfit-fit-journal.json",  # a picture failed: the same command run again fits only that one
         "copy.params.json",
         "copy.r.png",
         "edited.params.json",
@@ -557,6 +558,38 @@ def test_fit_of_several_pictures_writes_one_params_json_each_and_goes_on_past_a_
     assert first["target"] == str(target) and second["target"] == str(copy) and "verification" in first
     # the same picture fitted first (cold) and last (warm) in one process: the same answer, to the bit
     assert params.parse_params_json(json.dumps(first)).tolist() == params.parse_params_json(json.dumps(second)).tolist()
+
+
+def test_fit_of_several_pictures_run_again_goes_on_where_it_stopped(trained, target, tmp_path):
+    # The journal of the pictures fitted: a second run of the same command keeps those and fits the rest; the folder
+    # is left without it once every picture is fitted; other settings, or a picture changed since, fit again.
+    first, second = tmp_path / "first.png", tmp_path / "second.png"
+    first.write_bytes(target.read_bytes())
+    second.write_text("not an image yet")  # fails: as if the run had stopped before it
+    out = tmp_path / "fits"
+    command = ["fit", first, second, "-o", out, "--model", trained, "--iterations", 10, "--no-verify"]
+    assert run(*command).exit_code == 2
+    written = (out / "first.params.json").read_bytes()
+    assert (out / batch.JOURNAL).is_file()
+    second.write_bytes(target.read_bytes())
+    result = run(*command)
+    assert result.exit_code == 0, result.output
+    assert f"{out / 'first.params.json'}: kept, fitted by an earlier run" in result.output
+    assert "kept" not in next(line for line in result.output.splitlines() if "second" in line)
+    assert (out / "first.params.json").read_bytes() == written and not (out / batch.JOURNAL).exists()
+    assert sorted(path.name for path in out.iterdir()) == ["first.params.json", "second.params.json"]
+    # finished: the same command fits both again
+    assert "kept" not in run(*command).output
+    # stopped again; then other settings, or the picture changed since, fit again
+    second.write_text("not an image")
+    run(*command)
+    second.write_bytes(target.read_bytes())
+    assert "kept" not in run(*command[:-3], "--iterations", 11, "--no-verify").output
+    second.write_text("not an image")
+    run(*command)
+    first.write_bytes(target.read_bytes()[:-1] + b"\0")  # another picture under the same name
+    second.write_bytes(target.read_bytes())
+    assert "first.params.json: kept" not in run(*command).output
 
 
 def test_fit_of_several_pictures_refuses_a_plan_that_cannot_run_before_any_work(trained, target, tmp_path):

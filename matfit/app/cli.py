@@ -259,10 +259,13 @@ def fit_command(
         )
         if several:
             requests = batch.plan([str(target) for target in targets], written, request)
-            interrupt.set_message("each picture fitted so far is written; the one in hand is not")
+            interrupt.set_message(
+                "each picture fitted so far is written, the one in hand is not: run the same command to go on"
+            )
             failed = batch.fit_all(requests, worker.model(str(model_path)), renderer=renderer, done=report_fit)
             log(f"fitted {len(requests) - failed} of {len(requests)} pictures into {written}")
             if failed:
+                log("run the same command again to fit the pictures that failed; those fitted are kept")
                 raise typer.Exit(2)
             return
         outcome = fitfile.run(request, worker.model(str(model_path)), renderer=renderer)
@@ -289,9 +292,13 @@ def worker_command() -> None:
 
 
 def report_fit(request, outcome) -> None:
-    """Prints what one picture of several came to: its notices and summary line, or its error."""
+    """Prints what one picture of several came to: its notices and summary line, its error, or (None) that an earlier
+    run of the same command fitted it."""
     from matfit.errors import MatfitError
 
+    if outcome is None:
+        log(f"{request.outputs.params}: kept, fitted by an earlier run of this command (same picture and settings)")
+        return
     if isinstance(outcome, MatfitError):
         log(f"error: {request.target}: {outcome}")
         return

@@ -3,22 +3,37 @@
 `matfit fit a.png b.png c.png -o fits/` is `plan` (every output named and checked before any work) then
 `fit_all` (each picture fitted by `fitfile.run` with the same model and renderer, so only the first pays for
 loading them). A picture whose fit fails is reported and the others go on.
+
+Stopped part way (Ctrl-C, kill -9, a machine that went down), the same command goes on where it stopped: the
+output folder holds a journal (`Journal`, JOURNAL) of the pictures fitted so far, each with its SHA-256, under a
+key of everything else that decides a fit (the settings, the mask and init files' contents, the model's files,
+matfit's version). A rerun with the same key keeps a picture whose journal entry matches the picture as it is now
+and whose outputs are all there; anything changed fits again. The journal is removed once every picture is fitted,
+so a finished command run again fits every picture again; after a picture failed it stays, and the same command
+run again fits only the pictures that failed (or changed).
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import json
 import os
 from collections.abc import Callable
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
-from matfit import files
+from matfit import documents, files
 from matfit.errors import MatfitError, OutputError
 from matfit.fit import fitfile, stages
 from matfit.fit.request import Outputs, Request
 from matfit.model import models
 
+if TYPE_CHECKING:
+    from matfit.render.process import Pool, Process
+
 PARAMS_SUFFIX = ".params.json"  # a picture's params.json in the output folder: <stem>.params.json
+JOURNAL = ".matfit-fit-journal.json"  # in the output folder while a command of several pictures has some left
 
 
 def outputs_of(target: str, folder: str, outputs: Outputs) -> Outputs:
@@ -100,21 +115,96 @@ def fit_all(
     requests: list[Request],
     model: models.Model | str,
     *,
-    renderer=None,
-    done: Callable[[Request, stages.Outcome | MatfitError], None] | None = None,
+    renderer: Process | Pool | None = None,
+    done: Callable[[Request, stages.Outcome | MatfitError | None], None] | None = None,
 ) -> int:
     """Fits every request in turn with one model and `renderer` (a `process.Pool` or `Process`, or None) and writes
-    its outputs (`fitfile.run`); returns how many failed. `done(request, outcome or error)` hears of each picture as
-    it ends: a MatfitError of one picture (a picture that cannot be read, a mask of another size) is handed to it and
-    the others go on; a failure of the system (OSError, a render process that ended) stops them all."""
+    its outputs (`fitfile.run`); returns how many failed. `done(request, outcome or error or None)` hears of each
+    picture as it ends: None for one an earlier run of the same requests fitted already (`Journal`), kept as it is;
+    a MatfitError of one picture (a picture that cannot be read, a mask of another size) is handed to it and the
+    others go on; a failure of the system (OSError, a render process that ended) stops them all."""
     model = fitfile.load_model(model) if isinstance(model, str) else model
+    folder = os.path.dirname(requests[0].outputs.params) if requests and requests[0].outputs else "."
+    journal = Journal(folder, journal_key(requests, model.path))
     failed = 0
     for request in requests:
+        if journal.fitted(request):
+            if done is not None:
+                done(request, None)
+            continue
+        picture = files.sha256(request.target)
         try:
             outcome: stages.Outcome | MatfitError = fitfile.run(request, model, renderer=renderer)
+            journal.record(request, picture)
         except MatfitError as error:
             outcome = error
             failed += 1
         if done is not None:
             done(request, outcome)
+    if not failed:  # else the journal stays: the same command, run again, fits only the pictures that failed
+        journal.finish()
     return failed
+
+
+def journal_key(requests: list[Request], model_path: str) -> str:
+    """Returns the SHA-256 of everything but the pictures that decides the fits of `requests`: their settings and
+    options, the contents of their mask and init files, the model folder's files, matfit's version."""
+    from importlib import metadata
+
+    first = requests[0]
+    parts = {
+        "settings": repr(first.settings),
+        "options": [first.seed, first.verified, first.corrections, first.refine_steps, first.variant, first.answer],
+        "outputs": None
+        if first.outputs is None
+        else [
+            [getattr(first.outputs, name) is not None for name in ("report", "render", "mitsuba_xml", "blender")],
+            first.outputs.render_size,
+            first.outputs.render_spp,
+        ],
+        "mask": files.sha256(first.mask) if first.mask else None,
+        "init": files.sha256(first.init) if first.init else None,
+        "model": {
+            name: files.sha256(os.path.join(model_path, name))
+            for name in sorted(os.listdir(model_path))
+            if os.path.isfile(os.path.join(model_path, name))
+        },
+        "pictures": [os.path.abspath(request.target) for request in requests],
+        "matfit": metadata.version("matfit"),
+    }
+    return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+
+
+class Journal:
+    """The pictures of one command fitted so far (module docstring): `fitted` says whether a picture can be kept,
+    `record` adds one once its outputs are written, `finish` removes the journal when the command is done."""
+
+    def __init__(self, folder: str, key: str):
+        self.path, self.key = os.path.join(folder, JOURNAL), key
+        self.pictures: dict[str, str] = {}  # absolute path of a picture fitted -> its SHA-256 then
+        with contextlib.suppress(OSError, ValueError, MatfitError):  # none, unreadable or another command's: start
+            document = documents.read(self.path, "it is rewritten")
+            if isinstance(document, dict) and document.get("key") == key and isinstance(document.get("pictures"), dict):
+                self.pictures = {str(k): str(v) for k, v in document["pictures"].items()}
+
+    def fitted(self, request: Request) -> bool:
+        """Returns whether an earlier run fitted the request's picture as it is now, its outputs all still there."""
+        recorded = self.pictures.get(os.path.abspath(request.target))
+        if recorded is None or request.outputs is None:
+            return False
+        written = [path for path in vars(request.outputs).values() if isinstance(path, str)]
+        if not all(os.path.isfile(path) for path in written):
+            return False
+        with contextlib.suppress(OSError):
+            return files.sha256(request.target) == recorded
+        return False
+
+    def record(self, request: Request, picture: str) -> None:
+        """Adds a picture fitted (its SHA-256 when it was read) and writes the journal whole (`files.write_text`)."""
+        self.pictures[os.path.abspath(request.target)] = picture
+        files.write_text(self.path, documents.dumps({"key": self.key, "pictures": self.pictures}))
+
+    def finish(self) -> None:
+        """Removes the journal: every picture was fitted, so nothing is left to go on with."""
+        with contextlib.suppress(FileNotFoundError):
+            os.remove(self.path)
