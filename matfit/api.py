@@ -32,7 +32,8 @@ from matfit.errors import FitError, ImageError, MatfitError, ParameterError, Ren
 from matfit.fit.methods import Method, Settings
 
 if TYPE_CHECKING:
-    from matfit.fit import search, stages
+    from matfit.fit import search
+    from matfit.fit.outcome import Outcome
     from matfit.fit.request import Request
     from matfit.model.models import Model
     from matfit.render.engine import Renderer
@@ -215,7 +216,7 @@ class Fit:
         return documents.dumps(self.document)
 
 
-def _fit_of(outcome: stages.Outcome, name: str) -> Fit:
+def _fit_of(outcome: Outcome, name: str) -> Fit:
     """Returns the `Fit` of a finished fit (its document's timings set)."""
     document = outcome.document
     rendered = None if outcome.rendered is None else np.asarray(outcome.rendered, np.float32)

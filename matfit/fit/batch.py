@@ -25,7 +25,8 @@ from typing import TYPE_CHECKING
 
 from matfit import documents, files
 from matfit.errors import MatfitError, OutputError
-from matfit.fit import fitfile, stages
+from matfit.fit import fitfile
+from matfit.fit.outcome import Outcome
 from matfit.fit.request import Outputs, Request
 from matfit.model import models
 
@@ -116,7 +117,7 @@ def fit_all(
     model: models.Model | str,
     *,
     renderer: Process | Pool | None = None,
-    done: Callable[[Request, stages.Outcome | MatfitError | None], None] | None = None,
+    done: Callable[[Request, Outcome | MatfitError | None], None] | None = None,
 ) -> int:
     """Fits every request in turn with one model and `renderer` (a `process.Pool` or `Process`, or None) and writes
     its outputs (`fitfile.run`); returns how many failed. `done(request, outcome or error or None)` hears of each
@@ -134,7 +135,7 @@ def fit_all(
             continue
         picture = files.sha256(request.target)
         try:
-            outcome: stages.Outcome | MatfitError = fitfile.run(request, model, renderer=renderer)
+            outcome: Outcome | MatfitError = fitfile.run(request, model, renderer=renderer)
             journal.record(request, picture)
         except MatfitError as error:
             outcome = error

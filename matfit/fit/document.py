@@ -12,7 +12,7 @@ from matfit.fit import clean, verify
 from matfit.fit.request import Request
 
 if TYPE_CHECKING:
-    from matfit.fit.stages import Outcome
+    from matfit.fit.outcome import Outcome
 
 # The folder holding the package: the clone, or site-packages when installed (the shipped model reads
 # matfit/data/model either way; a user's own paths lie outside it and stay as given).

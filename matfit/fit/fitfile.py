@@ -16,8 +16,8 @@ import numpy as np
 
 from matfit import files, images, programs
 from matfit.fit import document, search, stages
+from matfit.fit.outcome import Outcome
 from matfit.fit.request import Outputs, Request
-from matfit.fit.stages import Outcome
 from matfit.model import models
 from matfit.render import engine as render
 from matfit.render.process import Pool, Process

@@ -12,7 +12,8 @@ from typing import Any
 import numpy as np
 
 from matfit import documents, images, params
-from matfit.fit import document, stages
+from matfit.fit import document
+from matfit.fit.outcome import Outcome
 from matfit.render import export
 
 FILES = {
@@ -35,7 +36,7 @@ class Job:
     error: str | None = None
     status: int = 200  # the HTTP status of the job's answer: 4xx for the user's errors
     result: dict | None = None
-    outcome: stages.Outcome | None = None
+    outcome: Outcome | None = None
     cancelled: threading.Event = field(default_factory=threading.Event)
     created: float = field(default_factory=time.perf_counter)
     finished: float | None = None
@@ -61,7 +62,7 @@ def png_bytes(srgb: np.ndarray) -> bytes:
     return images.encode(images.srgb_decode(np.clip(np.asarray(srgb, np.float32), 0.0, 1.0)), ".png")
 
 
-def fit_result(outcome: stages.Outcome) -> dict:
+def fit_result(outcome: Outcome) -> dict:
     """Returns the page's view of a fit: figures, the five pictures of the report, the 19 parameters."""
     from matfit.fit import report
 
@@ -108,7 +109,7 @@ def page_ranges(section: dict | None) -> dict | None:
     }
 
 
-def fit_files(outcome: stages.Outcome) -> dict[str, bytes]:
+def fit_files(outcome: Outcome) -> dict[str, bytes]:
     """Returns the files the CLI writes for the same fit (`fit -o params.json --report --mitsuba-xml --blender`)."""
     return {
         "params.json": document.params_text(outcome).encode(),
