@@ -195,7 +195,8 @@ class Fit:
     picture decides about each parameter and `answer` how the clean answer was chosen (docs/fitting.md),
     both as params.json holds them. RMSE on 0-255 sRGB values. The pictures are sRGB, (R, R, 3) at the
     model's resolution: `target` as fitted, `image` the decoder's picture of the material, `rendered`
-    Mitsuba's (None where nothing was rendered).
+    Mitsuba's (None where nothing was rendered), `start_image` the decoder's picture of the best-of-n start
+    (`start`, among the encoders' guesses and the init's material) the search began from.
     """
 
     material: Material
@@ -210,10 +211,24 @@ class Fit:
     image: Image = field(repr=False)
     rendered: Image | None = field(repr=False)
     document: dict[str, Any] = field(repr=False)
+    start: str = ""  # which guess best-of-n started from ("encoder-4", "extra-1": the init's material, ...)
+    start_rmse: float = float("nan")  # its neural RMSE
+    evaluations: int = 0  # the search's objective evaluations
+    start_image: Image | None = field(default=None, repr=False)
+    _outcome: Outcome | None = field(default=None, repr=False)
 
     def to_json(self) -> str:
         """Returns the fit's params.json text: for a picture file, what `matfit fit` writes, but for the timings."""
         return documents.dumps(self.document)
+
+    def report(self) -> Image:
+        """Returns `matfit fit --report`'s picture, sRGB (target | start | fit (neural) | fit (Mitsuba) | difference |
+        ranges): for a fit with Mitsuba's render (verified, the default), else MatfitError."""
+        from matfit.fit import document
+
+        if self._outcome is None or self._outcome.rendered is None:
+            raise FitError("a fit without Mitsuba's render has no report: fit with verify=True", field="report")
+        return np.asarray(document.report_picture(self._outcome), np.float32)
 
 
 def _fit_of(outcome: Outcome, name: str) -> Fit:
@@ -233,6 +248,11 @@ def _fit_of(outcome: Outcome, name: str) -> Fit:
         np.asarray(outcome.image, np.float32),
         rendered,
         document,
+        outcome.result.chosen,
+        float(outcome.result.start_rmse),
+        int(outcome.result.evaluations),
+        np.asarray(outcome.result.start_image, np.float32),
+        outcome,
     )
 
 
@@ -357,6 +377,20 @@ class Fitter:
 
     def __exit__(self, *exception: object) -> None:
         self.close()
+
+    def render(self, material: Material, *, seed: int = 0, spp: int = 64) -> Image:
+        """Returns the linear float32 (R, R, 3) render of a material at the model's resolution R on this fitter's
+        render processes (those that verify its fits: started here if not yet), bit-identical whatever their count."""
+        from matfit.fit import verify
+        from matfit.model import dataset
+
+        if not isinstance(material, Material):
+            raise ParameterError(f"material {_shown(material)} is no matfit.Material: give one", field="material")
+        seed = _whole("seed", seed, 0, params.MAX_SEED, RenderError)
+        spp = _whole("spp", spp, 1, dataset.MAX_SPP, RenderError)
+        pool = self._renderer()
+        pool.load(self.model.resolution, verify.SPP)
+        return np.asarray(pool.render(material.array(), seed=seed, spp=spp), np.float32)
 
     def fit(
         self,

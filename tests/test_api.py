@@ -336,14 +336,40 @@ def test_a_sequence_is_fitted_frame_by_frame(fitter):
 def test_fit_of_a_file_gives_the_command_lines_params_json_bit_for_bit(tiny_model, tmp_path, monkeypatch):
     # The defaults of both: verification on a render Pool, two rounds of correction, the clean answer.
     monkeypatch.chdir(tmp_path)
-    result = CliRunner().invoke(app, ["fit", str(PICTURE), "-o", "p.json", "--model", str(tiny_model)])
+    command = ["fit", str(PICTURE), "-o", "p.json", "--report", "r.png", "--model", str(tiny_model)]
+    result = CliRunner().invoke(app, command)
     assert result.exit_code == 0, result.output
     fit = matfit.fit(PICTURE, model=Path(tiny_model))
     written = json.loads((tmp_path / "p.json").read_text())
     assert written["verification"]["corrections"] == 2 and "answer" in written
     assert without_timings(json.loads(fit.to_json())) == without_timings(written)
     assert fit.material == matfit.Material.from_array(params.from_unit(params.to_unit(fit.material.array())))
-    assert [path.name for path in tmp_path.iterdir()] == ["p.json"]
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["p.json", "r.png"]
+    # the report the command writes (8-bit), and where the search started
+    report = images.srgb_encode(images.load(str(tmp_path / "r.png")).pixels)
+    np.testing.assert_allclose(fit.report(), report, atol=0.51 / 255)
+    assert fit.start == written["start"] and round(fit.start_rmse, 3) == written["start_rmse"]
+    assert fit.evaluations == written["evaluations"] > 0 and fit.start_image.shape == fit.image.shape
+
+
+def test_a_fitter_renders_at_the_models_resolution_on_its_render_processes_bit_for_bit(tiny_model):
+    from matfit.render.engine import Renderer
+
+    material = matfit.Material.preset("jade")
+    with matfit.Fitter(tiny_model) as fitter:
+        first = fitter.render(material, seed=3, spp=8)
+        again = fitter.render(material, seed=3, spp=8)
+        other = fitter.render(material, seed=4, spp=8)
+        with pytest.raises(matfit.MatfitError, match="spp 0 is out of range"):
+            fitter.render(material, spp=0)
+        with pytest.raises(matfit.MatfitError, match=r"is no matfit\.Material"):
+            fitter.render(material.array(), spp=8)  # type: ignore[arg-type]
+    resolution = fitter.model.resolution
+    single = Renderer(resolution, 64, threads=1).render(material.array(), seed=3, spp=8)  # one thread: its bits
+    assert first.shape == (resolution, resolution, 3) and first.dtype == np.float32
+    np.testing.assert_array_equal(first, again)
+    np.testing.assert_array_equal(first, single)
+    assert not np.array_equal(first, other)
 
 
 def page_code() -> str:

@@ -450,7 +450,7 @@ def test_the_page_benchmark_reports_every_figure():
     table = page.serve_speed(random_model(), "memory", fits=2, previews=5, log=lambda _: None, samples=2)
     rows = table.splitlines()[2:]
     assert [row.split(" | ")[0] for row in rows] == [
-        "| warm fit through the library, the CLI's path (median of 2)",
+        "| warm fit through the library, `matfit.Fitter.fit` (median of 2)",
         "| watched file saved -> result read by the page's client (median of 2)",
         "| slider -> neural preview round trip (median of 5)",
         "| resident memory after 2 fits / after 2",

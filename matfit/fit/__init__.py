@@ -2,5 +2,5 @@
 (`request`), the objective and the best-of-n search of the paper's Algorithm 1 (`search`), the optimisers
 (`simplex`, `gradient`), Mitsuba in the loop after the search (`verify`, `correct`, `refine`), image sequences
 (`sequence`), the stages of a fit in order (`stages`) and what they found (`outcome`), params.json (`document`),
-a picture file end to end (`fitfile`), several in one process (`batch`) and the visual report (`report`). It may
-import `model`, `render` and the shared base, never `app`."""
+a picture file end to end (`fitfile`), several in one process (`batch`) and the visual report (`report`).
+It may import `model`, `render` and the shared base, never `app`."""

@@ -59,7 +59,7 @@ def serve_speed(
         [
             "| figure | value |",
             "|---|---|",
-            f"| warm fit through the library, the CLI's path (median of {samples}) | {np.median(warm):.3f} s |",
+            f"| warm fit through the library, `matfit.Fitter.fit` (median of {samples}) | {np.median(warm):.3f} s |",
             f"| watched file saved -> result read by the page's client (median of {samples}) "
             f"| {np.median(latency):.3f} s |",
             f"| slider -> neural preview round trip (median of {previews}) | {1e3 * np.median(round_trips):.1f} ms |",
@@ -70,17 +70,12 @@ def serve_speed(
 
 
 def warm_fits(studio, examples: list[str], samples: int) -> list[float]:
-    """Returns the seconds of `samples` warm fits through the library on the studio's worker, the CLI's path."""
-    from matfit.fit import fitfile
-    from matfit.fit.request import Request
-
-    model = studio.model
+    """Returns the seconds of `samples` warm fits through the library (`matfit.Fitter.fit`, the page's own) on the
+    studio's worker."""
     warm = []
     for k in range(samples):
         started = time.perf_counter()
-        renderer = studio.renderer(model.resolution)
-        request = Request(examples[k % 3], settings=studio.settings)
-        studio.worker.submit(fitfile.fit_file, request, model, renderer=renderer).result()
+        studio.worker.submit(studio.fitter.fit, examples[k % 3], settings=studio.settings).result()
         warm.append(time.perf_counter() - started)
     return warm
 

@@ -12,9 +12,7 @@ from typing import Any
 import numpy as np
 
 from matfit import documents, images, params
-from matfit.fit import document
-from matfit.fit.outcome import Outcome
-from matfit.render import export
+from matfit.api import Fit
 
 FILES = {
     "params.json": "application/json",
@@ -36,7 +34,7 @@ class Job:
     error: str | None = None
     status: int = 200  # the HTTP status of the job's answer: 4xx for the user's errors
     result: dict | None = None
-    outcome: Outcome | None = None
+    outcome: Fit | None = None  # the fit of a fit job, once done
     cancelled: threading.Event = field(default_factory=threading.Event)
     created: float = field(default_factory=time.perf_counter)
     finished: float | None = None
@@ -62,29 +60,29 @@ def png_bytes(srgb: np.ndarray) -> bytes:
     return images.encode(images.srgb_decode(np.clip(np.asarray(srgb, np.float32), 0.0, 1.0)), ".png")
 
 
-def fit_result(outcome: Outcome) -> dict:
+def fit_result(fitted: Fit) -> dict:
     """Returns the page's view of a fit: figures, the five pictures of the report, the 19 parameters."""
     from matfit.fit import report
 
-    result, document = outcome.result, outcome.document
-    assert outcome.rendered is not None, "the page's fits are verified: the answer is rendered"
+    document = fitted.document
+    assert fitted.rendered is not None and fitted.start_image is not None, "the page's fits are verified: rendered"
     return {
-        "neural_rmse": round(outcome.neural_rmse, 3),
+        "neural_rmse": round(fitted.neural_rmse, 3),
         "mitsuba_rmse": document.get("mitsuba_rmse"),
-        "start": result.chosen,
-        "start_rmse": round(result.start_rmse, 3),
-        "kept": outcome.verified.chosen if outcome.verified is not None else None,
-        "evaluations": result.evaluations,
+        "start": fitted.start,
+        "start_rmse": round(fitted.start_rmse, 3),
+        "kept": fitted.verification.get("kept"),
+        "evaluations": fitted.evaluations,
         "seconds": document["wall_time_s"],
-        "values": [round(float(v), 6) for v in outcome.values],
+        "values": [round(float(v), 6) for v in fitted.material.array()],
         "pictures": {
-            "target": png_data_url(outcome.target),
-            "start": png_data_url(result.start_image),
-            "neural": png_data_url(outcome.image),
-            "mitsuba": png_data_url(outcome.rendered),
-            "difference": png_data_url(report.difference(outcome.rendered, outcome.target)),
+            "target": png_data_url(fitted.target),
+            "start": png_data_url(fitted.start_image),
+            "neural": png_data_url(fitted.image),
+            "mitsuba": png_data_url(fitted.rendered),
+            "difference": png_data_url(report.difference(fitted.rendered, fitted.target)),
         },
-        "notices": outcome.notices,
+        "notices": list(fitted.notices),
         "mask": document.get("mask"),
         "ranges": page_ranges(document.get("ranges")),
     }
@@ -109,11 +107,11 @@ def page_ranges(section: dict | None) -> dict | None:
     }
 
 
-def fit_files(outcome: Outcome) -> dict[str, bytes]:
+def fit_files(fitted: Fit) -> dict[str, bytes]:
     """Returns the files the CLI writes for the same fit (`fit -o params.json --report --mitsuba-xml --blender`)."""
     return {
-        "params.json": document.params_text(outcome).encode(),
-        "material.xml": export.mitsuba_xml(outcome.values).encode(),
-        "material.py": export.blender_script(outcome.values).encode(),
-        "report.png": png_bytes(document.report_picture(outcome)),
+        "params.json": fitted.to_json().encode(),
+        "material.xml": fitted.material.to_mitsuba_xml().encode(),
+        "material.py": fitted.material.to_blender_script().encode(),
+        "report.png": png_bytes(fitted.report()),
     }

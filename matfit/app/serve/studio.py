@@ -1,9 +1,10 @@
 """The studio: the loaded model, its renderers, the one worker that runs every fit and render, and every job.
 
-One `Studio` owns the loaded model and a Mitsuba renderer; one worker thread runs every fit and
-every Mitsuba render in turn (JAX and Dr.Jit stay on one thread, fits queue on the one model), so
-every fit after the first is a warm fit. Each request gets its own job id and its own result. The
-neural preview (the decoder alone, far cheaper than a fit) runs beside the queue, on the request's thread.
+One `Studio` owns the loaded model in a `matfit.Fitter` (the public API, with its render processes) and a
+Mitsuba renderer for other sizes; one worker thread runs every fit and every Mitsuba render in turn (JAX and
+Dr.Jit stay on one thread, fits queue on the one model), so every fit after the first is a warm fit. Each
+request gets its own job id and its own result. The neural preview (the decoder alone, far cheaper than a fit)
+runs beside the queue, on the request's thread.
 """
 
 from __future__ import annotations
@@ -19,13 +20,14 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from matfit import files, images, interrupt, params
+from matfit.api import Fitter, Material
 from matfit.app.serve import uploads
 from matfit.app.serve.jobs import Job, fit_result, png_bytes, png_data_url
 from matfit.app.serve.watch import GONE, gone
 from matfit.errors import MatfitError, ParameterError
-from matfit.fit import fitfile, search, verify
-from matfit.fit.request import Request
+from matfit.fit import search, verify
 from matfit.model import models
+from matfit.render.engine import Renderer
 
 MAX_RENDER_SIZE = 1024
 MAX_RENDER_SPP = 4096
@@ -47,16 +49,16 @@ class Studio:
         self.jobs: dict[str, Job] = {}
         self.counter = itertools.count(1)
         self.lock = threading.Lock()
-        self.renderers: dict[int, object] = {}
+        # The fits, and renders at the model's resolution, through the public API: its render processes, one a core.
+        self.fitter = Fitter(model, variant=variant)
+        self.renderers: dict[int, Renderer] = {}  # larger (or smaller) pictures: one render on every core
         self.watch_jobs: list[str] = []  # job ids of the watched file's fits, newest last
         self.watch_error: str | None = None
 
     def close(self) -> None:
         """Stops taking jobs and removes the temporary folder."""
         self.worker.shutdown(wait=False, cancel_futures=True)
-        for renderer in self.renderers.values():
-            if hasattr(renderer, "close"):  # the render children of the model's resolution
-                renderer.close()
+        self.fitter.close()
         with contextlib.suppress(OSError):
             for name in os.listdir(self.folder):
                 os.unlink(os.path.join(self.folder, name))
@@ -64,19 +66,15 @@ class Studio:
             os.rmdir(self.folder)
         interrupt.unregister(self.folder)
 
-    def renderer(self, size: int):
-        """Returns the Mitsuba renderer of a size, loaded once (on the worker thread)."""
+    def render(self, values: np.ndarray, size: int, *, seed: int, spp: int) -> np.ndarray:
+        """Returns the linear render of physical values at `size`: at the model's resolution on the fitter's render
+        processes (the fits' own renders, bit for bit), any other size in this process on every core (its renderer
+        loaded once, on the worker thread)."""
+        if size == self.model.resolution:
+            return self.fitter.render(Material.from_array(values), seed=seed, spp=spp)
         if size not in self.renderers:
-            from matfit.render.engine import Renderer
-            from matfit.render.process import Pool
-
-            if size == self.model.resolution:  # verifies fits: on every core, the command line's answer bit for bit
-                pool = Pool(self.variant)
-                pool.load(size, verify.SPP)
-                self.renderers[size] = pool
-            else:  # a large picture: one render on every core
-                self.renderers[size] = Renderer(size, verify.SPP, self.variant, threads=os.cpu_count() or 1)
-        return self.renderers[size]
+            self.renderers[size] = Renderer(size, verify.SPP, self.variant, threads=os.cpu_count() or 1)
+        return self.renderers[size].render(values, seed=seed, spp=spp)
 
     def new_job(self, kind: str) -> Job:
         """Returns a new job, registered."""
@@ -89,7 +87,7 @@ class Studio:
         """Compiles the fit and loads the renderer before the first page asks (a fit of a grey picture)."""
         grey = np.full((self.model.resolution, self.model.resolution, 3), 0.5, np.float32)
         search.neural_search(self.model, grey, settings=self.settings)
-        self.renderer(self.model.resolution)
+        self.fitter.render(Material.from_array(params.DEFAULTS), spp=1)  # the render processes load the scene
         self.preview(params.DEFAULTS)
 
     def submit_fit(
@@ -123,21 +121,17 @@ class Studio:
         picture = None
         try:
             picture = self.snapshot(target) if watched else target  # the editor may save or delete it meanwhile
-            request = Request(
-                picture,
-                mask,
-                "uploaded params.json" if init is not None else None,
-                init_values=init,
-                settings=self.settings,
-            )
-            outcome, _ = fitfile.fit_file(request, self.model, renderer=self.renderer(self.model.resolution))
+            source = None if init is None else Material.from_array(init)
+            fitted = self.fitter.fit(picture, mask=mask, init=source, settings=self.settings)
             if watched and not os.path.exists(target):
                 raise gone(target, "while it was fitted")
-            outcome.document.update(target=label, target_sha256=files.sha256(picture), model=self.model_label)
+            fitted.document.update(target=label, target_sha256=files.sha256(picture), model=self.model_label)
+            if init is not None:
+                fitted.document["init"] = "uploaded params.json"
             if mask is not None:
-                outcome.document["mask"] = "painted in the page"
-            outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
-            job.outcome, job.result = outcome, fit_result(outcome)
+                fitted.document["mask"] = "painted in the page"
+            fitted.document["wall_time_s"] = round(time.perf_counter() - started, 3)
+            job.outcome, job.result = fitted, fit_result(fitted)
             job.state, job.stage, job.progress = "done", "done", 1.0
         except MatfitError as error:
             status = 410 if error.field == GONE else 422
@@ -196,14 +190,13 @@ class Studio:
         total = np.zeros((size, size, 3), np.float64)
         done_samples = 0
         started = time.perf_counter()
-        renderer = self.renderer(size)
         for k in range(passes):
             if job.cancelled.is_set():
                 job.state = job.stage = "cancelled"
                 job.finished = time.perf_counter()
                 return
             samples = spp // passes + (1 if k < spp % passes else 0)
-            total += samples * renderer.render(values, seed=k, spp=samples)
+            total += samples * self.render(values, size, seed=k, spp=samples)
             done_samples += samples
             job.progress = done_samples / spp
         image = images.srgb_encode((total / spp).astype(np.float32))
