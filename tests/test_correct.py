@@ -128,15 +128,27 @@ def test_a_round_reuses_the_fits_compiled_step(model):
     assert not np.allclose(point, 0.9 * x)  # it moved: the second round ran
 
 
-@pytest.mark.parametrize(("start_offset", "end_offset", "origin"), [(0.10, 0.05, "end-1"), (0.05, 0.10, "start")])
-def test_the_rounds_start_from_the_better_estimate_and_a_worse_last_round_is_not_kept(
-    model, start_offset, end_offset, origin
-):
+def scripted_fit(model, start_offset: float, end_offset: float, spread: float = 0.02):
+    """Returns (a grey target, a short fit of it, its start and best end, a `Noisy` renderer drawing them
+    `start_offset` and `end_offset` off the target)."""
     target = np.full((R, R, 3), 0.4, np.float32)
     result = search.neural_search(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
     pool = verify.candidates(result, count=verify.CORRECTED_CANDIDATES)
     offsets = {"start": start_offset, "end-1": end_offset}
-    scripted = Noisy(target, {name: (params.from_unit(pool[name]), offsets[name], 0.02) for name in pool})
+    return (
+        target,
+        result,
+        pool,
+        Noisy(target, {name: (params.from_unit(pool[name]), offsets[name], spread) for name in pool}),
+    )
+
+
+@pytest.mark.parametrize(("start_offset", "end_offset", "origin"), [(0.10, 0.05, "end-1"), (0.05, 0.10, "start")])
+def test_the_rounds_start_from_the_better_estimate_and_a_worse_last_round_is_not_kept(
+    model, start_offset, end_offset, origin
+):
+    target, result, _, scripted = scripted_fit(model, start_offset, end_offset)
+    offsets = {"start": start_offset, "end-1": end_offset}
     checked = verify.correct_then_verify(scripted, result, target, model=model, corrections=2)
     # the rounds' points are 0.3 off: the better of the start and the best end is kept, as it was where they started
     assert checked.chosen == origin and checked.figures["corrected-2"] == pytest.approx(255 * 0.3, rel=1e-3)
@@ -146,11 +158,7 @@ def test_the_rounds_start_from_the_better_estimate_and_a_worse_last_round_is_not
 
 
 def test_residual_renders_take_their_own_samples_and_the_start_then_its_own_seed_render(model):
-    target = np.full((R, R, 3), 0.4, np.float32)
-    result = search.neural_search(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
-    pool = verify.candidates(result, count=verify.CORRECTED_CANDIDATES)
-    offsets = {"start": 0.05, "end-1": 0.10}
-    scripted = Noisy(target, {name: (params.from_unit(pool[name]), offsets[name], 0.02) for name in pool})
+    target, result, _, scripted = scripted_fit(model, 0.05, 0.10)
     samples = []
     render = scripted.render
     scripted.render = lambda values, seed=0, spp=None: samples.append((seed, spp)) or render(values, seed, spp)
@@ -167,11 +175,7 @@ def test_residual_renders_take_their_own_samples_and_the_start_then_its_own_seed
 def test_the_best_ends_batches_are_asked_for_beside_each_render_the_rounds_wait_for(model):
     # The judge renders the best end's batches whatever the rounds do: each is asked for right after a render the
     # rounds wait for (a second render child makes it meanwhile), and none is rendered twice or in vain.
-    target = np.full((R, R, 3), 0.4, np.float32)
-    result = search.neural_search(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=5))
-    pool = verify.candidates(result, count=verify.CORRECTED_CANDIDATES)
-    offsets = {"start": 0.10, "end-1": 0.05}
-    scripted = Noisy(target, {name: (params.from_unit(pool[name]), offsets[name], 0.02) for name in pool})
+    target, result, pool, scripted = scripted_fit(model, 0.10, 0.05)
     calls = []
     render = scripted.render
     named = {name: params.from_unit(pool[name]) for name in pool}
