@@ -253,3 +253,28 @@ def test_a_dataset_that_passes_the_size_check_but_not_the_disk_is_refused_in_one
         "free some space on the disk, or lower --count or --resolution"
     ]
     assert left == []
+
+
+def test_a_fit_of_several_pictures_killed_part_way_goes_on_where_it_stopped(model_dir, tmp_path):
+    """kill -9 once the first picture is written: the same command again keeps it (not rewritten) and fits the rest."""
+    pictures = []
+    for name in ("a", "b", "c"):
+        shutil.copy(model_dir / "target.png", tmp_path / f"{name}.png")
+        pictures.append(str(tmp_path / f"{name}.png"))
+    out = tmp_path / "fits"
+    command = [sys.executable, "-m", "matfit", "fit", *pictures, "-o", str(out), "--model", str(model_dir)]
+    command += ["--no-verify", "--method", "hybrid", "--evals", "3000"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path)
+    deadline = time.monotonic() + 120
+    while not (out / "a.params.json").exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    process.kill()
+    process.communicate()
+    first = (out / "a.params.json").read_bytes()
+    assert not (out / "c.params.json").exists(), "the command ended before it could be killed part way"
+    again = subprocess.run(command, capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert again.returncode == 0, again.stderr
+    assert f"{out / 'a.params.json'}: kept, fitted by an earlier run" in again.stderr
+    assert "c.params.json: kept" not in again.stderr
+    assert (out / "a.params.json").read_bytes() == first
+    assert sorted(os.listdir(out)) == ["a.params.json", "b.params.json", "c.params.json"]
