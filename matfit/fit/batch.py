@@ -133,10 +133,9 @@ def fit_all(
             if done is not None:
                 done(request, None)
             continue
-        picture = files.sha256(request.target)
         try:
             outcome: Outcome | MatfitError = fitfile.run(request, model, renderer=renderer)
-            journal.record(request, picture)
+            journal.record(request, outcome.document["target_sha256"])  # the picture as it was fitted
         except MatfitError as error:
             outcome = error
             failed += 1
@@ -180,7 +179,7 @@ class Journal:
     """The pictures of one command fitted so far (module docstring): `fitted` says whether a picture can be kept,
     `record` adds one once its outputs are written, `finish` removes the journal when the command is done."""
 
-    def __init__(self, folder: str, key: str):
+    def __init__(self, folder: str, key: str) -> None:
         self.path, self.key = os.path.join(folder, JOURNAL), key
         self.pictures: dict[str, str] = {}  # absolute path of a picture fitted -> its SHA-256 then
         with contextlib.suppress(OSError, ValueError, MatfitError):  # none, unreadable or another command's: start
