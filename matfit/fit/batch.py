@@ -134,8 +134,9 @@ def fit_all(
                 done(request, None)
             continue
         try:
-            outcome: Outcome | MatfitError = fitfile.run(request, model, renderer=renderer)
-            journal.record(request, outcome.document["target_sha256"])  # the picture as it was fitted
+            fitted = fitfile.run(request, model, renderer=renderer)
+            journal.record(request, fitted.document["target_sha256"])  # the picture as it was fitted
+            outcome: Outcome | MatfitError = fitted
         except MatfitError as error:
             outcome = error
             failed += 1

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import jax
 import jax.numpy as jnp
@@ -41,6 +42,12 @@ import numpy as np
 
 from matfit import images, params, programs
 from matfit.fit import ranges, verify
+
+if TYPE_CHECKING:
+    from jaxtyping import PyTree
+
+    from matfit.fit.ranges import Decode
+    from matfit.render.engine import Renders
 
 STEPS = 3  # re-linearised Gauss-Newton steps (a Jacobian and one batched decode each) re-fitting the others
 CLOSE = 0.5  # RMSE (0-255 sRGB): how far a candidate may decode from the answer's picture (docs/fitting.md)
@@ -86,7 +93,9 @@ def free_away_from_neutral(unit: np.ndarray, verdicts: tuple[str, ...]) -> int:
     )
 
 
-def _refit(decode, variables, start, held, picture, weights):
+def _refit(
+    decode: Decode, variables: PyTree, start: np.ndarray, held: np.ndarray, picture: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray | jax.Array, jax.Array | None]:
     """Returns (the point after STEPS re-linearised Gauss-Newton steps from `start` toward `picture`, the parameters
     where `held` (bool (19,)) is true held, its decoded RMSE to `picture`).
 
@@ -99,7 +108,9 @@ def _refit(decode, variables, start, held, picture, weights):
 
 
 @programs.jit(static_argnames=("decode",))
-def _refit_step(decode, variables, x, held, picture, weights):
+def _refit_step(
+    decode: Decode, variables: PyTree, x: jax.Array, held: jax.Array, picture: jax.Array, weights: jax.Array
+) -> tuple[jax.Array, jax.Array]:
     """Returns (the point after one Gauss-Newton step from `x`, linearised there, toward `picture` with the
     parameters where `held` is true held: the best of SHARES of the step, or `x` where none lowers the error; its
     decoded RMSE to `picture`)."""
@@ -125,7 +136,7 @@ def unseen_medium(unit: np.ndarray) -> bool:
 
 
 def candidates(
-    decode, variables, answer: np.ndarray, weights: np.ndarray | None, found: ranges.Ranges
+    decode: Decode, variables: PyTree, answer: np.ndarray, weights: np.ndarray | None, found: ranges.Ranges
 ) -> list[tuple[tuple[str, ...], np.ndarray, float]]:
     """Returns the nested candidates of the module docstring, the simplest last: [(features off, the material (unit
     cube), D: its decoded RMSE to the answer's picture)]. `decode` as for `ranges.measure`; `found`: the answer's
@@ -151,7 +162,7 @@ def candidates(
     weights = np.ones(picture.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
     limit = min(CLOSE, found.threshold)
 
-    def off(start: np.ndarray, held: np.ndarray, indices) -> tuple[np.ndarray, np.ndarray, float]:
+    def off(start: np.ndarray, held: np.ndarray, indices: list[int]) -> tuple[np.ndarray, np.ndarray, float]:
         start, held = start.copy(), held.copy()
         for i in indices:
             start[i], held[i] = neutral[i], True
@@ -178,7 +189,7 @@ def render_noise(renders: list[np.ndarray], target: np.ndarray, weights: np.ndar
 
 
 def judge(
-    renderer,
+    renderer: Renders,
     best: np.ndarray,
     pool: dict[str, np.ndarray],
     target: np.ndarray,
@@ -186,7 +197,7 @@ def judge(
     *,
     rendered: list[np.ndarray] | tuple = (),
     spp: int = verify.SPP,
-):
+) -> dict[str, Any]:
     """Returns {"chosen": the name kept ("best" or one of `pool`), "figures", "noise", "margins", "batches",
     "rendered"}: `best` and the candidates of `pool` (by name, simplest last) rendered in batches with verification's
     seeds and compared by its estimates, by the rule of the module docstring. `margins`: each judged candidate's
@@ -232,13 +243,13 @@ def deficit(best: list[np.ndarray], other: list[np.ndarray], target: np.ndarray,
 
 
 def clean(
-    decode,
-    variables,
+    decode: Decode,
+    variables: PyTree,
     answer: np.ndarray,
     target: np.ndarray,
     weights: np.ndarray | None,
     found: ranges.Ranges,
-    renderer=None,
+    renderer: Renders | None = None,
     *,
     rendered: list[np.ndarray] | tuple = (),
     spp: int = verify.SPP,

@@ -46,7 +46,11 @@ from matfit.fit.methods import check_corrections
 from matfit.model import models
 
 if TYPE_CHECKING:
+    from collections.abc import Sequence
+
     from jaxtyping import Float
+
+    from matfit.render.engine import Renders
 
 CANDIDATES = 5  # without correction: the start and up to four end points, every end of the default 4-start fit
 # With correction the start and the best end choose where the rounds start, and the last round joins them.
@@ -91,7 +95,7 @@ def candidates(result: search.Result, *, count: int = CANDIDATES) -> dict[str, F
 
 
 def verify_candidates(
-    renderer,
+    renderer: Renders,
     result: search.Result,
     target: Float[np.ndarray, "R R 3"],
     *,
@@ -111,7 +115,7 @@ def verify_candidates(
 
 
 def correct_then_verify(
-    renderer,
+    renderer: Renders,
     result: search.Result,
     target: np.ndarray,
     *,
@@ -158,12 +162,20 @@ def as_weights(target: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
     return np.ones(target.shape[:2], np.float32) if weights is None else np.asarray(weights, np.float32)
 
 
-def render_candidate(renderer, unit: np.ndarray, *, seed: int, spp: int) -> np.ndarray:
+def render_candidate(renderer: Renders, unit: np.ndarray, *, seed: int, spp: int) -> np.ndarray:
     """Returns Mitsuba's sRGB render of a candidate (unit cube) with `seed` and `spp` samples."""
     return images.srgb_encode(renderer.render(params.from_unit(unit), seed=seed, spp=spp))
 
 
-def render_batches(renderer, pool, batches: dict[str, list[np.ndarray]], names, *, count: int, spp: int) -> None:
+def render_batches(
+    renderer: Renders,
+    pool: dict[str, Float[np.ndarray, " 19"]],
+    batches: dict[str, list[np.ndarray]],
+    names: Sequence[str],
+    *,
+    count: int,
+    spp: int,
+) -> None:
     """Adds to `batches` the batches (batch j with BATCH_SEED + j) that the candidates `names` of `pool` lack of
     `count` each."""
     for name in names:  # every request first, so that a render process works through them while this one waits
@@ -177,13 +189,13 @@ def render_batches(renderer, pool, batches: dict[str, list[np.ndarray]], names, 
 
 
 def correction_rounds(
-    renderer,
-    model,
-    result,
-    pool,
-    batches,
-    target,
-    weights,
+    renderer: Renders,
+    model: models.Model,
+    result: search.Result,
+    pool: dict[str, Float[np.ndarray, " 19"]],
+    batches: dict[str, list[np.ndarray]],
+    target: Float[np.ndarray, "R R 3"],
+    weights: Float[np.ndarray, "R R"],
     *,
     corrections: int,
     spp: int,
@@ -220,7 +232,7 @@ class Spare:
     one is ready when the judge asks for it. On one renderer it is made after the awaited one, in the time the
     caller then computes."""
 
-    def __init__(self, renderer, pool: dict[str, np.ndarray], names: list[str], *, spp: int):
+    def __init__(self, renderer: Renders, pool: dict[str, np.ndarray], names: list[str], *, spp: int) -> None:
         self.renderer, self.spp = renderer, spp
         self.waiting = [(pool[name], BATCH_SEED + j) for name in names for j in range(BATCHES)]
 
@@ -234,7 +246,17 @@ class Spare:
         return render_candidate(self.renderer, unit, seed=seed, spp=spp)
 
 
-def judge(renderer, pool, contenders: list[str], batches, target, weights, *, spp: int, started: float) -> Verified:
+def judge(
+    renderer: Renders,
+    pool: dict[str, Float[np.ndarray, " 19"]],
+    contenders: list[str],
+    batches: dict[str, list[np.ndarray]],
+    target: Float[np.ndarray, "R R 3"],
+    weights: Float[np.ndarray, "R R"],
+    *,
+    spp: int,
+    started: float,
+) -> Verified:
     """Returns the contender kept by the noise-aware rule of the module docstring: BATCHES batches of each, then one
     more of the leader and of every contender within LEAD standard errors of it, up to MAX_BATCHES.
 
@@ -264,11 +286,11 @@ def judge(renderer, pool, contenders: list[str], batches, target, weights, *, sp
 
 
 def where_rounds_start(
-    renderer,
-    pool,
-    batches,
-    target,
-    weights,
+    renderer: Renders,
+    pool: dict[str, Float[np.ndarray, " 19"]],
+    batches: dict[str, list[np.ndarray]],
+    target: Float[np.ndarray, "R R 3"],
+    weights: Float[np.ndarray, "R R"],
     *,
     spp: int = SPP,
     residual_spp: int | None = None,
@@ -358,7 +380,7 @@ def decide(
     return leader, estimates, margins
 
 
-def prefetch_start(renderer, start: Float[np.ndarray, " 19"], *, corrections: int = 0, spp: int = SPP) -> None:
+def prefetch_start(renderer: Renders, start: Float[np.ndarray, " 19"], *, corrections: int = 0, spp: int = SPP) -> None:
     """Starts, on a `process.Background` or `process.Process`, the renders verification will make of the fit's start
     (unit cube): its first BATCHES batches (`corrections` changes nothing: the start is judged by the same batches)."""
     values = params.from_unit(np.asarray(start, np.float64))  # as `candidates` and `render_candidate` make them
