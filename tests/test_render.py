@@ -283,10 +283,13 @@ def test_a_render_pool_renders_each_picture_to_the_bits_of_one_child_whatever_th
         with process.Pool(children=count) as pool:
             assert pool.children == count and pool.renderer() is pool
             pool.load(32, 16)
+            deadline = time.monotonic() + 120
+            while any(each.outstanding() for each in pool._children) and time.monotonic() < deadline:
+                time.sleep(0.01)  # the scenes loaded: a load still in hand would count as work
             for material, seed in requests:
                 pool.prefetch(material, seed)
-            busy = [len(each._pending) for each in pool._children]  # the load, then the renders shared out
-            assert max(busy) - min(busy) <= 1 and sum(busy) == count + len(requests)
+            shares = [sum(owner is each for owner in pool._owners.values()) for each in pool._children]
+            assert max(shares) - min(shares) <= 1 and sum(shares) == len(requests)  # the renders shared out
             for (material, seed), picture in zip(requests, expected, strict=True):
                 np.testing.assert_array_equal(pool.render(material, seed=seed), picture)
             np.testing.assert_array_equal(pool.render(*requests[0]), expected[0])  # read once, rendered again
@@ -299,6 +302,10 @@ def test_a_render_pool_sends_a_request_to_a_child_that_finished_though_its_pictu
     with process.Pool(children=2) as pool:
         pool.load(16, 4)
         first, second = pool._children
+        deadline = time.monotonic() + 120
+        while (first.outstanding() or second.outstanding()) and time.monotonic() < deadline:
+            time.sleep(0.01)  # both scenes loaded: otherwise a load still in hand counts as work and may decide
+        assert (first.outstanding(), second.outstanding()) == (0, 0)
         pool.prefetch(material, seed=1, spp=4000)  # about a second of work for the first child
         pool.prefetch(material, seed=2, spp=1)  # a moment's for the second
         deadline = time.monotonic() + 60
