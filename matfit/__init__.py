@@ -5,7 +5,18 @@ import inspect
 import types
 from typing import TYPE_CHECKING, Any
 
-__all__ = ["Fit", "Fitter", "Material", "MatfitError", "Settings", "fit", "fit_sequence", "load_model", "render"]
+__all__ = [
+    "Fit",
+    "Fitter",
+    "Material",
+    "MatfitError",
+    "Outputs",
+    "Settings",
+    "fit",
+    "fit_sequence",
+    "load_model",
+    "render",
+]
 
 
 class _Callable(types.ModuleType):
@@ -29,7 +40,18 @@ for _name in ("fit", "render"):  # their __init__ is a docstring alone: nothing 
     importlib.import_module(f"matfit.{_name}").__class__ = _Callable
 
 if TYPE_CHECKING:
-    from matfit.api import Fit, Fitter, Material, MatfitError, Settings, fit, fit_sequence, load_model, render
+    from matfit.api import (
+        Fit,
+        Fitter,
+        Material,
+        MatfitError,
+        Outputs,
+        Settings,
+        fit,
+        fit_sequence,
+        load_model,
+        render,
+    )
 else:
 
     def __getattr__(name: str) -> Any:

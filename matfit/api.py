@@ -28,12 +28,22 @@ import numpy as np
 import numpy.typing as npt
 
 from matfit import documents, params, shipped
-from matfit.errors import FitError, ImageError, MatfitError, ParameterError, RenderError, WeightsError, check_range
+from matfit.errors import (
+    FitError,
+    ImageError,
+    MatfitError,
+    OutputError,
+    ParameterError,
+    RenderError,
+    WeightsError,
+    check_range,
+)
 from matfit.fit.methods import Method, Settings
 
 if TYPE_CHECKING:
     from matfit.fit import search
     from matfit.fit.outcome import Outcome
+    from matfit.fit.request import Outputs as RequestOutputs
     from matfit.fit.request import Request
     from matfit.model.models import Model
     from matfit.render.engine import Renderer
@@ -44,6 +54,7 @@ __all__ = [
     "Fitter",
     "Material",
     "MatfitError",
+    "Outputs",
     "Settings",
     "fit",
     "fit_sequence",
@@ -55,6 +66,7 @@ Picture = str | os.PathLike[str] | npt.NDArray[Any]  # a picture file's path, or
 Array = npt.NDArray[np.float64]
 Image = npt.NDArray[np.float32]
 ARRAY = "array"  # params.json's `target` (and `mask`) of pixels given as an array
+MAX_SIZE = 4096  # pixels a side of a render (`render`, `Outputs.render_size`): `matfit render --size`'s
 
 
 def _default(name: str) -> float:
@@ -185,6 +197,51 @@ class Material:
             raise
         except ValueError as error:  # the name
             raise ParameterError(str(error), field="name") from None
+
+
+@dataclass(frozen=True)
+class Outputs:
+    """The files a fit writes (`Fitter.fit(..., outputs=...)`): params.json always, the others where named.
+
+    Every path is checked before any work (a folder that cannot be written, a wrong extension, a path named twice,
+    an input it would overwrite, a file of the model) and all are written together once the fit is done, so a
+    failed or interrupted fit leaves none of them. `report`: the report picture (target, start, fit, Mitsuba's render,
+    difference, ranges); `render`: Mitsuba's render of the answer, `render_size` pixels a side at `render_spp`
+    samples a pixel; `mitsuba_xml` and `blender`: the exports (`Material.to_mitsuba_xml`, `to_blender_script`).
+    In `Fitter.fit_all`, each picture's files go into the folder given, named after the picture:
+    `<stem>.params.json`, and `<stem>.<name>` for each other file named here (`params` is not used there).
+    """
+
+    params: str | os.PathLike[str] = "params.json"
+    report: str | os.PathLike[str] | None = None
+    render: str | os.PathLike[str] | None = None
+    render_size: int = 512
+    render_spp: int = 256
+    mitsuba_xml: str | os.PathLike[str] | None = None
+    blender: str | os.PathLike[str] | None = None
+
+    def _request(self) -> RequestOutputs:
+        """Returns the outputs as the fit's request holds them (paths as `matfit fit` passes them on)."""
+        from matfit.fit.request import Outputs as RequestOutputs
+        from matfit.model import dataset
+
+        named = {}
+        for name in ("params", "report", "render", "mitsuba_xml", "blender"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, str | os.PathLike):
+                raise OutputError(f"{name} {_shown(value)} is no path: give a file's path or None", field=name)
+            named[name] = None if value is None else _text(value)
+        size = _whole("render_size", self.render_size, dataset.MIN_RESOLUTION, MAX_SIZE, OutputError)
+        spp = _whole("render_spp", self.render_spp, 1, dataset.MAX_SPP, OutputError)
+        return RequestOutputs(
+            str(named["params"]),
+            named["report"],
+            named["render"],
+            size,
+            spp,
+            named["mitsuba_xml"],
+            named["blender"],
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -336,28 +393,48 @@ def _whole(field: str, value: object, low: int, high: int, error: type[MatfitErr
 class Fitter:
     """The model and the render processes loaded once, for many fits (the warm path); a context manager.
 
-    `model`: a model folder (None: the shipped model) or a loaded `load_model()`. `verify`: whether fits let Mitsuba
-    choose among their candidates by default; the render processes (one a core) start here when it does, before
-    the model loads. `close()` (or leaving the `with` block) ends them.
+    `model`: a model folder (None: the shipped model) or a loaded `load_model()`. A folder's model loads at the first
+    fit, once that fit's inputs and outputs were checked (a bad picture is refused without loading anything), or at
+    the first use of `fitter.model`. `verify`: whether fits let Mitsuba choose among their candidates by default; the
+    render processes (one a core) start here when it does, so that Mitsuba loads in them while the model loads here.
+    A fit that fails keeps them while every one runs (the picture was at fault); one that lost a render process
+    ends them, and the next fit starts new ones. `close()` (or leaving the `with` block) ends them.
     """
 
     def __init__(
         self, model: str | os.PathLike[str] | Model | None = None, *, verify: bool = True, variant: str | None = None
     ) -> None:
-        from matfit.model import models
         from matfit.render import engine
 
         engine.check_request(variant)
+        if model is not None and not isinstance(model, str | os.PathLike):
+            from matfit.model import models  # a loaded model's module is imported already
+
+            if not isinstance(model, models.Model):
+                raise WeightsError(
+                    f"model {_shown(model)} is no model folder: give a folder's path, load_model()'s model, or None "
+                    "for the shipped one",
+                    field="model",
+                )
         self.variant = variant
         self.verify = verify
         self._pool: Pool | None = None
+        self._model: Model | None = None
+        if model is None:
+            self.model_path = str(shipped.MODEL)
+        elif isinstance(model, str | os.PathLike):
+            self.model_path = os.fspath(model)
+        else:
+            self._model, self.model_path = model, model.path
         if verify:
             self._renderer()  # Mitsuba starts in the children while JAX and the model load here
-        try:
-            self.model = model if isinstance(model, models.Model) else load_model(model)
-        except BaseException:
-            self.close()
-            raise
+
+    @property
+    def model(self) -> Model:
+        """The model the fits use (`load_model(model_path)`, loaded at the first use)."""
+        if self._model is None:
+            self._model = load_model(self.model_path)
+        return self._model
 
     def _renderer(self) -> Pool:
         if self._pool is None:
@@ -405,20 +482,95 @@ class Fitter:
         answer: Literal["clean", "best"] = "clean",
         refine: int = 0,
         seed: int = 0,
+        outputs: Outputs | None = None,
     ) -> Fit:
-        """Returns the fit of one picture with this fitter's model: `matfit.fit`, warm."""
-        from matfit.fit import fitfile
+        """Returns the fit of one picture with this fitter's model: `matfit.fit`, warm. `outputs`: the files to write
+        (checked before any work, written together at the end: what `matfit fit` writes), or None to write nothing."""
+        from matfit.fit import fitfile  # noqa: F401  # JAX imported before the fit's wall time starts
 
         started = time.perf_counter()
         verified = self.verify if verify is None else verify
         request, notices = self._request(
-            picture, mask, init, settings, linear, verified, corrections, answer, refine, seed
+            picture, mask, init, settings, linear, verified, corrections, answer, refine, seed, outputs
         )
-        renderer = self._renderer() if verified and not refine else None  # refinement renders in this process
-        outcome, _ = fitfile.fit_file(request, self.model, renderer=renderer)
+        return self._fit_request(request, notices, started)
+
+    def fit_all(
+        self,
+        pictures: Iterable[str | os.PathLike[str]],
+        folder: str | os.PathLike[str],
+        *,
+        mask: str | os.PathLike[str] | None = None,
+        init: str | os.PathLike[str] | None = None,
+        settings: Settings | None = None,
+        verify: bool | None = None,
+        corrections: int | None = None,
+        answer: Literal["clean", "best"] = "clean",
+        refine: int = 0,
+        seed: int = 0,
+        outputs: Outputs | None = None,
+        done: Callable[[str, str, Fit | MatfitError | None], None] | None = None,
+    ) -> int:
+        """Fits picture files into `folder`, resumably: `matfit fit a.png b.png -o folder/`. Returns how many failed.
+
+        Each picture writes `<folder>/<stem>.params.json` and the other files `outputs` names (`Outputs`), every
+        path checked before the first fit (two pictures of one name are refused). A picture that cannot be fitted
+        (a MatfitError: unreadable, a mask of another size) is handed to `done` and the others go on. Stopped part
+        way (Ctrl-C, kill -9), the same call again keeps the pictures fitted already (unchanged, their files there,
+        the same settings and model) and fits the rest; once all are fitted, the folder's journal of them is
+        removed. `done(picture, its params.json, the Fit, its MatfitError, or None for one kept)` hears of each.
+        """
+        from matfit.fit import batch
+
+        targets = [_text(picture) for picture in _paths(pictures)]
+        if not isinstance(folder, str | os.PathLike):
+            raise OutputError(f"folder {_shown(folder)} is no path: give the folder to write into", field="output")
+        written = os.fspath(folder)
+        if not targets:
+            raise FitError("fit_all was given no pictures: give a list of picture files", field="target")
+        if mask is not None and not isinstance(mask, str | os.PathLike):
+            raise ImageError(f"mask {_shown(mask)} is no path: give a picture file's path or None", field="mask")
+        verified = self.verify if verify is None else verify
+        template = dataclasses.replace(outputs or Outputs(), params=os.path.join(written, "params.json"))
+        request, _ = self._request(
+            targets[0], mask, init, settings, False, verified, corrections, answer, refine, seed, template
+        )
+        requests = batch.plan(targets, written, request)
+        self.model  # noqa: B018  # loaded now, after the checks: a model folder that is not one is said before any fit
+
+        def fit_one(request: Request, written: Callable[[str], None]) -> Fit:
+            return self._fit_request(request, [], time.perf_counter(), written)
+
+        def heard(request: Request, result: Fit | MatfitError | None) -> None:
+            if done is not None:
+                done(request.target, request.outputs.params if request.outputs else written, result)
+
+        return batch.fit_all(requests, self.model_path, fit_one, done=heard)
+
+    def _fit_request(
+        self, request: Request, notices: list[str], started: float, written: Callable[[str], None] | None = None
+    ) -> Fit:
+        """Returns the fit of a request made by `_request`: checked before the model loads, its outputs written, then
+        `written(the SHA-256 of the picture fitted)` called (`fit_all`'s journal)."""
+        from matfit.fit import fitfile
+
+        request.check(self.model_path)
+        model = self.model
+        renderer = self._renderer() if request.verified and not request.refine_steps else None  # refinement: here
+        try:
+            if request.outputs is None:
+                outcome, _ = fitfile.fit_file(request, model, renderer=renderer)
+                outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
+            else:
+                outcome = fitfile.run(request, model, renderer=renderer, started=started)
+                if written is not None:
+                    written(str(outcome.document["target_sha256"]))
+        except BaseException:
+            if self._pool is not None and not self._pool.healthy():  # a render process ended: the next fit starts new
+                self.close()
+            raise
         outcome = dataclasses.replace(outcome, notices=(*notices, *outcome.notices))
-        outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
-        return _fit_of(outcome, request.target)
+        return _fit_of(outcome, request.outputs.params if request.outputs else request.target)
 
     def _request(
         self,
@@ -432,6 +584,7 @@ class Fitter:
         answer: str,
         refine: int,
         seed: int,
+        outputs: Outputs | None = None,
     ) -> tuple[Request, list[str]]:
         """Returns (the request of one fit, notices of the pixels read here): a picture file's as `matfit fit` makes
         it, an array's with its pixels as the model's target."""
@@ -448,12 +601,15 @@ class Fitter:
                 "Material.from_array(values) of the 19 values in `matfit params` order",
                 field="init",
             )
+        if outputs is not None and not isinstance(outputs, Outputs):
+            raise OutputError(
+                f"outputs {_shown(outputs)} is no matfit.Outputs: give Outputs(params, ...) or None", field="output"
+            )
         seed = _whole("seed", seed, 0, params.MAX_SEED, FitError)
         initial = (
             None if init is None else "Material" if isinstance(init, Material) else _text(init),
             init.array() if isinstance(init, Material) else None,
         )
-        resolution = self.model.resolution
         target, pixels, digest, notices = ARRAY, None, None, list[str]()
         size: tuple[int, int] | None = None  # an array's (height, width)
         if isinstance(picture, str | os.PathLike):
@@ -467,18 +623,18 @@ class Fitter:
         else:
             linear_pixels, notices = _linear(picture, "picture", linear=linear)
             size = (linear_pixels.shape[0], linear_pixels.shape[1])
-            pixels, more = search.prepare_target(linear_pixels, resolution, "the picture array")
+            pixels, more = search.prepare_target(linear_pixels, self.model.resolution, "the picture array")
             digest = hashlib.sha256(np.ascontiguousarray(np.asarray(picture)).tobytes()).hexdigest()
             notices += more
         named_mask, weights = None, None
         if isinstance(mask, str | os.PathLike):
             named_mask = _text(mask)
             if size is not None:  # the mask of an array is sized by the array: read here
-                weights = search.prepare_mask(_read(named_mask, "mask"), size, resolution, named_mask)
+                weights = search.prepare_mask(_read(named_mask, "mask"), size, self.model.resolution, named_mask)
         elif mask is not None:
             named_mask = ARRAY
             mask_pixels = _linear(mask, "mask", linear=False)[0]
-            weights = search.prepare_mask(mask_pixels, size or _size(target), resolution, "array")
+            weights = search.prepare_mask(mask_pixels, size or _size(target), self.model.resolution, "array")
         request = Request(
             target,
             named_mask,
@@ -494,8 +650,20 @@ class Fitter:
             pixels=pixels,
             weights=weights,
             target_sha256=digest,
+            outputs=None if outputs is None else outputs._request(),
         )
         return request, notices
+
+
+def _paths(pictures: object) -> list[str | os.PathLike[str]]:
+    """Returns the picture paths of `fit_all`'s `pictures` (FitError for anything but an iterable of paths)."""
+    if isinstance(pictures, str | os.PathLike) or not isinstance(pictures, Iterable):
+        raise FitError(f"pictures {_shown(pictures)} is no list of paths: give a list of picture files", field="target")
+    listed = list(pictures)
+    for picture in listed:
+        if not isinstance(picture, str | os.PathLike):
+            raise FitError(f"picture {_shown(picture)} is no path: fit_all fits picture files", field="target")
+    return listed
 
 
 def _read(path: str, name: str) -> Image:
@@ -531,6 +699,7 @@ def fit(
     refine: int = 0,
     seed: int = 0,
     variant: str | None = None,
+    outputs: Outputs | None = None,
 ) -> Fit:
     """Returns the fit of the material whose render looks most like `picture`: what `matfit fit` finds.
 
@@ -539,8 +708,9 @@ def fit(
     kinds, white where the fit looks. `init`: a params.json or a `Material` that joins the candidates.
     `model`: a model folder or `load_model()`'s (None: the shipped one). `settings`, `verify`, `corrections`,
     `answer`, `refine`, `seed`, `variant`: `matfit fit`'s options of those names, with its defaults. A picture
-    file gives the parameters of `matfit fit PICTURE -o params.json` bit for bit. For many pictures, a `Fitter`
-    loads the model once.
+    file gives the parameters of `matfit fit PICTURE -o params.json` bit for bit. `outputs`: the files to write
+    (`Outputs`: checked before any work, written together once the fit is done), or None to write nothing. For many
+    pictures, a `Fitter` loads the model once.
     """
     with Fitter(model, verify=verify and not refine, variant=variant) as fitter:
         return fitter.fit(
@@ -554,6 +724,7 @@ def fit(
             answer=answer,
             refine=refine,
             seed=seed,
+            outputs=outputs,
         )
 
 
@@ -611,7 +782,7 @@ def render(material: Material, *, size: int = 256, spp: int = 256, seed: int = 0
             "Material.preset(name) or Material.from_dict(...)",
             field="material",
         )
-    size = _whole("size", size, dataset.MIN_RESOLUTION, 4096, RenderError)
+    size = _whole("size", size, dataset.MIN_RESOLUTION, MAX_SIZE, RenderError)
     spp = _whole("spp", spp, 1, dataset.MAX_SPP, RenderError)
     seed = _whole("seed", seed, 0, params.MAX_SEED, RenderError)
     key = (size, variant)

@@ -74,8 +74,8 @@ def test_import_matfit_loads_neither_jax_nor_mitsuba_and_names_only_its_api():
         [sys.executable, "-c", code], capture_output=True, text=True, check=True
     ).stdout.splitlines()
     assert loaded == "[]"
-    assert names == str(sorted(["Fit", "Fitter", "Material", "MatfitError", "Settings", "fit", "fit_sequence",
-                                "load_model", "render"]))  # fmt: skip
+    assert names == str(sorted(["Fit", "Fitter", "Material", "MatfitError", "Outputs", "Settings", "fit",
+                                "fit_sequence", "load_model", "render"]))  # fmt: skip
 
 
 def test_fit_and_render_are_functions_and_still_their_subpackages():
@@ -298,6 +298,78 @@ def test_a_mask_of_another_size_is_the_command_lines_error(fitter, tmp_path):
         fitter.fit(PICTURE, mask=np.ones((8, 8), np.float32))
 
 
+@pytest.mark.parametrize(
+    ("outputs", "options"),
+    [
+        ({"params": "p.txt"}, ["-o", "p.txt"]),
+        ({"params": "p.json", "report": "r.bmp"}, ["-o", "p.json", "--report", "r.bmp"]),
+        ({"params": "p.json", "report": "p.png", "render": "p.png"}, ["-o", "p.json", "--report", "p.png",
+                                                                     "--render", "p.png"]),
+        ({"params": "p.json", "mitsuba_xml": "m.txt"}, ["-o", "p.json", "--mitsuba-xml", "m.txt"]),
+        ({"params": "p.json", "render": str(PICTURE)}, ["-o", "p.json", "--render", str(PICTURE)]),
+    ],
+    ids=["params-suffix", "report-format", "named-twice", "xml-suffix", "overwrites-the-picture"],
+)  # fmt: skip
+def test_bad_outputs_are_refused_before_the_model_loads_with_the_command_lines_message(
+    tiny_model, tmp_path, monkeypatch, outputs, options
+):
+    monkeypatch.chdir(tmp_path)
+    expected = cli_error("fit", PICTURE, "--no-verify", "--model", tiny_model, *options)
+    with matfit.Fitter(tiny_model, verify=False) as fitter:
+        message = raised(lambda: fitter.fit(PICTURE, outputs=matfit.Outputs(**outputs)))
+        assert message.endswith(expected.split(" ", 1)[1])  # the command line names its option, `--report ...`
+        assert fitter._model is None  # refused before the model loaded
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_outputs_that_are_no_outputs_raise_matfit_errors_naming_them(fitter):
+    with pytest.raises(matfit.MatfitError, match=r"outputs 'p\.json' is no matfit\.Outputs: give Outputs\(params"):
+        fitter.fit(PICTURE, outputs="p.json")  # type: ignore[arg-type]
+    with pytest.raises(matfit.MatfitError, match="report 3 is no path: give a file's path or None"):
+        fitter.fit(PICTURE, outputs=matfit.Outputs(report=3))  # type: ignore[arg-type]
+    with pytest.raises(matfit.MatfitError, match="render_size 100000 is out of range: use 8 to 4096"):
+        fitter.fit(PICTURE, outputs=matfit.Outputs(render_size=100_000))
+    with pytest.raises(matfit.MatfitError, match=r"render_spp 2\.5 is not a whole number"):
+        fitter.fit(PICTURE, outputs=matfit.Outputs(render_spp=2.5))  # type: ignore[arg-type]
+
+
+def test_a_fit_with_outputs_writes_them_together_and_the_fit_is_named_by_its_params_json(fitter, tmp_path):
+    outputs = matfit.Outputs(tmp_path / "p.json", mitsuba_xml=tmp_path / "m.xml", blender=tmp_path / "b.py")
+    fit = fitter.fit(PICTURE, answer="best", outputs=outputs)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["b.py", "m.xml", "p.json"]
+    written = json.loads((tmp_path / "p.json").read_text())
+    assert written == fit.document and written["wall_time_s"] > 0
+    assert (tmp_path / "m.xml").read_text() == fit.material.to_mitsuba_xml()
+    assert fit.summary.startswith(f"{tmp_path / 'p.json'}: lbfgsb")
+
+
+def test_fit_all_writes_each_picture_goes_on_past_a_bad_one_and_a_second_call_fits_only_that(fitter, tmp_path):
+    shutil.copy(PICTURE, tmp_path / "a.png")
+    (tmp_path / "b.png").write_text("no picture")
+    pictures, folder = [tmp_path / "a.png", tmp_path / "b.png"], tmp_path / "fits"
+    heard: list[tuple[str, str, object]] = []
+
+    def done(picture: str, params_json: str, fit: object) -> None:
+        heard.append((os.path.basename(picture), os.path.basename(params_json), type(fit).__name__))
+
+    assert fitter.fit_all(pictures, folder, answer="best", done=done) == 1
+    assert heard == [("a.png", "a.params.json", "Fit"), ("b.png", "b.params.json", "ImageError")]
+    assert sorted(os.listdir(folder)) == [".matfit-fit-journal.json", "a.params.json"]
+    first = (folder / "a.params.json").read_bytes()
+    shutil.copy(PICTURE, tmp_path / "b.png")
+    heard.clear()
+    assert fitter.fit_all(pictures, folder, answer="best", done=done) == 0
+    assert heard == [("a.png", "a.params.json", "NoneType"), ("b.png", "b.params.json", "Fit")]
+    assert sorted(os.listdir(folder)) == ["a.params.json", "b.params.json"]  # the journal ends with the last
+    assert (folder / "a.params.json").read_bytes() == first  # kept, not fitted again
+    with pytest.raises(matfit.MatfitError, match="fit_all was given no pictures"):
+        fitter.fit_all([], folder)
+    with pytest.raises(matfit.MatfitError, match="is no list of paths"):
+        fitter.fit_all(str(PICTURE), folder)  # type: ignore[arg-type]
+    with pytest.raises(matfit.MatfitError, match="have one name"):
+        fitter.fit_all([PICTURE, tmp_path / "recoloured.png"], folder)
+
+
 def test_a_folder_that_is_no_model_is_the_command_lines_error(tmp_path):
     (tmp_path / "empty").mkdir()
     for folder in (tmp_path / "none", tmp_path / "empty"):
@@ -381,10 +453,14 @@ def page_code() -> str:
 def test_the_pages_examples_run_as_written(tmp_path):
     edits = tmp_path / "edits"
     edits.mkdir()
-    shutil.copy(PICTURE, edits / PICTURE.name)  # one picture: the folder's loop is the same for more
+    shutil.copy(PICTURE, edits / PICTURE.name)  # one picture: a folder of more is fitted alike
     before = set(os.listdir(tmp_path))
     run = subprocess.run([sys.executable, "-c", page_code()], cwd=tmp_path, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     written = set(os.listdir(tmp_path)) - before
-    assert written == {"params.json", "rougher.exr", "material.xml", "material.py"}, written
-    assert sorted(os.listdir(edits)) == ["recoloured.params.json", "recoloured.png"]
+    assert written == {"fits", "params.json", "rougher.exr", "material.xml", "material.py"}, written
+    assert sorted(os.listdir(edits)) == ["recoloured.png"]
+    assert sorted(os.listdir(tmp_path / "fits")) == ["recoloured.params.json", "recoloured.report.png"]  # no journal
+    assert "fits/recoloured.params.json: lbfgsb" in run.stdout
+    fitted = [json.loads((tmp_path / name).read_text()) for name in ("fits/recoloured.params.json", "params.json")]
+    assert without_timings(fitted[0]) == without_timings(fitted[1])  # fit_all's and fit's params.json alike

@@ -125,22 +125,51 @@ def test_outside_a_worker_fit_gets_the_model_path_back():
     assert worker.model("some/model") == "some/model"
 
 
-def test_a_fit_that_fails_keeps_the_warm_pool_unless_a_child_ended(monkeypatch):
-    from matfit.errors import ImageError
+def test_outside_a_worker_each_fit_gets_a_new_fitter_of_the_model_path_closed_after_it():
+    with worker.fitter("some/model", "scalar_rgb", verify=False) as made:
+        assert made.model_path == "some/model" and made._model is None and made._pool is None  # nothing loaded yet
+    with worker.fitter("some/model", "scalar_rgb", verify=True) as started:
+        assert started._pool is not None  # Mitsuba starts while the fit checks and loads
+    assert started._pool is None
+
+
+@pytest.fixture(scope="module")
+def small_model(tmp_path_factory):
+    """Returns a model folder of a random 32 px decoder and one random encoder: fits in a second, not well."""
+    import dataclasses
+
+    from matfit.model import architectures, weight_files
+    from tests.helpers import random_model
+
+    model = random_model()
+    folder = tmp_path_factory.mktemp("small-model")
+    weight_files.save(str(folder / "decoder.msgpack"), model.decoder)
+    description = architectures.architecture("encoder-8", model.resolution)
+    encoder = dataclasses.replace(model.encoders[8], description=description)
+    weight_files.save(str(folder / "encoder-8.msgpack"), encoder)
+    return str(folder)
+
+
+def test_a_fit_that_fails_keeps_the_warm_fitter_and_its_pool_unless_a_child_ended(monkeypatch, small_model, tmp_path):
+    from matfit.errors import ImageError, RenderError
 
     warm = worker.Warm()
     monkeypatch.setattr(worker, "_warm", warm)
+    picture = str(shipped.EXAMPLES / "recoloured.png")
     try:
-        with pytest.raises(ImageError), worker.pool("scalar_rgb") as first:
-            raise ImageError("the picture cannot be read")  # the picture's fault: the children are fine
-        assert warm.pools["scalar_rgb"] is first and first.healthy()
-        with worker.pool("scalar_rgb") as again:
-            assert again is first
-            first._children[0]._child.kill()
-            first._children[0]._child.wait(timeout=30)
-        assert not first.healthy()
-        with pytest.raises(ImageError), worker.pool("scalar_rgb") as same:
-            raise ImageError("a render failed")  # a child has ended: the pool is not kept for the next fit
-        assert same is first and "scalar_rgb" not in warm.pools
+        with worker.fitter(small_model, "scalar_rgb", verify=True) as first:
+            pool = first._pool
+            with pytest.raises(ImageError, match="not a file"):
+                first.fit(str(tmp_path / "missing.png"))  # the picture's fault: the children are fine
+        assert warm.fitters["scalar_rgb"] is first and first._pool is pool and pool.healthy()
+        with worker.fitter(small_model, "scalar_rgb", verify=True) as again:
+            assert again is first and again.model is next(iter(warm.models.values()))  # the model loaded once
+        for child in pool._children:
+            child._child.kill()
+            child._child.wait(timeout=30)
+        with worker.fitter(small_model, "scalar_rgb", verify=True) as same, pytest.raises(RenderError):
+            same.fit(picture)  # its renders fail: the children ended
+        assert same is first and first._pool is None  # ended: the next verified fit starts another pool
+        assert first.fit(picture, corrections=0).mitsuba_rmse is not None and first._pool.healthy()
     finally:
         warm.close()

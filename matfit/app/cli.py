@@ -8,7 +8,6 @@ Options that several commands take are declared once, in `options`.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import os
 import sys
@@ -18,6 +17,7 @@ from typing import Annotated
 
 import typer
 
+import matfit
 from matfit import documents, interrupt, params
 from matfit.app import console, options
 from matfit.fit.methods import Box, Method, Settings
@@ -222,55 +222,47 @@ def fit_command(
 ) -> None:
     """Find the shader parameters whose render looks most like the edited picture."""
     from matfit.app import worker
-    from matfit.render import engine as render_module
 
-    render_module.check_request(variant)
+    text = options.text
+    several = len(targets) > 1
+    written = str(output or ("." if several else "params.json"))
+    outputs = matfit.Outputs(written, text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
+    settings = Settings(
+        method,
+        evaluations,
+        box,
+        polish_steps=polish_steps,
+        starts=starts,
+        iterations=iterations,
+        narrow_after=narrow_after,
+    )
+    chosen = {
+        "mask": text(mask),
+        "init": text(init),
+        "settings": settings,
+        "verify": verify,
+        "corrections": corrections,
+        "answer": answer,
+        "refine": refine,
+        "seed": seed,
+        "outputs": outputs,
+    }
     # Verification's Mitsuba starts in child processes now, on the other cores, while this one imports JAX
-    # (in `matfit worker`, the pool and the model are its warm ones).
-    with worker.pool(variant) if verify and not refine else contextlib.nullcontext() as renderer:
-        from matfit.fit import batch, fitfile
-        from matfit.fit.request import Outputs, Request
-
-        text = options.text
-        several = len(targets) > 1
-        written = str(output or ("." if several else "params.json"))
-        outputs = Outputs(written, text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
-        settings = Settings(
-            method,
-            evaluations,
-            box,
-            polish_steps=polish_steps,
-            starts=starts,
-            iterations=iterations,
-            narrow_after=narrow_after,
-        )
-        request = Request(
-            str(targets[0]),
-            text(mask),
-            text(init),
-            seed=seed,
-            settings=settings,
-            verified=verify,
-            corrections=corrections,
-            refine_steps=refine,
-            variant=variant,
-            outputs=outputs,
-            answer=answer,
-        )
+    # (in `matfit worker`, the fitter is its warm one: the model loaded, the render pool running).
+    with worker.fitter(str(model_path), variant, verify=verify and not refine) as fitter:
         if several:
-            requests = batch.plan([str(target) for target in targets], written, request)
             interrupt.set_message(
                 "each picture fitted so far is written, the one in hand is not: run the same command to go on"
             )
-            failed = batch.fit_all(requests, worker.model(str(model_path)), renderer=renderer, done=report_fit)
-            log(f"fitted {len(requests) - failed} of {len(requests)} pictures into {written}")
+            failed = fitter.fit_all([str(target) for target in targets], written, **chosen, done=report_fit)
+            log(f"fitted {len(targets) - failed} of {len(targets)} pictures into {written}")
             if failed:
                 log("run the same command again to fit the pictures that failed; those fitted are kept")
                 raise typer.Exit(2)
             return
-        outcome = fitfile.run(request, worker.model(str(model_path)), renderer=renderer)
-    echo_lines(outcome.notices)
-    log(outcome.summary(written))
+        fitted = fitter.fit(str(targets[0]), **chosen)
+    echo_lines(fitted.notices)
+    log(fitted.summary)
 
 
 @command(name="worker", interrupted="the worker stopped; the fit in hand wrote nothing")
@@ -291,19 +283,17 @@ def worker_command() -> None:
     worker.serve(app, sys.stdin.buffer, replies, on_close=interrupt.exit_now)
 
 
-def report_fit(request, outcome) -> None:
+def report_fit(picture: str, params: str, fitted: matfit.Fit | matfit.MatfitError | None) -> None:
     """Prints what one picture of several came to: its notices and summary line, its error, or (None) that an earlier
     run of the same command fitted it."""
-    from matfit.errors import MatfitError
-
-    if outcome is None:
-        log(f"{request.outputs.params}: kept, fitted by an earlier run of this command (same picture and settings)")
+    if fitted is None:
+        log(f"{params}: kept, fitted by an earlier run of this command (same picture and settings)")
         return
-    if isinstance(outcome, MatfitError):
-        log(f"error: {request.target}: {outcome}")
+    if isinstance(fitted, matfit.MatfitError):
+        log(f"error: {picture}: {fitted}")
         return
-    echo_lines(outcome.notices)
-    log(outcome.summary(request.outputs.params))
+    echo_lines(fitted.notices)
+    log(fitted.summary)
 
 
 @command(interrupted="finished frames are saved; run the same command to resume")
@@ -480,9 +470,8 @@ def bench_fit(
 ) -> None:
     """Compare the fitting methods on reachable targets: neural and Mitsuba RMSE, warm fit time."""
     from matfit.app.bench import fits
-    from matfit.fit import fitfile
 
-    typer.echo(fits.fit_comparison(fitfile.load_model(str(model_path)), count, evaluations, log=log))
+    typer.echo(fits.fit_comparison(matfit.load_model(model_path), count, evaluations, log=log))
 
 
 @command
@@ -498,9 +487,9 @@ def bench_ranges(
     """Calibrate what the picture decides: true values inside the ranges, Mitsuba at their ends, the clean answer."""
     from matfit import images, shipped
     from matfit.app.bench import ranges
-    from matfit.fit import fitfile, search
+    from matfit.fit import search
 
-    model = fitfile.load_model(str(model_path))
+    model = matfit.load_model(model_path)
     pictures = []
     if examples:
         for path in sorted(shipped.EXAMPLES.glob("*.png")):
@@ -516,9 +505,8 @@ def bench_sequence(
 ) -> None:
     """Reinitialisation against per-frame fitting on a built-in sequence (a rising black level), as in the paper."""
     from matfit.app.bench import sequence
-    from matfit.fit import fitfile
 
-    typer.echo(sequence.sequence_benchmark(fitfile.load_model(str(model_path)), frames, options.text(frames_out)))
+    typer.echo(sequence.sequence_benchmark(matfit.load_model(model_path), frames, options.text(frames_out)))
 
 
 @command
@@ -529,9 +517,9 @@ def bench(
 ) -> None:
     """Reproduce the paper's evaluation tables on the built-in edit suite (quick version by default)."""
     from matfit.app.bench import suite_report
-    from matfit.fit import document, fitfile
+    from matfit.fit import document
 
-    model = fitfile.load_model(str(model_path))
+    model = matfit.load_model(model_path)
     label = document.display_path(str(model_path))
     typer.echo(suite_report.run_suite(model, label, str(out), full, log=log))
 
@@ -540,7 +528,7 @@ def bench(
 def bench_serve(model_path: options.Model = options.DEFAULT_MODEL, fits: options.Fits = 100) -> None:
     """Time the page: a saved file to its result, a slider to its preview; memory after 10 fits and after --fits."""
     from matfit.app.bench import page
-    from matfit.fit import document, fitfile
+    from matfit.fit import document
 
-    model = fitfile.load_model(str(model_path))
+    model = matfit.load_model(model_path)
     typer.echo(page.serve_speed(model, document.display_path(str(model_path)), fits, log=log))

@@ -12,6 +12,7 @@ from typing import Annotated, Literal
 import typer
 
 from matfit import params, shipped
+from matfit.api import MAX_SIZE
 from matfit.fit.methods import (
     CORRECTIONS,
     MAX_EVALUATIONS,
@@ -26,7 +27,6 @@ from matfit.model import dataset
 from matfit.render.engine import VARIANTS
 
 DEFAULT_MODEL = shipped.MODEL
-MAX_SIZE = 4096
 
 
 def seed(help: str):

@@ -5,17 +5,17 @@ It reads one JSON request a line on standard input, `{"id": 1, "arguments": ["fi
 ...]}`, runs exactly what `matfit fit` with those arguments runs (the same Typer app, in this process),
 and answers one JSON line on standard output, `{"id": 1, "exit": code, "output": what matfit fit printed}`.
 Its first line, before any request, is `{"ready": "matfit worker", "protocol": 1}`. Between requests it
-keeps (`Warm`) the models loaded (by path, as long as their files are unchanged) and one render `Pool`
-per variant, so only the first fit pays for loading them; a fit that fails keeps the pool while every child
-runs (the picture was at fault) and closes it otherwise (the next fit starts another). Only `fit` is run;
-anything else, or a line that is not such a request (not JSON, unknown fields, longer than MAX_REQUEST), is
-answered with exit code 2 and one `error:` line, never a crash. The worker ends when its standard input
-ends: between fits at once, during a fit at once too (`on_close`: the `matfit` process ends as Ctrl-C would
-end it).
+keeps (`Warm`) the model loaded (by path, as long as its files are unchanged) and one `matfit.Fitter` (and
+so one render pool) per variant, so only the first fit pays for loading them; a fit that fails keeps the
+pool while every child runs (the picture was at fault) and closes it otherwise (the next fit starts another).
+Only `fit` is run; anything else, or a line that is not such a request (not JSON, unknown fields, longer
+than MAX_REQUEST), is answered with exit code 2 and one `error:` line, never a crash. The worker ends when
+its standard input ends: between fits at once, during a fit at once too (`on_close`: the `matfit` process
+ends as Ctrl-C would end it).
 
-Nothing heavy is imported here: `fit_command` asks `pool` and `model` for its renderer and model, which
-are the worker's warm ones while `serve` runs, and a new pool (closed after the fit) and the path
-otherwise.
+Nothing heavy is imported here: `fit_command` asks `fitter` for the `matfit.Fitter` to fit with, the
+worker's warm one while `serve` runs (its model loaded, its render pool running), and a new one (closed
+after the fit) otherwise.
 """
 
 from __future__ import annotations
@@ -38,16 +38,17 @@ FIELDS = ("id", "arguments")
 
 
 class Warm:
-    """What the worker keeps between fits: models by (path, their files' sizes and times), render pools by variant."""
+    """What the worker keeps between fits: the model by (path, its files' sizes and times), a `matfit.Fitter` a
+    variant (its render pool running, its model the one kept)."""
 
     def __init__(self) -> None:
-        self.models: dict[tuple, Any] = {}
-        self.pools: dict[str | None, Any] = {}
+        self.models: dict[tuple[str, tuple[Any, ...]], Any] = {}
+        self.fitters: dict[str | None, Any] = {}
 
     def close(self) -> None:
-        for each in self.pools.values():
+        for each in self.fitters.values():
             each.close()
-        self.pools.clear()
+        self.fitters.clear()
         self.models.clear()
 
 
@@ -55,26 +56,24 @@ _warm: Warm | None = None  # set while `serve` runs
 
 
 @contextlib.contextmanager
-def pool(variant: str | None) -> Iterator[Any]:
-    """Yields a render `Pool` of `variant` for one `matfit fit`: the worker's warm one, kept after a fit that ends
-    well or fails with every child running (a picture that cannot be read), closed after one that lost a child;
-    outside a worker, a new pool closed after the fit."""
-    from matfit.render.process import Pool
+def fitter(path: str, variant: str | None, *, verify: bool) -> Iterator[Any]:
+    """Yields the `matfit.Fitter` of one `matfit fit` with the model folder `path`: in a worker, its warm one (the
+    model loaded once, the render pool kept between fits: `Fitter` ends a pool that lost a child and starts another);
+    outside a worker, or for a model that cannot be loaded (the fit says why, in its own order), a new fitter closed
+    after the fit, its render pool started now when `verify`."""
+    import matfit
 
-    if _warm is None:
-        with Pool(variant) as made:
+    loaded = model(path)
+    if _warm is None or isinstance(loaded, str):
+        with matfit.Fitter(path, verify=verify and _warm is None, variant=variant) as made:
             yield made
         return
-    warm = _warm.pools.get(variant)
-    if warm is None:
-        warm = _warm.pools[variant] = Pool(variant)
-    try:
-        yield warm
-    except BaseException:  # typer.Exit of a failed picture too: kept while every child runs, else started again
-        if not warm.healthy():
-            _warm.pools.pop(variant, None)
+    warm = _warm.fitters.get(variant)
+    if warm is None or warm.model is not loaded:
+        if warm is not None:
             warm.close()
-        raise
+        warm = _warm.fitters[variant] = matfit.Fitter(loaded, verify=verify, variant=variant)
+    yield warm
 
 
 def model(path: str) -> Any:
@@ -84,11 +83,11 @@ def model(path: str) -> Any:
         return path
     key = (path, _stamp(path))
     if key not in _warm.models:
+        import matfit
         from matfit.errors import MatfitError
-        from matfit.fit import fitfile
 
         try:
-            loaded = fitfile.load_model(path)
+            loaded = matfit.load_model(path)
         except (MatfitError, OSError):  # the fit itself says what is wrong, in its own order
             return path
         _warm.models = {key: loaded}  # one model at a time: a model's weights are hundreds of MB

@@ -1,8 +1,8 @@
 """Fitting several pictures in one process: the model loaded once, one render pool, one params.json per picture.
 
 `matfit fit a.png b.png c.png -o fits/` is `plan` (every output named and checked before any work) then
-`fit_all` (each picture fitted by `fitfile.run` with the same model and renderer, so only the first pays for
-loading them). A picture whose fit fails is reported and the others go on.
+`fit_all` (each picture fitted and written by `matfit.Fitter.fit_all`'s one fitter, the same model and render pool,
+so only the first pays for loading them). A picture whose fit fails is reported and the others go on.
 
 Stopped part way (Ctrl-C, kill -9, a machine that went down), the same command goes on where it stopped: the
 output folder holds a journal (`Journal`, JOURNAL) of the pictures fitted so far, each with its SHA-256, under a
@@ -16,22 +16,19 @@ run again fits only the pictures that failed (or changed).
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import os
 from collections.abc import Callable
 from dataclasses import replace
-from typing import TYPE_CHECKING
+from typing import TypeVar
 
 from matfit import documents, files
 from matfit.errors import MatfitError, OutputError
-from matfit.fit import fitfile
-from matfit.fit.outcome import Outcome
 from matfit.fit.request import Outputs, Request
-from matfit.model import models
 
-if TYPE_CHECKING:
-    from matfit.render.process import Pool, Process
+Fitted = TypeVar("Fitted")  # what fitting one picture returns (`matfit.Fit`)
 
 PARAMS_SUFFIX = ".params.json"  # a picture's params.json in the output folder: <stem>.params.json
 JOURNAL = ".matfit-fit-journal.json"  # in the output folder while a command of several pictures has some left
@@ -60,12 +57,12 @@ def plan(targets: list[str], folder: str, request: Request) -> list[Request]:
     `outputs_of` in `folder`); raises the one-line OutputError of a plan that cannot run, before any work: a folder
     that is a file or names a .json file, two pictures of one name, a picture given twice, and any request's own
     check (`Request.check`)."""
-    if len(targets) < 2:
-        raise ValueError("plan fits several pictures: fit one with fitfile.run")
+    if not targets:
+        raise ValueError("plan fits pictures: give at least one")
     if not os.path.isdir(folder) and (os.path.exists(folder) or folder.lower().endswith(".json")):
         kind = "is a file" if os.path.exists(folder) else "names one file"
         raise OutputError(
-            f"output {folder} {kind}, but {len(targets)} pictures each write a params.json: give -o a folder "
+            f"output {folder} {kind}, but {_pictures(len(targets))} each write a params.json: give -o a folder "
             f"(for example -o {os.path.splitext(folder)[0] if kind == 'names one file' else 'fits'}/)",
             field="output",
         )
@@ -102,6 +99,11 @@ def plan(targets: list[str], folder: str, request: Request) -> list[Request]:
     return requests
 
 
+def _pictures(count: int) -> str:
+    """Returns "1 picture" or "3 pictures"."""
+    return f"{count} picture" + ("" if count == 1 else "s")
+
+
 def _make_folder(folder: str) -> list[str]:
     """Creates `folder` and the folders missing on the way; returns those made, innermost first."""
     made, path = [], os.path.abspath(folder)
@@ -114,19 +116,20 @@ def _make_folder(folder: str) -> list[str]:
 
 def fit_all(
     requests: list[Request],
-    model: models.Model | str,
+    model_path: str,
+    fit_one: Callable[[Request, Callable[[str], None]], Fitted],
     *,
-    renderer: Process | Pool | None = None,
-    done: Callable[[Request, Outcome | MatfitError | None], None] | None = None,
+    done: Callable[[Request, Fitted | MatfitError | None], None] | None = None,
 ) -> int:
-    """Fits every request in turn with one model and `renderer` (a `process.Pool` or `Process`, or None) and writes
-    its outputs (`fitfile.run`); returns how many failed. `done(request, outcome or error or None)` hears of each
-    picture as it ends: None for one an earlier run of the same requests fitted already (`Journal`), kept as it is;
-    a MatfitError of one picture (a picture that cannot be read, a mask of another size) is handed to it and the
-    others go on; a failure of the system (OSError, a render process that ended) stops them all."""
-    model = fitfile.load_model(model) if isinstance(model, str) else model
+    """Fits every request in turn with `fit_one(request, written)`, which fits one, writes its outputs and calls
+    `written(the SHA-256 of the picture as it was fitted)` at once (`matfit.Fitter`'s: one model and render pool for
+    all), and returns its fit; returns how many failed. `done(request, fit or error or None)` hears of each picture as
+    it ends: None for one an earlier run of the same requests fitted already (`Journal`), kept as it is; a MatfitError
+    of one picture (a picture that cannot be read, a mask of another size) is handed to it and the others go on; a
+    failure of the system (OSError, a render process that ended) stops them all. `model_path`: the model folder, whose
+    files key the journal."""
     folder = os.path.dirname(requests[0].outputs.params) if requests and requests[0].outputs else "."
-    journal = Journal(folder, journal_key(requests, model.path))
+    journal = Journal(folder, journal_key(requests, model_path))
     failed = 0
     for request in requests:
         if journal.fitted(request):
@@ -134,9 +137,7 @@ def fit_all(
                 done(request, None)
             continue
         try:
-            fitted = fitfile.run(request, model, renderer=renderer)
-            journal.record(request, fitted.document["target_sha256"])  # the picture as it was fitted
-            outcome: Outcome | MatfitError = fitted
+            outcome: Fitted | MatfitError = fit_one(request, functools.partial(journal.record, request))
         except MatfitError as error:
             outcome = error
             failed += 1

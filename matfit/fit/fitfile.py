@@ -39,14 +39,21 @@ def read_target(
     return target, weights, [*loaded.notices, *notices]
 
 
-def run(request: Request, model: models.Model | str, *, renderer: Process | Pool | None = None) -> Outcome:
+def run(
+    request: Request,
+    model: models.Model | str,
+    *,
+    renderer: Process | Pool | None = None,
+    started: float | None = None,
+) -> Outcome:
     """Fits the picture of `request` with a model (or a model directory) and writes its outputs; returns what was found.
 
     `renderer`: a `process.Pool` (or `Process`) to verify with, started early by the caller (`fit_file`), or None. Every
     input is read and every output path checked before the fit (`Request.check`); the outputs are written
-    together at the end (`files.together`), so a failure leaves none of them.
+    together at the end (`files.together`), so a failure leaves none of them. `started`: the `time.perf_counter()`
+    params.json's wall time counts from (None: now).
     """
-    started = time.perf_counter()
+    started = time.perf_counter() if started is None else started
     outputs = request.outputs
     if outputs is None:
         raise ValueError("run writes the request's outputs: name them (Outputs), or call fit_file")

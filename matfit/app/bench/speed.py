@@ -89,13 +89,11 @@ def figures(times: list[float]) -> str:
 def fit_speed(model_path: str, repeats: int, *, cold: bool = True, pictures: list[str] | None = None) -> str:
     """Returns Markdown tables of a default fit's speed on `pictures` (default: the shipped examples): the cold whole
     process (`matfit fit`, median of `repeats` after one run not timed), and a warm process's fit of the same picture
-    again and again (`fitfile.run` with the model and a `process.Pool` kept, as the page and `matfit fit a b c` do):
+    again and again (one `matfit.Fitter`'s, its model and render pool kept, as the page and `matfit fit a b c` do):
     seconds per stage, renders made, samples rendered and the cores' use (CPU seconds of this process and its render
     children over the wall seconds)."""
+    import matfit
     from matfit import shipped
-    from matfit.fit import fitfile
-    from matfit.fit.request import Outputs, Request
-    from matfit.render.process import Pool
 
     pictures = pictures or sorted(str(path) for path in shipped.EXAMPLES.glob("*.png"))
     lines = []
@@ -113,26 +111,26 @@ def fit_speed(model_path: str, repeats: int, *, cold: bool = True, pictures: lis
             "clean answer | renders | samples (M) | cores busy |",
             "|---|---|---|---|---|---|---|---|---|",
         ]
-        model = fitfile.load_model(model_path)
-        with Pool() as pool:
+        with matfit.Fitter(model_path) as fitter:
+            pool = fitter._renderer()
+            resolution = fitter.model.resolution
             pids = [os.getpid(), *(child._child.pid for child in pool._children)]
             for picture in pictures:
-                request = Request(picture, outputs=Outputs(os.path.join(folder, "warm.json")))
-                fitfile.run(request, model, renderer=pool)  # compiles, loads and fills what a warm process holds
+                outputs = matfit.Outputs(os.path.join(folder, "warm.json"))
+                fitter.fit(picture, outputs=outputs)  # compiles, loads and fills what a warm process holds
                 rows: dict[str, list[float]] = {}
                 for _ in range(repeats):
                     renders, samples = pool.renders, pool.samples
                     started, cpu = time.perf_counter(), cpu_seconds(pids)
-                    outcome = fitfile.run(request, model, renderer=pool)
+                    fitted = fitter.fit(picture, outputs=outputs)
                     wall = time.perf_counter() - started
-                    verified, cleaned = outcome.verified, outcome.cleaned
                     stages = {
                         "fit": wall,
-                        "search": outcome.result.seconds,
-                        "verification": verified.seconds if verified else 0.0,
-                        "clean": cleaned.seconds if cleaned else 0.0,
+                        "search": float(fitted.document["fit_seconds"]),
+                        "verification": float(fitted.verification.get("seconds", 0.0)),
+                        "clean": float(fitted.answer.get("seconds", 0.0)),
                         "renders": pool.renders - renders,
-                        "samples": (pool.samples - samples) * model.resolution**2 / 1e6,
+                        "samples": (pool.samples - samples) * resolution**2 / 1e6,
                         "cores": (cpu_seconds(pids) - cpu) / wall,
                     }
                     stages["rest"] = wall - stages["search"] - stages["verification"] - stages["clean"]

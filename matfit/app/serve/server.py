@@ -8,11 +8,12 @@ import os
 import threading
 import time
 
+import matfit
 from matfit.app.serve.routes import create_app
 from matfit.app.serve.studio import Studio
 from matfit.app.serve.watch import check_watch
 from matfit.errors import OutputError
-from matfit.fit import document, fitfile
+from matfit.fit import document
 
 
 def check_listen(host: str, port: int) -> None:
@@ -70,7 +71,7 @@ def serve(
     check_watch(watch)
     check_listen(host, port)
     check_request(variant)
-    model = fitfile.load_model(model_path)
+    model = matfit.load_model(model_path)
     studio = Studio(model, document.display_path(model_path), variant=variant)
     studio.worker.submit(studio.warm_up).result()
     app = create_app(studio, watch)
