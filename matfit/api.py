@@ -535,8 +535,8 @@ class Fitter:
         request, _ = self._request(
             targets[0], mask, init, settings, False, verified, corrections, answer, refine, seed, template
         )
-        requests = batch.plan(targets, written, request)
-        self.model  # noqa: B018  # loaded now, after the checks: a model folder that is not one is said before any fit
+        # the model loaded after the checks (a folder that is no model is said before any fit, and leaves no folder)
+        requests = batch.plan(targets, written, request, then=lambda: self.model)
 
         def fit_one(request: Request, written: Callable[[str], None]) -> Fit:
             return self._fit_request(request, [], time.perf_counter(), written)

@@ -368,6 +368,12 @@ def test_fit_all_writes_each_picture_goes_on_past_a_bad_one_and_a_second_call_fi
         fitter.fit_all(str(PICTURE), folder)  # type: ignore[arg-type]
     with pytest.raises(matfit.MatfitError, match="have one name"):
         fitter.fit_all([PICTURE, tmp_path / "recoloured.png"], folder)
+    with (
+        matfit.Fitter(tmp_path / "no-model", verify=False) as nothing,
+        pytest.raises(matfit.MatfitError, match="no-model"),
+    ):
+        nothing.fit_all(pictures, tmp_path / "new" / "fits")  # refused after the checks, before any fit
+    assert not (tmp_path / "new").exists()  # the folders made for the checks are gone
 
 
 def test_a_folder_that_is_no_model_is_the_command_lines_error(tmp_path):

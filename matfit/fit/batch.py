@@ -52,11 +52,14 @@ def outputs_of(target: str, folder: str, outputs: Outputs) -> Outputs:
     )
 
 
-def plan(targets: list[str], folder: str, request: Request) -> list[Request]:
+def plan(
+    targets: list[str], folder: str, request: Request, *, then: Callable[[], object] | None = None
+) -> list[Request]:
     """Returns one request a picture of `targets`, each like `request` but for its picture and its outputs (named by
     `outputs_of` in `folder`); raises the one-line OutputError of a plan that cannot run, before any work: a folder
     that is a file or names a .json file, two pictures of one name, a picture given twice, and any request's own
-    check (`Request.check`)."""
+    check (`Request.check`). `then()` runs after the checks (the model's load): whatever any of them raises, the
+    folders made for the plan are removed again."""
     if not targets:
         raise ValueError("plan fits pictures: give at least one")
     if not os.path.isdir(folder) and (os.path.exists(folder) or folder.lower().endswith(".json")):
@@ -91,6 +94,8 @@ def plan(targets: list[str], folder: str, request: Request) -> list[Request]:
     try:
         for each in requests:
             each.check()
+        if then is not None:
+            then()
     except BaseException:
         for path in made:  # the folders made for the check, innermost first: a refused plan leaves nothing
             with contextlib.suppress(OSError):
