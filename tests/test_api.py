@@ -410,6 +410,34 @@ def test_a_sequence_is_fitted_frame_by_frame(fitter):
     assert all(fit.mitsuba_rmse is None and fit.verification == {} for fit in fits)
 
 
+def test_a_sequence_written_to_a_folder_is_matfit_sequences_and_a_second_call_reads_it_back(fitter, tmp_path):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for name in ("frame_2.png", "frame_10.png"):  # natural order: frame_2 first
+        shutil.copy(PICTURE, frames / name)
+    settings = matfit.Settings(evaluations=30)
+    out = tmp_path / "out"
+    fits = matfit.fit_sequence(frames, model=fitter.model, settings=settings, out=out)
+    assert sorted(os.listdir(out)) == ["frame_10.json", "frame_2.json", "preview.png", "summary.md"]
+    assert [fit.document["sequence"]["index"] for fit in fits] == [0, 1]
+    assert [fit.to_json() for fit in fits] == [(out / name).read_text() for name in ("frame_2.json", "frame_10.json")]
+    in_memory = matfit.fit_sequence(
+        [frames / "frame_2.png", frames / "frame_10.png"], model=fitter.model, settings=settings
+    )
+    assert [fit.material for fit in fits] == [fit.material for fit in in_memory]  # one search, either way
+    assert fits[1].start == "previous frame" and fits[1].summary.startswith(f"{out / 'frame_10.json'}: lbfgsb")
+    written = {name: (out / name).read_bytes() for name in os.listdir(out)}
+    again = matfit.fit_sequence(frames, model=fitter.model, settings=settings, out=out)  # read back, not fitted
+    assert [fit.material for fit in again] == [fit.material for fit in fits]
+    assert [fit.evaluations for fit in again] == [fit.evaluations for fit in fits]
+    np.testing.assert_allclose(again[1].image, fits[1].image, atol=1e-6)  # decoded again from the answer read back
+    assert {name: (out / name).read_bytes() for name in os.listdir(out)} == written
+    with pytest.raises(matfit.MatfitError, match="with out=, give the folder that holds the frames"):
+        matfit.fit_sequence([PICTURE], model=fitter.model, out=out)
+    with pytest.raises(matfit.MatfitError, match="give out= too"):
+        matfit.fit_sequence(frames, model=fitter.model)
+
+
 @pytest.mark.slow
 def test_fit_of_a_file_gives_the_command_lines_params_json_bit_for_bit(tiny_model, tmp_path, monkeypatch):
     # The defaults of both: verification on a render Pool, two rounds of correction, the clean answer.

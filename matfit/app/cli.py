@@ -316,25 +316,22 @@ def sequence(
 ) -> None:
     """Fit every frame of an edited sequence, reusing each optimum for the next frame; resumable."""
     from matfit.app.progress import Progress
-    from matfit.fit import sequence as sequence_module
 
     settings = Settings(method=method, evaluations=evaluations)
-    rendered = (size, spp) if render else None
     with Progress("fitting frames") as progress:
-        counter = progress.counter("frames/s")
-        results = sequence_module.run(
-            str(model_path),
-            str(frames),
-            out=str(out),
+        fits = matfit.fit_sequence(
+            frames,
+            model=model_path,
             settings=settings,
             reinit=reinit,
-            render=rendered,
-            progress=counter,
-            init=options.text(init),
+            init=init,
+            out=out,
+            render=(size, spp) if render else None,
+            progress=progress.counter("frames/s"),
         )
-    echo_lines(f"{os.path.basename(frame.path)}: {frame.note}" for frame in results if frame.note)
-    typer.echo(sequence_module.summary_table(results))
-    log(f"{out}: {len(results)} frames, RMSE sum {sum(f.rmse for f in results):.2f}")
+    echo_lines(f"{os.path.basename(fit.document['sequence']['frame'])}: {note}" for fit in fits for note in fit.notices)
+    typer.echo((out / "summary.md").read_text())  # the table the command wrote there
+    log(f"{out}: {len(fits)} frames, RMSE sum {sum(fit.neural_rmse for fit in fits):.2f}")
 
 
 @command(interrupted="finished epochs are saved in the model's checkpoints/; run the same command to resume")

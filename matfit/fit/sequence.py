@@ -30,6 +30,7 @@ import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -66,6 +67,15 @@ def list_frames(directory: str) -> list[str]:
             f"{directory} holds no frames ({', '.join(FRAME_EXTENSIONS)}): export the frames there first"
         )
     return [os.path.join(directory, name) for name in sorted(names, key=natural_key)]
+
+
+class Loader(Protocol):
+    """What loads a model when it is first asked for (`matfit.Fitter`): its folder, and the model."""
+
+    model_path: str
+
+    @property
+    def model(self) -> models.Model: ...
 
 
 @dataclass
@@ -327,7 +337,7 @@ def preview(model: models.Model, results: list[Frame], *, columns: int = 12, til
 
 
 def run(
-    model: models.Model | str,
+    model: models.Model | str | Loader,
     frames_path: str,
     *,
     out: str,
@@ -336,27 +346,34 @@ def run(
     render: tuple[int, int] | None = None,
     progress: Callable[[int, int, float], None] | None = None,
     init: str | None = None,
+    init_values: np.ndarray | None = None,
 ) -> list[Frame]:
     """Fits a folder of frames into `out`: a JSON per frame, summary.md and preview.png; returns the frames' results.
 
-    `model`: a model, or a model directory (loaded once every input and output was checked).
+    `model`: a model, a model directory, or a `Loader` of one (`matfit.Fitter`); a directory's model is loaded, and
+    a loader's asked for, once every input and output was checked.
 
     `render` = (size, spp) also renders every fitted frame with Mitsuba (`<frame>-render.png`).
     `progress(done, total, frames per second)` follows the fits; `init` is a params.json of the
-    source material, a candidate of the first frame. Finished frames are read back, so running it
-    again after an interruption resumes.
+    source material, a candidate of the first frame (`init_values`: its 19 physical values, read already).
+    Finished frames are read back, so running it again after an interruption resumes.
     """
     frames = list_frames(frames_path)
-    start = params.to_unit(params.read_file(init)) if init is not None else None
+    values = init_values if init_values is not None else params.read_file(init) if init is not None else None
+    start = params.to_unit(values) if values is not None else None
     parent = os.path.dirname(os.path.abspath(out))
     if not os.path.isdir(parent) and not os.path.exists(parent):
         raise SequenceError(
             f"output folder {out} cannot be created: {parent} does not exist (create it first)", field="out"
         )
-    model_path = model if isinstance(model, str) else model.path
+    model_path = (
+        model if isinstance(model, str) else model.path if isinstance(model, models.Model) else model.model_path
+    )
     check_outputs(frames, out, rendered=render is not None, init=init, model=model_path)
     if isinstance(model, str):
         model = fitfile.load_model(model)
+    elif not isinstance(model, models.Model):
+        model = model.model
     started = time.perf_counter()
 
     def report(done: int, total: int, frame: Frame) -> None:
