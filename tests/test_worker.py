@@ -173,3 +173,23 @@ def test_a_fit_that_fails_keeps_the_warm_fitter_and_its_pool_unless_a_child_ende
         assert first.fit(picture, corrections=0).mitsuba_rmse is not None and first._pool.healthy()
     finally:
         warm.close()
+
+
+def test_a_changed_model_ends_every_fitter_of_the_one_before(monkeypatch, small_model):
+    import os
+    from pathlib import Path
+
+    warm = worker.Warm()
+    monkeypatch.setattr(worker, "_warm", warm)
+    try:
+        with worker.fitter(small_model, "scalar_rgb", verify=False) as first:
+            pass
+        with worker.fitter(small_model, None, verify=False) as other:
+            assert other.model is first.model  # loaded once for every variant
+        later = time.time_ns() + 10**9
+        os.utime(Path(small_model) / "decoder.msgpack", ns=(later, later))  # trained again: its files changed
+        with worker.fitter(small_model, "scalar_rgb", verify=False) as second:
+            assert second is not first and second.model is not first.model
+        assert list(warm.fitters) == ["scalar_rgb"] and len(warm.models) == 1  # the old model is held by nothing
+    finally:
+        warm.close()

@@ -68,10 +68,12 @@ def fitter(path: str, variant: str | None, *, verify: bool) -> Iterator[Any]:
         with matfit.Fitter(path, verify=verify and _warm is None, variant=variant) as made:
             yield made
         return
+    for kept, each in list(_warm.fitters.items()):  # one model at a time: a fitter of another is ended
+        if each.model is not loaded:
+            each.close()
+            del _warm.fitters[kept]
     warm = _warm.fitters.get(variant)
-    if warm is None or warm.model is not loaded:
-        if warm is not None:
-            warm.close()
+    if warm is None:
         warm = _warm.fitters[variant] = matfit.Fitter(loaded, verify=verify, variant=variant)
     yield warm
 
