@@ -19,6 +19,7 @@ import importlib
 import os
 import time
 import types
+import warnings
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -877,6 +878,8 @@ def render(material: Material, *, size: int = 256, spp: int = 256, seed: int = 0
     """Returns the material rendered by Mitsuba in the test scene: linear RGB float32 (size, size, 3).
 
     `seed` makes the noise: the same arguments give the same picture. The scene is loaded once a size and kept.
+    Where no libLLVM >= 19 is found (and no GPU), it renders with the slower scalar_rgb and warns once
+    (RuntimeWarning, the notice `matfit render` prints).
     `images.srgb_encode` (or `fit(..., linear=True)`) takes it from there.
     """
     from matfit.model import dataset
@@ -893,7 +896,10 @@ def render(material: Material, *, size: int = 256, spp: int = 256, seed: int = 0
     seed = _whole("seed", seed, 0, params.MAX_SEED, RenderError)
     key = (size, variant)
     if key not in _renderers:
-        _renderers[key] = engine.Renderer(size, spp, variant)
+        made = engine.Renderer(size, spp, variant)
+        if made.notice:  # the slower scalar_rgb: said once a scene, as `matfit render` says it
+            warnings.warn(made.notice.removeprefix("notice: "), RuntimeWarning, stacklevel=2)
+        _renderers[key] = made
     return _renderers[key].render(material.array(), seed=seed, spp=spp)
 
 

@@ -28,6 +28,10 @@ ROOT = Path(__file__).resolve().parent.parent
 PAGE = ROOT / "docs" / "api.md"
 PICTURE = shipped.EXAMPLES / "recoloured.png"
 TIMINGS = ("fit_seconds", "wall_time_s", "seconds")
+NO_LLVM = (
+    "no libLLVM >= 19 found, rendering with the slower scalar_rgb variant (install Debian's libllvm19 or set "
+    "DRJIT_LIBLLVM_PATH for llvm_ad_rgb)"
+)
 
 
 def without_timings(document: object) -> object:
@@ -128,6 +132,26 @@ def test_render_checks_its_arguments_before_rendering():
         matfit.render(matfit.Material(), seed="0")  # type: ignore[arg-type]
     with pytest.raises(matfit.MatfitError, match=r"render takes a matfit.Material, got str:"):
         matfit.render("gold")  # type: ignore[arg-type]
+
+
+def test_render_warns_once_where_it_falls_back_to_scalar_rgb():
+    # a new process: one Mitsuba variant a process. The machine is made one without libLLVM and GPU.
+    code = (
+        "import json, os, warnings, matfit\n"
+        "from matfit.render import engine\n"
+        "engine.find_libllvm = lambda: None\n"
+        "engine.cuda_problem = lambda: 'no GPU here'\n"
+        "os.environ['DRJIT_LIBLLVM_PATH'] = ''\n"
+        "with warnings.catch_warnings(record=True) as caught:\n"
+        "    warnings.simplefilter('always')\n"
+        "    gold = matfit.Material.preset('gold')\n"
+        "    shapes = [matfit.render(gold, size=16, spp=1, seed=seed).shape for seed in (0, 1)]\n"
+        "print(json.dumps([[w.category.__name__, str(w.message)] for w in caught]), shapes)\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    warned, shapes = run.stdout.rstrip().split("] ", 1)
+    assert json.loads(warned + "]") == [["RuntimeWarning", NO_LLVM]]  # once for the scene, not each render
+    assert shapes == "[(16, 16, 3), (16, 16, 3)]"
 
 
 def test_render_is_the_renderers_picture(renderer):
