@@ -592,16 +592,7 @@ class Fitter:
         from matfit.fit import search
         from matfit.fit.request import Request
 
-        if settings is not None and not isinstance(settings, Settings):
-            raise FitError(
-                f"settings {_shown(settings)} is no matfit.Settings: give Settings(...) or None", field="settings"
-            )
-        if init is not None and not isinstance(init, str | os.PathLike | Material):
-            raise ParameterError(
-                f"init {_shown(init)} is no params.json path or matfit.Material: give one, or "
-                "Material.from_array(values) of the 19 values in `matfit params` order",
-                field="init",
-            )
+        _check_choices(settings, init)
         if outputs is not None and not isinstance(outputs, Outputs):
             raise OutputError(
                 f"outputs {_shown(outputs)} is no matfit.Outputs: give Outputs(params, ...) or None", field="output"
@@ -654,6 +645,20 @@ class Fitter:
             outputs=None if outputs is None else outputs._request(),
         )
         return request, notices
+
+
+def _check_choices(settings: object, init: object) -> None:
+    """Raises the MatfitError of `settings` that is no `Settings` or `init` that is no path or `Material`."""
+    if settings is not None and not isinstance(settings, Settings):
+        raise FitError(
+            f"settings {_shown(settings)} is no matfit.Settings: give Settings(...) or None", field="settings"
+        )
+    if init is not None and not isinstance(init, str | os.PathLike | Material):
+        raise ParameterError(
+            f"init {_shown(init)} is no params.json path or matfit.Material: give one, or "
+            "Material.from_array(values) of the 19 values in `matfit params` order",
+            field="init",
+        )
 
 
 def _paths(pictures: object) -> list[str | os.PathLike[str]]:
@@ -755,16 +760,7 @@ def fit_sequence(
     """
     if not isinstance(reinit, bool):
         raise FitError(f"reinit {_shown(reinit)} is not True or False", field="reinit")
-    if settings is not None and not isinstance(settings, Settings):
-        raise FitError(
-            f"settings {_shown(settings)} is no matfit.Settings: give Settings(...) or None", field="settings"
-        )
-    if init is not None and not isinstance(init, str | os.PathLike | Material):
-        raise ParameterError(
-            f"init {_shown(init)} is no params.json path or matfit.Material: give one, or "
-            "Material.from_array(values) of the 19 values in `matfit params` order",
-            field="init",
-        )
+    _check_choices(settings, init)
     settings = settings or Settings(Method.hybrid, 100)
     if out is not None:
         return _written_sequence(frames, model, settings, reinit, init, out, render, progress, linear)
