@@ -555,15 +555,13 @@ class Fitter:
         `written(the SHA-256 of the picture fitted)` called (`fit_all`'s journal)."""
         from matfit.fit import fitfile
 
-        request.check(self.model_path)
-        model = self.model
         renderer = self._renderer() if request.verified and not request.refine_steps else None  # refinement: here
-        try:
+        try:  # fitfile checks the request, then asks this fitter for its model (a folder's loads at the first fit)
             if request.outputs is None:
-                outcome, _ = fitfile.fit_file(request, model, renderer=renderer)
+                outcome, _ = fitfile.fit_file(request, self, renderer=renderer)
                 outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
             else:
-                outcome = fitfile.run(request, model, renderer=renderer, started=started)
+                outcome = fitfile.run(request, self, renderer=renderer, started=started)
                 if written is not None:
                     written(str(outcome.document["target_sha256"]))
         except BaseException:

@@ -367,6 +367,17 @@ def test_a_fit_with_outputs_writes_them_together_and_the_fit_is_named_by_its_par
     assert fit.summary.startswith(f"{tmp_path / 'p.json'}: lbfgsb")
 
 
+def test_a_fit_checks_its_request_once(fitter, tmp_path, monkeypatch):
+    from matfit.fit.request import Request
+
+    checked = []
+    check = Request.check
+    monkeypatch.setattr(Request, "check", lambda self, model=None: (checked.append(model), check(self, model))[1])
+    fitter.fit(PICTURE, answer="best")
+    fitter.fit(PICTURE, answer="best", outputs=matfit.Outputs(tmp_path / "p.json"))
+    assert checked == [fitter.model_path, fitter.model_path]  # each fit's outputs probed once, not twice
+
+
 def test_fit_all_writes_each_picture_goes_on_past_a_bad_one_and_a_second_call_fits_only_that(fitter, tmp_path):
     shutil.copy(PICTURE, tmp_path / "a.png")
     (tmp_path / "b.png").write_text("no picture")

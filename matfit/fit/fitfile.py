@@ -29,6 +29,20 @@ def load_model(path: str) -> models.Model:
     return models.load_model(path)
 
 
+def model_path(model: models.Model | str | models.Loader) -> str:
+    """Returns the folder of a model, a model directory or a `models.Loader` (nothing is loaded)."""
+    if isinstance(model, str):
+        return model
+    return model.path if isinstance(model, models.Model) else model.model_path
+
+
+def loaded(model: models.Model | str | models.Loader) -> models.Model:
+    """Returns the model itself: a directory's loaded (`load_model`), a loader's asked for."""
+    if isinstance(model, str):
+        return load_model(model)
+    return model if isinstance(model, models.Model) else model.model
+
+
 def read_target(
     path: str, resolution: int, *, mask: str | None = None
 ) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
@@ -41,12 +55,13 @@ def read_target(
 
 def run(
     request: Request,
-    model: models.Model | str,
+    model: models.Model | str | models.Loader,
     *,
     renderer: Process | Pool | None = None,
     started: float | None = None,
 ) -> Outcome:
-    """Fits the picture of `request` with a model (or a model directory) and writes its outputs; returns what was found.
+    """Fits the picture of `request` with a model (a model directory, or a `models.Loader`: loaded once the request
+    was checked) and writes its outputs; returns what was found.
 
     `renderer`: a `process.Pool` (or `Process`) to verify with, started early by the caller (`fit_file`), or None. Every
     input is read and every output path checked before the fit (`Request.check`); the outputs are written
@@ -57,7 +72,7 @@ def run(
     outputs = request.outputs
     if outputs is None:
         raise ValueError("run writes the request's outputs: name them (Outputs), or call fit_file")
-    request.check(model if isinstance(model, str) else model.path)
+    request.check(model_path(model))
     outcome, used = _fit_checked(request, model, renderer)
     with files.together() as batch:
         write_outputs(outcome, outputs, batch, renderer=used)
@@ -67,7 +82,10 @@ def run(
 
 
 def fit_file(
-    request: Request, model: models.Model | str, *, renderer: render.Renderer | Process | Pool | None = None
+    request: Request,
+    model: models.Model | str | models.Loader,
+    *,
+    renderer: render.Renderer | Process | Pool | None = None,
 ) -> tuple[Outcome, render.Renderer | Process | Pool | None]:
     """Returns (what a fit of the picture of `request` found, with its params.json document; the renderer used).
 
@@ -77,18 +95,19 @@ def fit_file(
     `process.Background` with the request's variant is made when verification, refinement or a render
     output needs one). Refinement differentiates with the renderer's variant.
     """
-    request.check(model if isinstance(model, str) else model.path)
+    request.check(model_path(model))
     return _fit_checked(request, model, renderer)
 
 
 def _fit_checked(
-    request: Request, model: models.Model | str, renderer: render.Renderer | Process | Pool | None
+    request: Request,
+    model: models.Model | str | models.Loader,
+    renderer: render.Renderer | Process | Pool | None,
 ) -> tuple[Outcome, render.Renderer | Process | Pool | None]:
     """Returns `fit_file`'s answer to a checked request: its inputs read, then the stages (`stages.fit_stages`)."""
-    model_path = model if isinstance(model, str) else model.path
-    model = load_model(model) if isinstance(model, str) else model
+    folder, model = model_path(model), loaded(model)
     target, weights, notices = request_target(request, model.resolution)
-    return stages.fit_stages(request, model, model_path, target, weights, notices, renderer)
+    return stages.fit_stages(request, model, folder, target, weights, notices, renderer)
 
 
 def fit_neural(request: Request, model: models.Model) -> search.Result:

@@ -30,7 +30,6 @@ import re
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
 
 import numpy as np
 
@@ -67,15 +66,6 @@ def list_frames(directory: str) -> list[str]:
             f"{directory} holds no frames ({', '.join(FRAME_EXTENSIONS)}): export the frames there first"
         )
     return [os.path.join(directory, name) for name in sorted(names, key=natural_key)]
-
-
-class Loader(Protocol):
-    """What loads a model when it is first asked for (`matfit.Fitter`): its folder, and the model."""
-
-    model_path: str
-
-    @property
-    def model(self) -> models.Model: ...
 
 
 @dataclass
@@ -337,7 +327,7 @@ def preview(model: models.Model, results: list[Frame], *, columns: int = 12, til
 
 
 def run(
-    model: models.Model | str | Loader,
+    model: models.Model | str | models.Loader,
     frames_path: str,
     *,
     out: str,
@@ -350,8 +340,8 @@ def run(
 ) -> list[Frame]:
     """Fits a folder of frames into `out`: a JSON per frame, summary.md and preview.png; returns the frames' results.
 
-    `model`: a model, a model directory, or a `Loader` of one (`matfit.Fitter`); a directory's model is loaded, and
-    a loader's asked for, once every input and output was checked.
+    `model`: a model, a model directory, or a `models.Loader` of one (`matfit.Fitter`); a directory's model is
+    loaded, and a loader's asked for, once every input and output was checked.
 
     `render` = (size, spp) also renders every fitted frame with Mitsuba (`<frame>-render.png`).
     `progress(done, total, frames per second)` follows the fits; `init` is a params.json of the
@@ -366,14 +356,8 @@ def run(
         raise SequenceError(
             f"output folder {out} cannot be created: {parent} does not exist (create it first)", field="out"
         )
-    model_path = (
-        model if isinstance(model, str) else model.path if isinstance(model, models.Model) else model.model_path
-    )
-    check_outputs(frames, out, rendered=render is not None, init=init, model=model_path)
-    if isinstance(model, str):
-        model = fitfile.load_model(model)
-    elif not isinstance(model, models.Model):
-        model = model.model
+    check_outputs(frames, out, rendered=render is not None, init=init, model=fitfile.model_path(model))
+    model = fitfile.loaded(model)
     started = time.perf_counter()
 
     def report(done: int, total: int, frame: Frame) -> None:

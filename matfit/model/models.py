@@ -12,7 +12,7 @@ import dataclasses
 import hashlib
 import os
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import flax.linen as nn
 import jax
@@ -91,6 +91,15 @@ class Model:
         return apply_in_batches(
             self.decoder.module, self.decoder.variables, np.asarray(unit, np.float32).reshape(-1, params.COUNT)
         )
+
+
+class Loader(Protocol):
+    """What loads a model when it is first asked for (`matfit.Fitter`): its folder, and the model."""
+
+    model_path: str
+
+    @property
+    def model(self) -> Model: ...
 
 
 def load_model(directory: str) -> Model:
