@@ -526,25 +526,25 @@ class Fitter:
         targets = [_text(picture) for picture in _paths(pictures)]
         if not isinstance(folder, str | os.PathLike):
             raise OutputError(f"folder {_shown(folder)} is no path: give the folder to write into", field="output")
-        written = os.fspath(folder)
+        into = os.fspath(folder)
         if not targets:
             raise FitError("fit_all was given no pictures: give a list of picture files", field="target")
         if mask is not None and not isinstance(mask, str | os.PathLike):
             raise ImageError(f"mask {_shown(mask)} is no path: give a picture file's path or None", field="mask")
         verified = self.verify if verify is None else verify
-        template = dataclasses.replace(outputs or Outputs(), params=os.path.join(written, "params.json"))
+        template = dataclasses.replace(outputs or Outputs(), params=os.path.join(into, "params.json"))
         request, _ = self._request(
             targets[0], mask, init, settings, False, verified, corrections, answer, refine, seed, template
         )
         # the model loaded after the checks (a folder that is no model is said before any fit, and leaves no folder)
-        requests = batch.plan(targets, written, request, then=lambda: self.model)
+        requests = batch.plan(targets, into, request, then=lambda: self.model)
 
         def fit_one(request: Request, written: Callable[[str], None]) -> Fit:
             return self._fit_request(request, [], time.perf_counter(), written)
 
         def heard(request: Request, result: Fit | MatfitError | None) -> None:
             if done is not None:
-                done(request.target, request.outputs.params if request.outputs else written, result)
+                done(request.target, request.outputs.params if request.outputs else into, result)
 
         return batch.fit_all(requests, self.model_path, fit_one, done=heard)
 
