@@ -16,8 +16,8 @@ $(BIN)/matfit: pyproject.toml
 
 # Mitsuba's fast CPU variant needs libLLVM >= 19 (Debian 12 ships 15, which crashes it).
 llvm: $(BIN)/matfit
-	@if $(BIN)/python -c "import sys, matfit.render.engine as r; sys.exit(r.find_libllvm() is None)"; then \
-		echo "libLLVM: $$($(BIN)/python -c 'import matfit.render.engine as r; print(r.find_libllvm())')"; \
+	@if $(BIN)/python -c "import sys, matfit.rendering.engine as r; sys.exit(r.find_libllvm() is None)"; then \
+		echo "libLLVM: $$($(BIN)/python -c 'import matfit.rendering.engine as r; print(r.find_libllvm())')"; \
 	elif [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
 		echo "installing Debian's libllvm19 for Mitsuba's llvm_ad_rgb variant"; \
 		(apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libllvm19 >/dev/null) \

@@ -1,7 +1,7 @@
 """Writes the matfit Blender extension's zip: blender/extension/, the mapping table and the parameter bounds.
 
 Usage: python blender/build.py OUT_FOLDER (`make blender-extension` writes dist/matfit-blender-VERSION.zip).
-The zip carries matfit/render/blender_mapping.py itself, the one table the export writes with,
+The zip carries matfit/rendering/blender_mapping.py itself, the one table the export writes with,
 params.PARAMETERS' bounds as parameters.json and params.MINIMUM_EXTINCTION as medium.json, so that
 Blender's Python needs neither numpy nor matfit to build a fitted material.
 Prints the zip's path.
@@ -14,7 +14,7 @@ import zipfile
 from pathlib import Path
 
 from matfit import params
-from matfit.render import blender_mapping
+from matfit.rendering import blender_mapping
 
 SOURCE = Path(__file__).resolve().parent / "extension"
 

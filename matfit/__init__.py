@@ -1,8 +1,5 @@
 """matfit: photorealistic principled-BSDF parameters from an edited picture of a material (README.md, docs/api.md)."""
 
-import importlib
-import inspect
-import types
 from typing import TYPE_CHECKING, Any
 
 __all__ = [
@@ -18,47 +15,34 @@ __all__ = [
     "render",
 ]
 
-
-class _Callable(types.ModuleType):
-    """The subpackages `matfit.fit` and `matfit.render`, callable as the public API's `fit` and `render`
-    (`matfit.api`, imported at the first call): the import system sets `matfit.fit` to the subpackage whenever it
-    is imported, so the function and the package are one object, whichever was imported first."""
-
-    def _function(self) -> Any:
-        api = importlib.import_module("matfit.api")  # makes this package api's callable one (`api._callable`)
-        return getattr(api, self.__name__.rpartition(".")[2]).__wrapped__
-
-    def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        return self._function()(*args, **kwargs)
-
-    @property
-    def __signature__(self) -> inspect.Signature:
-        return inspect.signature(self._function())
-
-
-for _name in ("fit", "render"):  # their __init__ is a docstring alone: nothing heavy is imported
-    importlib.import_module(f"matfit.{_name}").__class__ = _Callable
+# Where each public name lives (matfit/api/): imported at first use, so that `import matfit` (and so `python -m
+# matfit`, whose Ctrl-C handling must come first) loads nothing else.
+_HOMES = {
+    "Fit": "matfit.api.results",
+    "Fitter": "matfit.api.fitter",
+    "Material": "matfit.api.material",
+    "MatfitError": "matfit.errors",
+    "Outputs": "matfit.api.results",
+    "Settings": "matfit.fitting.methods",
+    "fit": "matfit.api.fitter",
+    "fit_sequence": "matfit.api.sequences",
+    "load_model": "matfit.api.fitter",
+    "render": "matfit.api.material",
+}
 
 if TYPE_CHECKING:
-    from matfit.api import (
-        Fit,
-        Fitter,
-        Material,
-        MatfitError,
-        Outputs,
-        Settings,
-        fit,
-        fit_sequence,
-        load_model,
-        render,
-    )
+    from matfit.api.fitter import Fitter, fit, load_model
+    from matfit.api.material import Material, render
+    from matfit.api.results import Fit, Outputs
+    from matfit.api.sequences import fit_sequence
+    from matfit.errors import MatfitError
+    from matfit.fitting.methods import Settings
 else:
 
     def __getattr__(name: str) -> Any:
-        """Returns a public name of `matfit.api`, imported at first use: `import matfit` (and so `python -m matfit`,
-        whose Ctrl-C handling must come first) loads nothing else."""
-        if name in __all__:
-            from matfit import api
+        """Returns a public name, imported from its module at first use."""
+        if name in _HOMES:
+            import importlib
 
-            return getattr(api, name)
+            return getattr(importlib.import_module(_HOMES[name]), name)
         raise AttributeError(f"module 'matfit' has no attribute {name!r}")

@@ -23,7 +23,7 @@ import tempfile
 import numpy as np
 
 from matfit import images, params, shipped
-from matfit.render import blender, export, presets
+from matfit.rendering import blender, export, presets
 
 ROOT = shipped.PACKAGE.parent
 SIZE, SPP = 256, 256  # the example edits' size

@@ -24,12 +24,12 @@ import time
 import numpy as np
 
 from matfit import images, shipped
-from matfit.fit import fitfile
-from matfit.fit.methods import Method, Settings
-from matfit.fit.request import Request
-from matfit.render import presets
-from matfit.render.engine import Renderer
-from matfit.render.process import Pool
+from matfit.fitting import fitfile
+from matfit.fitting.methods import Method, Settings
+from matfit.fitting.request import Request
+from matfit.rendering import presets
+from matfit.rendering.engine import Renderer
+from matfit.rendering.process import Pool
 
 PRESETS = ("jade", "glass", "milk", "amber-glass", "gold", "red-plastic")
 SEEDS = (11, 12, 13)

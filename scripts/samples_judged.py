@@ -24,8 +24,8 @@ import time
 import numpy as np
 
 from matfit import images, params, shipped
-from matfit.fit import clean, fitfile, methods, ranges, search, verify
-from matfit.render.process import Pool
+from matfit.fitting import clean, fitfile, methods, ranges, search, verify
+from matfit.rendering.process import Pool
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from verification_judged import TARGET_SPP, cases  # the same judged set

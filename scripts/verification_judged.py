@@ -3,7 +3,7 @@
 For the glass and media presets (every preset with transmission) and 20 reachable random targets
 (`bench.reachable_targets`: the training distribution, fixed seed), each rendered in Mitsuba at the
 model's resolution with TARGET_SPP samples, it fits with the default settings (`search.Settings()`,
-`methods.CORRECTIONS` rounds of correction), lets both rules choose (`matfit.fit.verify` as it is, and
+`methods.CORRECTIONS` rounds of correction), lets both rules choose (`matfit.fitting.verify` as it is, and
 the confirmation-seed rule of `verify.py` at git revision `--old`), and judges both kept
 answers by an independent `bench.JUDGE_SPP`-spp render (seed `bench.JUDGE_SEED` + case, no
 seed either rule or the target used) against the target. It prints per-case and mean RMSE and the
@@ -29,9 +29,9 @@ import numpy as np
 
 from matfit import images, params, shipped
 from matfit.app.bench import reachable as bench  # the reachable targets and the judge of every benchmark
-from matfit.fit import fitfile, methods, search, verify
-from matfit.render import presets
-from matfit.render.engine import Renderer
+from matfit.fitting import fitfile, methods, search, verify
+from matfit.rendering import presets
+from matfit.rendering.engine import Renderer
 
 OLD = "11d253a"  # the last revision whose verification kept the lead that held in a render with a confirmation seed
 TARGET_SPP = 256
@@ -43,7 +43,7 @@ def old_rule(revision: str) -> types.ModuleType:
     """Returns matfit's `verify` module as it was at git `revision`, loaded beside today's."""
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     source = subprocess.run(
-        ["git", "show", f"{revision}:matfit/fit/verify.py"], cwd=root, check=True, capture_output=True, text=True
+        ["git", "show", f"{revision}:matfit/fitting/verify.py"], cwd=root, check=True, capture_output=True, text=True
     ).stdout
     module = types.ModuleType("matfit_verify_old")
     sys.modules[module.__name__] = module

@@ -25,7 +25,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-from matfit.render.engine import Renderer  # noqa: E402
+from matfit.rendering.engine import Renderer  # noqa: E402
 
 TEST_RESOLUTION = 16
 TEST_SPP = 16
@@ -62,7 +62,7 @@ def renderer() -> Renderer:
 def tiny_dataset(tmp_path_factory, renderer) -> str:
     """Returns the path of a finished 32 px, 4-spp, 48-sample dataset (encoders need 32 px)."""
     from matfit.model import dataset, dataset_writing
-    from matfit.render import scene
+    from matfit.rendering import scene
 
     path = str(tmp_path_factory.mktemp("tiny") / "data")
     data = dataset_writing.prepare(

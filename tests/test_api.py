@@ -21,7 +21,7 @@ import matfit
 from matfit import images, params, shipped
 from matfit.app.cli import app
 from matfit.model import architectures, weight_files
-from matfit.render import export, scene
+from matfit.rendering import export, scene
 from tests.helpers import random_model
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -82,14 +82,23 @@ def test_import_matfit_loads_neither_jax_nor_mitsuba_and_names_only_its_api():
                                 "fit_sequence", "load_model", "render"]))  # fmt: skip
 
 
-def test_fit_and_render_are_functions_and_still_their_subpackages():
-    import matfit.fit.search
-    import matfit.render.engine
+def test_fit_and_render_are_plain_functions_beside_the_fitting_and_rendering_packages():
+    import inspect
 
-    assert callable(matfit.fit) and callable(matfit.render)
-    assert matfit.fit is sys.modules["matfit.fit"] and matfit.render is sys.modules["matfit.render"]
-    assert matfit.fit.search.neural_search and matfit.render.engine.Renderer
-    assert "picture" in str(__import__("inspect").signature(matfit.fit))
+    import matfit.fitting.search
+    import matfit.rendering.engine
+
+    assert inspect.isfunction(matfit.fit) and inspect.isfunction(matfit.render)
+    assert "matfit.fit" not in sys.modules and "matfit.render" not in sys.modules
+    assert matfit.fitting.search.neural_search and matfit.rendering.engine.Renderer
+    assert list(inspect.signature(matfit.fit).parameters)[0] == "picture"
+    assert list(inspect.signature(matfit.render).parameters)[0] == "material"
+    assert (
+        matfit.fit.__doc__.startswith("Returns the fit of the material")
+        and matfit.fit.__module__ == "matfit.api.fitter"
+    )
+    package = Path(matfit.__file__).parent
+    assert [path for path in package.rglob("*.py") if "__class__ =" in path.read_text(encoding="utf-8")] == []
 
 
 def test_material_names_the_19_parameters_with_their_defaults_and_ranges():
@@ -138,7 +147,7 @@ def test_render_warns_once_where_it_falls_back_to_scalar_rgb():
     # a new process: one Mitsuba variant a process. The machine is made one without libLLVM and GPU.
     code = (
         "import json, os, warnings, matfit\n"
-        "from matfit.render import engine\n"
+        "from matfit.rendering import engine\n"
         "engine.find_libllvm = lambda: None\n"
         "engine.cuda_problem = lambda: 'no GPU here'\n"
         "os.environ['DRJIT_LIBLLVM_PATH'] = ''\n"
@@ -368,7 +377,7 @@ def test_a_fit_with_outputs_writes_them_together_and_the_fit_is_named_by_its_par
 
 
 def test_a_fit_checks_its_request_once(fitter, tmp_path, monkeypatch):
-    from matfit.fit.request import Request
+    from matfit.fitting.request import Request
 
     checked = []
     check = Request.check
@@ -494,7 +503,7 @@ def test_fit_of_a_file_gives_the_command_lines_params_json_bit_for_bit(tiny_mode
 
 
 def test_a_fitter_renders_at_the_models_resolution_on_its_render_processes_bit_for_bit(tiny_model):
-    from matfit.render.engine import Renderer
+    from matfit.rendering.engine import Renderer
 
     material = matfit.Material.preset("jade")
     with matfit.Fitter(tiny_model) as fitter:

@@ -5,7 +5,7 @@ from helpers import decode, random_model, true_point
 from matfit import images
 from matfit.app.bench import fits, optimisers, reachable, suite_report
 from matfit.app.bench.sequence import black_level, sequence_table
-from matfit.fit import search
+from matfit.fitting import search
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""The Blender export and the Cycles round trip (matfit.render.blender); the bpy tests need `make blender`."""
+"""The Blender export and the Cycles round trip (matfit.rendering.blender); the bpy tests need `make blender`."""
 
 import json
 import os
@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from matfit import images, params
 from matfit.app.cli import app
-from matfit.render import blender, blender_mapping, export, presets
+from matfit.rendering import blender, blender_mapping, export, presets
 
 try:
     BLENDER = blender.find_blender()

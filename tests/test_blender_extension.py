@@ -17,7 +17,7 @@ import pytest
 from helpers import assert_round_trip
 
 from matfit import images, params, shipped
-from matfit.render import blender, blender_mapping, export, presets
+from matfit.rendering import blender, blender_mapping, export, presets
 
 try:
     BLENDER = blender.find_blender()
@@ -180,7 +180,7 @@ def test_the_zip_carries_the_mapping_table_and_installs(session):
     assert report["installed"] == ["FINISHED"] and report["version"].startswith("4.")
     (zip_path,) = (folder / "dist").iterdir()
     with zipfile.ZipFile(zip_path) as archive:
-        assert archive.read("blender_mapping.py") == (ROOT / "matfit" / "render" / "blender_mapping.py").read_bytes()
+        assert archive.read("blender_mapping.py") == (ROOT / "matfit" / "rendering" / "blender_mapping.py").read_bytes()
         assert json.loads(archive.read("parameters.json")) == params.table()
         assert "blender_manifest.toml" in archive.namelist()
 

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from matfit import images, params
-from matfit.fit import clean, ranges
+from matfit.fitting import clean, ranges
 
 SIDE = 4
 THRESHOLD = 2.0
@@ -58,8 +58,8 @@ def test_features_without_effect_are_turned_off_and_one_the_picture_needs_is_kep
 
 
 def test_mitsuba_keeps_the_simplest_candidate_it_cannot_tell_from_the_answer(renderer):
-    from matfit.fit import verify
-    from matfit.render import presets
+    from matfit.fitting import verify
+    from matfit.rendering import presets
 
     best = params.to_unit(presets.preset("red-plastic"))
     target = images.srgb_encode(renderer.render(params.from_unit(best), seed=7, spp=64))

@@ -14,10 +14,10 @@ from typer.testing import CliRunner
 
 from matfit import images, params, shipped
 from matfit.app.cli import app
-from matfit.fit import batch, methods, verify
-from matfit.fit import search as fit
+from matfit.fitting import batch, methods, verify
+from matfit.fitting import search as fit
 from matfit.model import architectures, weight_files
-from matfit.render import engine, presets
+from matfit.rendering import engine, presets
 
 runner = CliRunner()
 
@@ -457,7 +457,7 @@ def test_sequence_through_the_cli(trained, tiny_dataset, tmp_path):
 def test_presets_sheet(tmp_path):
     result = run("presets", "-o", tmp_path / "sheet.png", "--size", 32, "--spp", 2)
     assert result.exit_code == 0, result.output
-    from matfit.render import presets
+    from matfit.rendering import presets
 
     assert images.read(str(tmp_path / "sheet.png")).shape == (32 + 14, 32 * len(presets.PRESETS), 3)
     assert_one_line_error(

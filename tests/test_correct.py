@@ -4,9 +4,9 @@ from helpers import Noisy, R, random_model, true_point
 
 from matfit import images, params
 from matfit.errors import FitError
-from matfit.fit import correct, search, verify
-from matfit.render import presets
-from matfit.render.engine import Renderer
+from matfit.fitting import correct, search, verify
+from matfit.rendering import presets
+from matfit.rendering.engine import Renderer
 
 
 @pytest.fixture(scope="module")
@@ -115,7 +115,7 @@ def test_verification_with_corrections_keeps_the_lowest_estimate_of_the_start_th
 
 
 def test_a_round_reuses_the_fits_compiled_step(model):
-    from matfit.fit import gradient
+    from matfit.fitting import gradient
 
     target, weights = decoded(model, true_point(4)) + bias(), np.ones((R, R), np.float32)
     x = true_point(5).astype(np.float64)

@@ -14,7 +14,7 @@ import pytest
 from matfit import params
 from matfit.model import dataset, dataset_workers, dataset_writing
 from matfit.model.dataset import DatasetError, Settings
-from matfit.render import engine
+from matfit.rendering import engine
 
 VERSIONS = {"mitsuba": "test", "drjit": "test"}
 # The Ray tests need the optional extra `.[cluster]`.

@@ -3,7 +3,7 @@ import pytest
 
 from matfit import params
 from matfit.model import architectures, dataset, evaluate
-from matfit.render import engine, presets
+from matfit.rendering import engine, presets
 
 
 def test_subsets_split_the_parameter_space_into_thirds():

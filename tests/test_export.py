@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from matfit import params
-from matfit.render import export, presets
+from matfit.rendering import export, presets
 
 
 @pytest.mark.parametrize("name", ["gold", "amber-glass", "jade"])

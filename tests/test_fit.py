@@ -5,8 +5,8 @@ import pytest
 from helpers import R, decode, random_model, true_point
 
 from matfit import images, params
-from matfit.fit import gradient, search
-from matfit.fit.search import FitError, Settings
+from matfit.fitting import gradient, search
+from matfit.fitting.search import FitError, Settings
 from matfit.model import architectures
 
 
@@ -209,8 +209,8 @@ def test_on_start_hears_best_of_n_winner_and_never_a_random_start(model):
 def test_a_model_that_decodes_nan_is_refused_and_no_params_json_is_written(model, tmp_path):
     import dataclasses
 
-    from matfit.fit import fitfile
-    from matfit.fit.request import Outputs, Request
+    from matfit.fitting import fitfile
+    from matfit.fitting.request import Outputs, Request
 
     poisoned = jax.tree_util.tree_map(lambda leaf: np.full(np.shape(leaf), np.nan, np.float32), model.decoder.variables)
     broken = dataclasses.replace(model, decoder=dataclasses.replace(model.decoder, variables=poisoned))
@@ -224,9 +224,9 @@ def test_a_model_that_decodes_nan_is_refused_and_no_params_json_is_written(model
 
 def test_a_request_is_refused_before_any_work_with_the_one_line_error(tmp_path):
     from matfit.errors import ImageError, OutputError
-    from matfit.fit import fitfile
-    from matfit.fit.methods import CORRECTIONS
-    from matfit.fit.request import Outputs, Request
+    from matfit.fitting import fitfile
+    from matfit.fitting.methods import CORRECTIONS
+    from matfit.fitting.request import Outputs, Request
 
     missing_model = str(tmp_path / "no-model")  # loading it would fail: each refusal must come before
     picture = str(tmp_path / "edit.png")
@@ -260,9 +260,9 @@ def test_the_ranges_written_are_those_of_the_answer_written_and_no_render_has_no
     # fit's best's, the values the clean answer's (its other parameters re-fitted); and answer.render_noise was 0.0
     # where nothing was rendered.
     from matfit import shipped
-    from matfit.fit import fitfile
-    from matfit.fit.request import Request
-    from matfit.render import engine, presets
+    from matfit.fitting import fitfile
+    from matfit.fitting.request import Request
+    from matfit.rendering import engine, presets
 
     picture = str(tmp_path / "glass.png")
     engine.render_file(presets.preset("glass"), picture, 256, 64)

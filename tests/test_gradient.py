@@ -2,7 +2,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from matfit.fit import gradient
+from matfit.fitting import gradient
 
 
 def quadratic(y, args):

@@ -7,7 +7,7 @@ import pytest
 
 from matfit import params
 from matfit.model import layers
-from matfit.render import presets, scene
+from matfit.rendering import presets, scene
 
 
 def test_upsample_pool_and_shuffle_match_their_definitions():

@@ -8,7 +8,7 @@ import pytest
 from matfit import params
 from matfit.errors import WeightsError
 from matfit.model import architectures, layers, models, weight_files
-from matfit.render import presets, scene
+from matfit.rendering import presets, scene
 
 # The paper's Appendix A as (conv filters in order, FC neurons, dropout), written out independently.
 APPENDIX_A = {

@@ -7,7 +7,7 @@ import pytest
 
 from matfit import params
 from matfit.params import ParameterError
-from matfit.render import presets
+from matfit.rendering import presets
 
 
 def test_table_has_nineteen_named_bounded_parameters():

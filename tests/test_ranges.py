@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from matfit import params
-from matfit.fit import ranges
+from matfit.fitting import ranges
 
 SIDE = 4
 THRESHOLD = 2.0

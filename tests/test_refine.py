@@ -3,8 +3,8 @@ import pytest
 
 from matfit import images, params
 from matfit.errors import FitError
-from matfit.fit import refine
-from matfit.render import engine, presets, scene
+from matfit.fitting import refine
+from matfit.rendering import engine, presets, scene
 
 
 @pytest.fixture(scope="module")

@@ -63,7 +63,7 @@ def assert_interrupted(code: int, error: str, seconds: float, directory) -> None
 
 FIT_FOREVER = """
 import sys
-from matfit import images, interrupt; from matfit.fit import search as fit; from matfit.model import models
+from matfit import images, interrupt; from matfit.fitting import search as fit; from matfit.model import models
 interrupt.install()
 model = models.load_model(sys.argv[1])
 target = images.srgb_encode(images.read(sys.argv[1] + "/target.png"))

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from matfit import images, params
-from matfit.render import engine, presets, process
-from matfit.render.engine import RenderError
+from matfit.rendering import engine, presets, process
+from matfit.rendering.engine import RenderError
 
 
 def srgb(renderer, seed=0, **values):
@@ -364,7 +364,7 @@ def test_a_child_that_cannot_start_leaves_no_pipe_open(monkeypatch):
 
 
 def test_a_started_child_runs_the_named_function_with_its_pipes_and_arguments():
-    child, requests, replies = process.start_child("matfit.render.process", "serve_requests", "no_such_variant")
+    child, requests, replies = process.start_child("matfit.rendering.process", "serve_requests", "no_such_variant")
     header, array = process.read_message(replies)
     requests.close()
     replies.close()
@@ -375,7 +375,7 @@ def test_a_started_child_runs_the_named_function_with_its_pipes_and_arguments():
 def test_a_render_process_ends_with_its_caller_even_a_killed_one():
     script = (
         "import time\n"
-        "from matfit import params; from matfit.render import process\n"
+        "from matfit import params; from matfit.rendering import process\n"
         "child = process.Process()\n"
         "child.load(16, 4)\n"
         "child.render(params.DEFAULTS, seed=1)\n"
@@ -419,7 +419,9 @@ def test_a_render_process_whose_caller_left_ends_without_a_word():
     # The caller's end of the replies is closed before the child's first message (Ctrl-C or kill -9 while it starts).
     requests_read, requests_write = os.pipe()
     replies_read, replies_write = os.pipe()
-    code = f"from matfit.render import process; process.serve_requests({requests_read}, {replies_write}, 'scalar_rgb')"
+    code = (
+        f"from matfit.rendering import process; process.serve_requests({requests_read}, {replies_write}, 'scalar_rgb')"
+    )
     child = subprocess.Popen(
         [sys.executable, "-c", code], pass_fds=(requests_read, replies_write), stderr=subprocess.PIPE, text=True
     )

@@ -6,9 +6,9 @@ from helpers import decode, random_model, true_point
 
 from matfit import files, images, params
 from matfit.errors import FitError, ImageError, OutputError
-from matfit.fit import fitfile, search, sequence
-from matfit.fit.request import Outputs, Request
-from matfit.fit.sequence import SequenceError
+from matfit.fitting import fitfile, search, sequence
+from matfit.fitting.request import Outputs, Request
+from matfit.fitting.sequence import SequenceError
 
 
 @pytest.fixture(scope="module")

@@ -28,8 +28,8 @@ from matfit.app.serve.server import check_listen, running
 from matfit.app.serve.studio import Studio
 from matfit.app.serve.watch import check_watch, settled
 from matfit.errors import ImageError, OutputError
-from matfit.fit import fitfile, search
-from matfit.render import presets
+from matfit.fitting import fitfile, search
+from matfit.rendering import presets
 
 EXAMPLE = str(shipped.EXAMPLES / "recoloured.png")
 OTHER = str(shipped.EXAMPLES / "desaturated.png")

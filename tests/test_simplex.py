@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import scipy.optimize
 
-from matfit.fit import simplex
+from matfit.fitting import simplex
 
 N = 19
 

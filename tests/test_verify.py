@@ -3,10 +3,10 @@ import pytest
 from helpers import Noisy, R, random_model
 
 from matfit import images
-from matfit.fit import search, verify
+from matfit.fitting import search, verify
 from matfit.params import to_unit
-from matfit.render import presets
-from matfit.render.engine import Renderer
+from matfit.rendering import presets
+from matfit.rendering.engine import Renderer
 
 
 @pytest.fixture(scope="module")
@@ -177,7 +177,7 @@ def test_verification_is_bit_identical_from_run_to_run(model):
 
 def test_prefetch_start_asks_for_the_very_renders_verify_makes_of_the_start():
     from matfit import params
-    from matfit.render.process import Background
+    from matfit.rendering.process import Background
 
     start = np.asarray(to_unit(presets.preset("jade")), np.float32)  # float32, as the fit hands it over
     expected = params.from_unit(np.asarray(start, np.float64))  # what `verify.candidates` renders

@@ -1,7 +1,7 @@
 """A Blender material's node tree as the plain data blender_mapping reads and writes: Principled BSDF inputs, a volume.
 
 `write` builds the fitted material from blender_mapping.to_blender's inputs with the node tree of the
-exported script (matfit/render/blender_material.py), and `assign` puts it on the selected meshes as
+exported script (matfit/rendering/blender_material.py), and `assign` puts it on the selected meshes as
 that script does; the extension runs no script.
 
 What matfit's shader can hold: a Principled BSDF on the Material Output's Surface, and on its Volume

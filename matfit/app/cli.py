@@ -20,9 +20,9 @@ import typer
 import matfit
 from matfit import documents, interrupt, params
 from matfit.app import console, options
-from matfit.fit.methods import Box, Method, Settings
+from matfit.fitting.methods import Box, Method, Settings
 from matfit.model import dataset, dataset_workers, dataset_writing
-from matfit.render import presets
+from matfit.rendering import presets
 
 app = typer.Typer(
     cls=console.OneLineErrors,
@@ -74,7 +74,7 @@ def render(
     variant: options.Variant = None,
 ) -> None:
     """Render one material in the test scene with Mitsuba: the artist's starting image."""
-    from matfit.render import engine as render_module
+    from matfit.rendering import engine as render_module
 
     values = presets.material(options.text(params_file), preset, seed if random else None)
     if random:
@@ -111,7 +111,7 @@ def blender_check(
     variant: options.Variant = None,
 ) -> None:
     """Render materials through the exported Blender script in Cycles and with Mitsuba, and compare them."""
-    from matfit.render import blender as round_trip
+    from matfit.rendering import blender as round_trip
 
     setup = round_trip.Setup(size, spp, blender, variant)
     comparison = round_trip.check(str(out), preset or None, [str(path) for path in params_file or []], setup, log)
@@ -484,7 +484,7 @@ def bench_ranges(
     """Calibrate what the picture decides: true values inside the ranges, Mitsuba at their ends, the clean answer."""
     from matfit import images, shipped
     from matfit.app.bench import ranges
-    from matfit.fit import search
+    from matfit.fitting import search
 
     model = matfit.load_model(model_path)
     pictures = []
@@ -514,7 +514,7 @@ def bench(
 ) -> None:
     """Reproduce the paper's evaluation tables on the built-in edit suite (quick version by default)."""
     from matfit.app.bench import suite_report
-    from matfit.fit import document
+    from matfit.fitting import document
 
     model = matfit.load_model(model_path)
     label = document.display_path(str(model_path))
@@ -525,7 +525,7 @@ def bench(
 def bench_serve(model_path: options.Model = options.DEFAULT_MODEL, fits: options.Fits = 100) -> None:
     """Time the page: a saved file to its result, a slider to its preview; memory after 10 fits and after --fits."""
     from matfit.app.bench import page
-    from matfit.fit import document
+    from matfit.fitting import document
 
     model = matfit.load_model(model_path)
     typer.echo(page.serve_speed(model, document.display_path(str(model_path)), fits, log=log))

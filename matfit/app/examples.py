@@ -15,7 +15,7 @@ import sys
 
 from matfit import images
 from matfit.edits import hue_rotate, paint_highlight, saturate
-from matfit.render import presets
+from matfit.rendering import presets
 
 SIZE = 256
 SPP = 256
@@ -30,7 +30,7 @@ EXAMPLES = {
 
 def make(directory: str, size: int = SIZE, spp: int = SPP) -> list[str]:
     """Renders the presets and writes the edited examples into `directory`; returns their paths."""
-    from matfit.render.engine import Renderer
+    from matfit.rendering.engine import Renderer
 
     renderer = Renderer(size, spp)
     written = []

@@ -12,8 +12,8 @@ from typing import Annotated, Literal
 import typer
 
 from matfit import params, shipped
-from matfit.api import MAX_SIZE
-from matfit.fit.methods import (
+from matfit.api.arguments import MAX_SIZE
+from matfit.fitting.methods import (
     CORRECTIONS,
     MAX_EVALUATIONS,
     MAX_ITERATIONS,
@@ -24,7 +24,7 @@ from matfit.fit.methods import (
     Method,
 )
 from matfit.model import dataset
-from matfit.render.engine import VARIANTS
+from matfit.rendering.engine import VARIANTS
 
 DEFAULT_MODEL = shipped.MODEL
 

@@ -52,7 +52,7 @@ from matfit.model.layers import (
 
 if TYPE_CHECKING:
     from jaxtyping import Float
-from matfit.render import scene
+from matfit.rendering import scene
 
 ENCODER_RESOLUTION = 32
 

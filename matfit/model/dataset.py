@@ -32,8 +32,8 @@ import numpy as np
 
 from matfit import documents, files, params
 from matfit.errors import DatasetError
-from matfit.render import engine as render
-from matfit.render import scene
+from matfit.rendering import engine as render
+from matfit.rendering import scene
 
 FORMAT = "matfit-dataset"
 FORMAT_VERSION = 1
@@ -148,7 +148,7 @@ class Dataset:
         """
         if os.path.isfile(path):
             return np.load(path)
-        from matfit.render.engine import Renderer
+        from matfit.rendering.engine import Renderer
 
         shape = materials.shape[:2]
         parts = path[: -len(".npy")] + ".parts"

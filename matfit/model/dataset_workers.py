@@ -24,7 +24,7 @@ from matfit.model.dataset import (
     IMAGE_DTYPE,
     Settings,
 )
-from matfit.render import process
+from matfit.rendering import process
 
 MAX_WORKERS = 64
 
@@ -39,7 +39,7 @@ CHUNK = 16
 
 def default_workers(variant: str) -> int:
     """Returns how many render processes a dataset renders with unless told: GPU_WORKERS on a GPU, else one per core."""
-    from matfit.render.engine import CUDA_VARIANT
+    from matfit.rendering.engine import CUDA_VARIANT
 
     return GPU_WORKERS if variant == CUDA_VARIANT else min(os.cpu_count() or 1, MAX_WORKERS)
 
@@ -61,7 +61,7 @@ def init_worker(
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     if new_session:
         os.setsid()
-    from matfit.render.engine import Renderer, mitsuba
+    from matfit.rendering.engine import Renderer, mitsuba
 
     # One rendering thread per process: Dr.Jit's threads add samples into the film in an order
     # that varies from run to run, which changes the last bit of a few pixels. One thread keeps

@@ -45,8 +45,8 @@ from matfit.model.dataset_workers import (
     in_this_process,
     in_worker_processes,
 )
-from matfit.render import engine as render
-from matfit.render import scene
+from matfit.rendering import engine as render
+from matfit.rendering import scene
 
 
 def _meta(settings: Settings, count: int, versions: dict) -> dict:
@@ -210,7 +210,7 @@ def render_scene_image(dataset: Dataset, settings: Settings) -> None:
     path = os.path.join(dataset.path, SCENE_FILE)
     if os.path.isfile(path):
         return
-    from matfit.render.engine import render_without_sphere
+    from matfit.rendering.engine import render_without_sphere
 
     image = render_without_sphere(
         settings.resolution, SCENE_SPP, settings.variant, seed=image_seed(settings.seed, 2**32 - 1)

@@ -25,7 +25,7 @@ from matfit import documents, files, images, params
 from matfit.errors import DatasetError
 from matfit.model import architectures, models, pipeline, weight_files
 from matfit.model.dataset import Dataset
-from matfit.render import presets
+from matfit.rendering import presets
 
 PRESET_SPP = 4096
 PRESET_FILE = "presets.npz"
@@ -70,7 +70,7 @@ def preset_references(references: Dataset, spp: int = PRESET_SPP) -> dict[str, n
                 and stored["images"].shape[1] == references.resolution
             ):
                 return dict(zip(names, stored["images"].astype(np.float32), strict=True))
-    from matfit.render.engine import Renderer
+    from matfit.rendering.engine import Renderer
 
     renderer = Renderer(references.resolution, spp, references.meta.get("variant"))
     rendered = np.stack([renderer.render(presets.preset(name), seed=i) for i, name in enumerate(names)])

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from matfit import params
-from matfit.render import scene
+from matfit.rendering import scene
 
 
 def upsample(x: jax.Array) -> jax.Array:

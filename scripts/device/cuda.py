@@ -53,7 +53,7 @@ def log(message: str) -> None:
 def materials() -> tuple[list[str], np.ndarray]:
     """Returns the names and physical values (N, 19) of the compared materials: every preset, then samples."""
     from matfit import params
-    from matfit.render import presets
+    from matfit.rendering import presets
 
     names = list(presets.PRESETS) + [f"sample-{i}" for i in range(SAMPLES)]
     values = [presets.preset(name) for name in presets.PRESETS]
@@ -63,7 +63,7 @@ def materials() -> tuple[list[str], np.ndarray]:
 
 def render_all(values: np.ndarray, variant: str | None) -> tuple[np.ndarray, str, dict]:
     """Returns (renders (N, len(PASSES), R, R, 3) float32 linear, the variant, versions) of every material."""
-    from matfit.render import engine
+    from matfit.rendering import engine
 
     renderer = engine.Renderer(RESOLUTION, PASSES[0][0], variant)
     renderer.render(values[0], seed=99, spp=1)  # compiles the kernels
@@ -74,7 +74,7 @@ def render_all(values: np.ndarray, variant: str | None) -> tuple[np.ndarray, str
 def prepare() -> None:
     """Writes .device/: LLVM renders of the compared materials, a slim copy of the model, the example to fit."""
     from matfit import shipped
-    from matfit.render import engine
+    from matfit.rendering import engine
 
     engine.choose_variant(engine.LLVM_VARIANT)  # the reference is LLVM's: refused here without libLLVM >= 19
     names, values = materials()
@@ -252,7 +252,8 @@ class Steps:
 
     def choice(self) -> None:
         code = (
-            "import json; from matfit.render import engine as render; variant, notice = render.choose_variant(None); "
+            "import json; from matfit.rendering import engine as render; "
+            "variant, notice = render.choose_variant(None); "
             "print(json.dumps({'auto_variant': variant, 'notice': notice, 'cuda_devices': render.cuda_devices(), "
             "'versions': render.versions()}))"
         )
@@ -260,7 +261,7 @@ class Steps:
         found = json.loads(tail.splitlines()[-1]) if status == 0 else {"error": tail}
         found["seconds"] = round(seconds, 2)
         if found.get("auto_variant") != "cuda_ad_rgb":  # why not, asked in a process whose Mitsuba is still unset
-            why = "from matfit.render import engine as render; print(render.cuda_problem())"
+            why = "from matfit.rendering import engine as render; print(render.cuda_problem())"
             found["cuda_problem"] = self.run("cuda-problem", [self.python, "-c", why], 60)[2].splitlines()[-1:]
         picture = os.path.join(self.work, "gold.png")
         command = [self.python, "-m", "matfit", "render", "--preset", "gold", "-o", picture, "--size", "64"]

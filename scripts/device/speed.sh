@@ -20,7 +20,7 @@ case "${1:-}" in
     python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site .whl/*.whl > "$OUT/speed.log" 2>&1
     export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 XDG_CACHE_HOME=/tmp/matfit-cache
     nvidia-smi --query-gpu=name --format=csv,noheader >> "$OUT/speed.log" 2>&1
-    python3 -c "from matfit.render import engine; print(engine.choose_variant(None))" >> "$OUT/speed.log" 2>&1
+    python3 -c "from matfit.rendering import engine; print(engine.choose_variant(None))" >> "$OUT/speed.log" 2>&1
     timeout 480 python3 -m matfit bench-speed --model .device/model --repeats "${REPEATS:-5}" > "$OUT/speed.md" 2>> "$OUT/speed.log"
     echo "exit $?" >> "$OUT/speed.log"
     cat "$OUT/speed.md"; tail -5 "$OUT/speed.log"

@@ -13,8 +13,8 @@ import numpy as np
 
 from matfit import images
 from matfit.app.bench.reachable import JUDGE_SEED, JUDGE_SPP, Targets, no_worse, reachable_targets, rendered_rmse
-from matfit.fit import search, verify
-from matfit.fit.methods import CORRECTIONS
+from matfit.fitting import search, verify
+from matfit.fitting.methods import CORRECTIONS
 from matfit.model import models
 
 _DEFAULT = search.Settings()
@@ -160,7 +160,7 @@ def markdown(table: dict[str, dict], reference: str, mitsuba: dict[str, np.ndarr
 
 def fit_comparison(model: models.Model, count: int, evaluations: int, log=print) -> str:
     """Returns the methods compared on `count` reachable targets: neural and Mitsuba RMSE, warm fit time (Markdown)."""
-    from matfit.render.engine import Renderer
+    from matfit.rendering.engine import Renderer
 
     renderer = Renderer(model.resolution, 256)
     log(f"rendering {count} reachable targets at {model.resolution} px, 256 spp")

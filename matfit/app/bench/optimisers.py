@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from matfit import params
-from matfit.fit import search
+from matfit.fitting import search
 from matfit.model import models
 
 
@@ -119,7 +119,7 @@ def ours(name: str, x0: np.ndarray, args: tuple, calls: int) -> dict:
     """Returns the figures of matfit's gradient stage from `x0`, `calls` value-and-gradients (compiled untimed)."""
     import jax.numpy as jnp
 
-    from matfit.fit import gradient
+    from matfit.fitting import gradient
 
     def minimise(start):
         ends, _, steps = gradient.minimise(search.gradient_objective(args[0]), start[None], args[1:], calls)

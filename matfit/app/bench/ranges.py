@@ -28,8 +28,8 @@ import numpy as np
 
 from matfit import files, images, params
 from matfit.app.bench import reachable
-from matfit.fit import clean, ranges, search, verify
-from matfit.fit.methods import CORRECTIONS
+from matfit.fitting import clean, ranges, search, verify
+from matfit.fitting.methods import CORRECTIONS
 from matfit.model import models
 
 CHECKED = 3  # parameters per target whose range ends Mitsuba renders
@@ -212,7 +212,7 @@ def run(
     then the named sRGB `examples` (judged, no truth); each finished case is written to `results` (JSON) at once.
     A case `results` already holds is taken from it when it was measured with today's `settings` (and judged if
     it must be), else measured again from its stored answer without fitting again."""
-    from matfit.render.engine import Renderer
+    from matfit.rendering.engine import Renderer
 
     renderer = Renderer(model.resolution, verify.SPP)
     targets = reachable.reachable_targets(renderer, count)

@@ -9,7 +9,7 @@ import numpy as np
 
 from matfit import files, images, params
 from matfit.app.bench.reachable import TARGET_OFFSET, TARGET_SEED
-from matfit.fit import search
+from matfit.fitting import search
 from matfit.model import models
 
 
@@ -62,7 +62,7 @@ def sequence_table(
 
 def sequence_benchmark(model: models.Model, frames: int, frames_out: str | None = None) -> str:
     """Returns the reinitialisation table on the built-in black-level sequence; writes the frames to `frames_out`."""
-    from matfit.render.engine import Renderer
+    from matfit.rendering.engine import Renderer
 
     if frames_out is not None:
         files.check_folder(frames_out, field="frames_out")

@@ -16,7 +16,7 @@ from matfit.model import models
 
 def render_speed(count: int, variant: str | None = None) -> str:
     """Returns a Markdown table: images per second of `Renderer` against a bare `mi.render` loop, same materials."""
-    from matfit.render.engine import Renderer
+    from matfit.rendering.engine import Renderer
 
     lines = ["| resolution | spp | matfit img/s | bare mi.render img/s | matfit / bare |", "|---|---|---|---|---|"]
     for resolution, spp in ((64, 16), (128, 32)):

@@ -8,10 +8,10 @@ import numpy as np
 
 from matfit import edits, images, params
 from matfit.app.bench.reachable import TARGET_OFFSET, TARGET_SEED
-from matfit.fit import search, verify
-from matfit.fit.methods import CORRECTIONS
+from matfit.fitting import search, verify
+from matfit.fitting.methods import CORRECTIONS
 from matfit.model import models
-from matfit.render import presets
+from matfit.rendering import presets
 
 BUDGETS = (50, 300, 1500)  # the paper's Nelder-Mead budgets, in evaluations
 # The edit suite: (name, what was done, source presets, edit of their sRGB renders).

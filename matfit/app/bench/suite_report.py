@@ -14,8 +14,8 @@ from matfit.app.bench.optimisers import optimiser_table
 from matfit.app.bench.reachable import no_worse
 from matfit.app.bench.sequence import black_level_sequence, sequence_table
 from matfit.app.bench.suite import BUDGETS, main_table, suite_targets
-from matfit.fit import search
-from matfit.fit.methods import CORRECTIONS
+from matfit.fitting import search
+from matfit.fitting.methods import CORRECTIONS
 from matfit.model import models
 
 
@@ -24,7 +24,7 @@ def case_picture(
 ) -> np.ndarray:
     """Returns target | best-of-9 | optimiser | hybrid | Mitsuba render of hybrid (| of the default, if `row` has it),
     and stores in `row` the RMSE of Mitsuba renders of the best-of-9, optimiser (seed 0), hybrid and default results."""
-    from matfit.fit import report
+    from matfit.fitting import report
 
     best = search.neural_search(model, target, settings=search.Settings(method=search.Method.nn))
 
@@ -242,7 +242,7 @@ def run_suite(model: models.Model, model_label: str, out: str, full: bool = Fals
     Quick: 5 seeds, basin-hopping time-boxed to 5 s, 40 sequence frames; `full`: 10, 60 s, 120.
     Returns the report's Markdown.
     """
-    from matfit.render.engine import Renderer
+    from matfit.rendering.engine import Renderer
 
     files.check_folder(out, [(name, os.path.join(out, name)) for name in ("report.md", "report.json")])
     seeds, basin_seconds, frames = (10, 60.0, 120) if full else (5, 5.0, 40)

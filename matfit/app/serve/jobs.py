@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from matfit import documents, images, params
-from matfit.api import Fit
+from matfit.api.results import Fit
 
 FILES = {
     "params.json": "application/json",
@@ -62,7 +62,7 @@ def png_bytes(srgb: np.ndarray) -> bytes:
 
 def fit_result(fitted: Fit) -> dict:
     """Returns the page's view of a fit: figures, the five pictures of the report, the 19 parameters."""
-    from matfit.fit import report
+    from matfit.fitting import report
 
     document = fitted.document
     assert fitted.rendered is not None and fitted.start_image is not None, "the page's fits are verified: rendered"

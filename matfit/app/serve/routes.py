@@ -29,7 +29,7 @@ from matfit.app.serve.studio import Studio
 from matfit.app.serve.uploads import MAX_FIT_BYTES, MAX_JSON_BYTES, TOO_LARGE, capped, check_values
 from matfit.app.serve.watch import Watcher
 from matfit.errors import MatfitError, ParameterError
-from matfit.render import presets
+from matfit.rendering import presets
 
 API = ("/api/parameters", "/api/fit", "/api/jobs/{id}", "/api/preview", "/api/render", "/api/params", "/api/watch")
 PAGE_FILES = ("index.html", "app.js", "style.css")  # the files of matfit/static/ the page is made of

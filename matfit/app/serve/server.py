@@ -13,7 +13,7 @@ from matfit.app.serve.routes import create_app
 from matfit.app.serve.studio import Studio
 from matfit.app.serve.watch import check_watch
 from matfit.errors import OutputError
-from matfit.fit import document
+from matfit.fitting import document
 
 
 def check_listen(host: str, port: int) -> None:
@@ -66,7 +66,7 @@ def serve(
     `variant`: the Mitsuba variant of its renders (None: `engine.choose_variant`'s)."""
     import uvicorn
 
-    from matfit.render.engine import check_request
+    from matfit.rendering.engine import check_request
 
     check_watch(watch)
     check_listen(host, port)

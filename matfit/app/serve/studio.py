@@ -20,14 +20,15 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from matfit import files, images, interrupt, params
-from matfit.api import Fitter, Material
+from matfit.api.fitter import Fitter
+from matfit.api.material import Material
 from matfit.app.serve import uploads
 from matfit.app.serve.jobs import Job, fit_result, png_bytes, png_data_url
 from matfit.app.serve.watch import GONE, gone
 from matfit.errors import MatfitError, ParameterError
-from matfit.fit import search, verify
+from matfit.fitting import search, verify
 from matfit.model import models
-from matfit.render.engine import Renderer
+from matfit.rendering.engine import Renderer
 
 MAX_RENDER_SIZE = 1024
 MAX_RENDER_SPP = 4096

@@ -113,7 +113,7 @@ def init_values(text: str) -> np.ndarray:
 def check_mask(mask: str, target: str, resolution: int, name: str) -> None:
     """Raises FitError (answered 400) for an uploaded mask the fit would refuse (another size than the picture, black
     everywhere), naming the upload `name` rather than its private copy."""
-    from matfit.fit import fitfile
+    from matfit.fitting import fitfile
 
     width, height = images.header(target)[:2]
     try:

@@ -27,7 +27,7 @@ import numpy as np
 
 from matfit import params
 from matfit.errors import RenderError
-from matfit.render import scene
+from matfit.rendering import scene
 
 if TYPE_CHECKING:
     from jaxtyping import Float

@@ -41,8 +41,8 @@ import numpy as np
 
 from matfit import images, params, programs
 from matfit.errors import FitError
-from matfit.fit import gradient
-from matfit.fit.methods import Box, Method, Settings
+from matfit.fitting import gradient
+from matfit.fitting.methods import Box, Method, Settings
 from matfit.model import models
 
 if TYPE_CHECKING:
@@ -183,7 +183,9 @@ def _best_of_n(
     ends = candidates[chosen][None]
     evaluations = jnp.array(0, jnp.float32)
     if settings.method.uses_simplex:
-        from matfit.fit import simplex  # optimistix and equinox: imported only for Nelder-Mead (a cold start's time)
+        from matfit.fitting import (
+            simplex,  # optimistix and equinox: imported only for Nelder-Mead (a cold start's time)
+        )
 
         y0 = start if settings.method == Method.optimize else candidates[chosen]
         solver = simplex.NelderMead(adaptive=settings.adaptive, initial_step=settings.initial_step)

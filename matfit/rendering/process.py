@@ -26,7 +26,7 @@ import numpy as np
 
 from matfit import params, shipped
 from matfit.errors import RenderError
-from matfit.render.engine import CUDA_VARIANT, Renderer, choose_variant, cuda_devices, mitsuba
+from matfit.rendering.engine import CUDA_VARIANT, Renderer, choose_variant, cuda_devices, mitsuba
 
 if TYPE_CHECKING:
     from jaxtyping import Float
@@ -140,7 +140,7 @@ class Process:
 
     def __init__(self, variant: str | None = None):
         self._child, self._requests, self._replies = start_child(
-            "matfit.render.process", "serve_requests", variant, pipe_bytes=self.PIPE_BYTES
+            "matfit.rendering.process", "serve_requests", variant, pipe_bytes=self.PIPE_BYTES
         )
         self._ready: tuple | None = None  # the child's first reply: (variant, notice)
         self._pending: list[tuple] = []  # keys of the renders asked for and not yet read, in order

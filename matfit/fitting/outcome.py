@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from matfit import params
-from matfit.fit import clean, ranges, refine, search, verify
+from matfit.fitting import clean, ranges, refine, search, verify
 
 
 @dataclass(frozen=True)

@@ -53,7 +53,7 @@ import xml.etree.ElementTree as ElementTree
 import numpy as np
 
 from matfit import params, shipped
-from matfit.render import blender_mapping, scene
+from matfit.rendering import blender_mapping, scene
 
 MATERIAL_ID = "matfit-material"
 MEDIUM_ID = "matfit-interior"
@@ -115,7 +115,7 @@ def from_blender_inputs(principled: dict, volume: dict | None) -> tuple[np.ndarr
     return params.from_mapping(values), missing, notes
 
 
-SCRIPT = shipped.PACKAGE / "render" / "blender_material.py"  # filled in per material
+SCRIPT = shipped.PACKAGE / "rendering" / "blender_material.py"  # filled in per material
 
 
 def blender_script(values: np.ndarray, name: str = "matfit") -> str:

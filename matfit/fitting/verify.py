@@ -41,8 +41,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from matfit import images, params
-from matfit.fit import correct, search
-from matfit.fit.methods import check_corrections
+from matfit.fitting import correct, search
+from matfit.fitting.methods import check_corrections
 from matfit.model import models
 
 if TYPE_CHECKING:
@@ -50,7 +50,7 @@ if TYPE_CHECKING:
 
     from jaxtyping import Float
 
-    from matfit.render.engine import Renders
+    from matfit.rendering.engine import Renders
 
 CANDIDATES = 5  # without correction: the start and up to four end points, every end of the default 4-start fit
 # With correction the start and the best end choose where the rounds start, and the last round joins them.

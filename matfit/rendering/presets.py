@@ -111,7 +111,7 @@ def material(
 def sheet(size: int, spp: int, variant: str | None = None) -> np.ndarray:
     """Returns every preset rendered side by side with its name under it, as one linear image."""
     from matfit import images
-    from matfit.render.engine import Renderer
+    from matfit.rendering.engine import Renderer
 
     renderer = Renderer(size, spp, variant)
     tiles = [images.label(images.srgb_encode(renderer.render(preset(name))), name) for name in PRESETS]

@@ -17,9 +17,9 @@ import numpy as np
 
 from matfit import files, images, params
 from matfit.errors import FitError, ImageError, OutputError
-from matfit.fit import ranges
-from matfit.fit.methods import CORRECTIONS, Settings, check_corrections
-from matfit.render import engine
+from matfit.fitting import ranges
+from matfit.fitting.methods import CORRECTIONS, Settings, check_corrections
+from matfit.rendering import engine
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """Cycles against Mitsuba: the exported Blender script rendered in Blender's copy of the test scene.
 
-Blender runs in a subprocess with its own Python (`matfit.render.blender_scene`): bpy 4.5 requires
+Blender runs in a subprocess with its own Python (`matfit.rendering.blender_scene`): bpy 4.5 requires
 numpy < 2, matfit numpy >= 2.4, so the two cannot share an environment (`make blender` builds
 `.venv-blender` from the `blender` dependency group of pyproject.toml). Which Python: the
 `--blender` argument, else $MATFIT_BLENDER_PYTHON, else `.venv-blender/bin/python` beside the
@@ -29,8 +29,8 @@ import numpy as np
 
 from matfit import files, images, shipped
 from matfit.errors import RenderError
-from matfit.render import export, presets, scene
-from matfit.render.engine import Renderer, check_request
+from matfit.rendering import export, presets, scene
+from matfit.rendering.engine import Renderer, check_request
 
 ENVIRONMENT_VARIABLE = "MATFIT_BLENDER_PYTHON"
 # `make blender` makes it beside the package in a clone; an installed matfit has none.
@@ -59,7 +59,7 @@ def find_blender(explicit: str | None = None) -> str:
 
 
 def _command(blender: str, job: str) -> list[str]:
-    worker = str(shipped.PACKAGE / "render" / "blender_scene.py")
+    worker = str(shipped.PACKAGE / "rendering" / "blender_scene.py")
     if "python" in os.path.basename(blender):
         return [blender, worker, job]
     return [blender, "--background", "--factory-startup", "--python", worker, "--", job]

@@ -1,8 +1,8 @@
 """The material test scene in Blender, rendered with Cycles: runs inside Blender's Python, not matfit's.
 
 bpy 4.5 requires numpy < 2 and cannot share matfit's environment, so this module is run in a
-subprocess by `matfit.render.blender` (`python -m matfit.render.blender_scene job.json` with a Python that has
-bpy, or `blender -b -P matfit/render/blender_scene.py -- job.json`). It imports only bpy, NumPy, the
+subprocess by `matfit.rendering.blender` (`python -m matfit.rendering.blender_scene job.json` with a Python that has
+bpy, or `blender -b -P matfit/rendering/blender_scene.py -- job.json`). It imports only bpy, NumPy, the
 NumPy-only modules `params` and `scene`, and `blender_material` (the exported material script,
 whose `node_tree` builds every node tree here too), so it runs with either NumPy.
 
@@ -51,8 +51,8 @@ if __package__ in (None, ""):  # run as a file (`blender -P`, `python blender_sc
 
 import bpy
 
-from matfit.render import scene
-from matfit.render.blender_material import node_tree
+from matfit.rendering import scene
+from matfit.rendering.blender_material import node_tree
 
 # Mitsuba (x, y, z), y up -> Blender (x, -z, y), z up.
 MITSUBA_TO_BLENDER = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])

@@ -15,12 +15,12 @@ import time
 import numpy as np
 
 from matfit import files, images, programs
-from matfit.fit import document, search, stages
-from matfit.fit.outcome import Outcome
-from matfit.fit.request import Outputs, Request
+from matfit.fitting import document, search, stages
+from matfit.fitting.outcome import Outcome
+from matfit.fitting.request import Outputs, Request
 from matfit.model import models
-from matfit.render import engine as render
-from matfit.render.process import Pool, Process
+from matfit.rendering import engine as render
+from matfit.rendering.process import Pool, Process
 
 
 def load_model(path: str) -> models.Model:
@@ -160,12 +160,12 @@ def write_outputs(
     if outputs.report is not None:
         images.write(batch.path(outputs.report), images.srgb_decode(document.report_picture(outcome)))
     if outputs.render is not None:
-        from matfit.render.engine import Renderer
+        from matfit.rendering.engine import Renderer
 
         large = Renderer(outputs.render_size, outputs.render_spp, renderer.variant if renderer else None)
         images.write(batch.path(outputs.render), large.render(values))
     if outputs.mitsuba_xml is not None or outputs.blender is not None:
-        from matfit.render import export
+        from matfit.rendering import export
 
         if outputs.mitsuba_xml is not None:
             files.write_text(batch.path(outputs.mitsuba_xml), export.mitsuba_xml(values))

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from matfit.fit import gradient, search
+from matfit.fitting import gradient, search
 from matfit.model import models
 
 # Gradient steps of a round's fit (it starts next to the answer of the corrected target): the fewest whose rounds judge

@@ -35,8 +35,8 @@ import numpy as np
 
 from matfit import documents, files, images, params
 from matfit.errors import SequenceError
-from matfit.fit import fitfile, search
-from matfit.fit.request import Request
+from matfit.fitting import fitfile, search
+from matfit.fitting.request import Request
 from matfit.model import models
 
 FRAME_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr")
@@ -311,7 +311,7 @@ def summary_table(results: list[Frame]) -> str:
 
 def preview(model: models.Model, results: list[Frame], *, columns: int = 12, tile: int = 96) -> np.ndarray:
     """Returns an sRGB strip: targets on top, fitted (neural) images below, for up to `columns` frames."""
-    from matfit.fit import report
+    from matfit.fitting import report
 
     chosen = np.unique(np.linspace(0, len(results) - 1, min(columns, len(results))).round().astype(int))
     decoded = model.decode(np.stack([results[k].unit for k in chosen]))
@@ -388,7 +388,7 @@ def render_frames(results: list[Frame], out: str, size: int, spp: int) -> None:
         if os.path.exists(path) and recorded == {**settings, "sha256": files.sha256(path)}:
             continue
         if renderer is None:
-            from matfit.render.engine import Renderer
+            from matfit.rendering.engine import Renderer
 
             renderer = Renderer(size, spp)
         images.write(path, renderer.render(params.from_unit(frame.unit)))

@@ -46,7 +46,7 @@ import numpy as np
 
 from matfit import images, params
 from matfit.errors import FitError, RenderError
-from matfit.render import engine, scene
+from matfit.rendering import engine, scene
 
 if TYPE_CHECKING:
     from types import ModuleType

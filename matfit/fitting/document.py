@@ -8,11 +8,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from matfit import documents, files, images, params, shipped
-from matfit.fit import clean, verify
-from matfit.fit.request import Request
+from matfit.fitting import clean, verify
+from matfit.fitting.request import Request
 
 if TYPE_CHECKING:
-    from matfit.fit.outcome import Outcome
+    from matfit.fitting.outcome import Outcome
 
 # The folder holding the package: the clone, or site-packages when installed (the shipped model reads
 # matfit/data/model either way; a user's own paths lie outside it and stay as given).
@@ -121,7 +121,7 @@ def build(outcome: Outcome, request: Request, model_path: str) -> dict:
 
 def report_picture(outcome: Outcome) -> np.ndarray:
     """Returns the report: target | best-of-n start | fit (neural) | fit (Mitsuba render) | difference, as sRGB."""
-    from matfit.fit import report
+    from matfit.fitting import report
 
     result = outcome.result
     assert outcome.rendered is not None, "fit_file renders the answer when a report is asked for (needs_render)"

@@ -26,7 +26,7 @@ from typing import TypeVar
 
 from matfit import documents, files
 from matfit.errors import MatfitError, OutputError
-from matfit.fit.request import Outputs, Request
+from matfit.fitting.request import Outputs, Request
 
 Fitted = TypeVar("Fitted")  # what fitting one picture returns (`matfit.Fit`)
 

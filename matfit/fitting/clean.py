@@ -41,13 +41,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from matfit import images, params, programs
-from matfit.fit import ranges, verify
+from matfit.fitting import ranges, verify
 
 if TYPE_CHECKING:
     from jaxtyping import PyTree
 
-    from matfit.fit.ranges import Decode
-    from matfit.render.engine import Renders
+    from matfit.fitting.ranges import Decode
+    from matfit.rendering.engine import Renders
 
 STEPS = 3  # re-linearised Gauss-Newton steps (a Jacobian and one batched decode each) re-fitting the others
 CLOSE = 0.5  # RMSE (0-255 sRGB): how far a candidate may decode from the answer's picture (docs/fitting.md)

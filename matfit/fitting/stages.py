@@ -15,13 +15,13 @@ import numpy as np
 
 from matfit import images
 from matfit.errors import FitError
-from matfit.fit import clean, document, ranges, refine, search, verify
-from matfit.fit.outcome import Answer, Outcome
-from matfit.fit.request import Request
+from matfit.fitting import clean, document, ranges, refine, search, verify
+from matfit.fitting.outcome import Answer, Outcome
+from matfit.fitting.request import Request
 from matfit.model import models
-from matfit.render import engine as render
-from matfit.render.engine import Renders
-from matfit.render.process import Background, Pool, Process
+from matfit.rendering import engine as render
+from matfit.rendering.engine import Renders
+from matfit.rendering.process import Background, Pool, Process
 
 Weights = np.ndarray | None  # the mask's per-pixel weights (R, R) at the model's resolution, or None: every pixel
 

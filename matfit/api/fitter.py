@@ -1,0 +1,360 @@
+"""Fitting pictures: `Fitter` (the model and the render processes loaded once, for many fits), `fit` (one picture
+with a fitter of its own) and `load_model`; the choices both check (`check_choices`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+import time
+from collections.abc import Callable, Iterable
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+
+from matfit import params, shipped
+from matfit.api.arguments import (
+    ARRAY,
+    Image,
+    Picture,
+    linear_pixels,
+    path_text,
+    picture_paths,
+    picture_size,
+    read_pixels,
+    shown,
+    whole,
+)
+from matfit.api.material import Material
+from matfit.api.results import Fit, Outputs, fit_of
+from matfit.errors import FitError, ImageError, MatfitError, OutputError, ParameterError, RenderError, WeightsError
+from matfit.fitting.methods import Settings
+
+if TYPE_CHECKING:
+    from matfit.fitting.request import Request
+    from matfit.model.models import Model
+    from matfit.rendering.process import Pool
+
+
+def load_model(path: str | os.PathLike[str] | None = None) -> Model:
+    """Returns the decoder and encoders of a model folder (None: the shipped model), for `Fitter` or `fit`."""
+    from matfit.fitting import fitfile
+
+    if path is not None and not isinstance(path, str | os.PathLike):
+        raise WeightsError(
+            f"model {shown(path)} is no model folder: give a folder's path, load_model()'s model, or None for the "
+            "shipped one",
+            field="model",
+        )
+    return fitfile.load_model(str(shipped.MODEL) if path is None else os.fspath(path))
+
+
+class Fitter:
+    """The model and the render processes loaded once, for many fits (the warm path); a context manager.
+
+    `model`: a model folder (None: the shipped model) or a loaded `load_model()`. A folder's model loads at the first
+    fit, once that fit's inputs and outputs were checked (a bad picture is refused without loading anything), or at
+    the first use of `fitter.model`. `verify`: whether fits let Mitsuba choose among their candidates by default; the
+    render processes (one a core) start here when it does, so that Mitsuba loads in them while the model loads here.
+    A fit that fails keeps them while every one runs (the picture was at fault); one that lost a render process
+    ends them, and the next fit starts new ones. `close()` (or leaving the `with` block) ends them.
+    """
+
+    def __init__(
+        self, model: str | os.PathLike[str] | Model | None = None, *, verify: bool = True, variant: str | None = None
+    ) -> None:
+        from matfit.rendering import engine
+
+        engine.check_request(variant)
+        if model is not None and not isinstance(model, str | os.PathLike):
+            from matfit.model import models  # a loaded model's module is imported already
+
+            if not isinstance(model, models.Model):
+                raise WeightsError(
+                    f"model {shown(model)} is no model folder: give a folder's path, load_model()'s model, or None "
+                    "for the shipped one",
+                    field="model",
+                )
+        self.variant = variant
+        self.verify = verify
+        self._pool: Pool | None = None
+        self._model: Model | None = None
+        if model is None:
+            self.model_path = str(shipped.MODEL)
+        elif isinstance(model, str | os.PathLike):
+            self.model_path = os.fspath(model)
+        else:
+            self._model, self.model_path = model, model.path
+        if verify:
+            self._renderer()  # Mitsuba starts in the children while JAX and the model load here
+
+    @property
+    def model(self) -> Model:
+        """The model the fits use (`load_model(model_path)`, loaded at the first use)."""
+        if self._model is None:
+            self._model = load_model(self.model_path)
+        return self._model
+
+    def _renderer(self) -> Pool:
+        if self._pool is None:
+            from matfit.rendering.process import Pool
+
+            self._pool = Pool(self.variant)
+        return self._pool
+
+    def close(self) -> None:
+        """Ends the render processes; a later verified fit starts new ones."""
+        if self._pool is not None:
+            self._pool.close()
+            self._pool = None
+
+    def __enter__(self) -> Fitter:
+        return self
+
+    def __exit__(self, *exception: object) -> None:
+        self.close()
+
+    def render(self, material: Material, *, seed: int = 0, spp: int = 64) -> Image:
+        """Returns the linear float32 (R, R, 3) render of a material at the model's resolution R on this fitter's
+        render processes (those that verify its fits: started here if not yet), bit-identical whatever their count."""
+        from matfit.fitting import verify
+        from matfit.model import dataset
+
+        if not isinstance(material, Material):
+            raise ParameterError(f"material {shown(material)} is no matfit.Material: give one", field="material")
+        seed = whole("seed", seed, 0, params.MAX_SEED, RenderError)
+        spp = whole("spp", spp, 1, dataset.MAX_SPP, RenderError)
+        pool = self._renderer()
+        pool.load(self.model.resolution, verify.SPP)
+        return np.asarray(pool.render(material.array(), seed=seed, spp=spp), np.float32)
+
+    def fit(
+        self,
+        picture: Picture,
+        *,
+        mask: Picture | None = None,
+        init: str | os.PathLike[str] | Material | None = None,
+        settings: Settings | None = None,
+        linear: bool = False,
+        verify: bool | None = None,
+        corrections: int | None = None,
+        answer: Literal["clean", "best"] = "clean",
+        refine: int = 0,
+        seed: int = 0,
+        outputs: Outputs | None = None,
+    ) -> Fit:
+        """Returns the fit of one picture with this fitter's model: `matfit.fit`, warm. `outputs`: the files to write
+        (checked before any work, written together at the end: what `matfit fit` writes), or None to write nothing."""
+        from matfit.fitting import fitfile  # noqa: F401  # JAX imported before the fit's wall time starts
+
+        started = time.perf_counter()
+        verified = self.verify if verify is None else verify
+        request, notices = self._request(
+            picture, mask, init, settings, linear, verified, corrections, answer, refine, seed, outputs
+        )
+        return self._fit_request(request, notices, started)
+
+    def fit_all(
+        self,
+        pictures: Iterable[str | os.PathLike[str]],
+        folder: str | os.PathLike[str],
+        *,
+        mask: str | os.PathLike[str] | None = None,
+        init: str | os.PathLike[str] | None = None,
+        settings: Settings | None = None,
+        verify: bool | None = None,
+        corrections: int | None = None,
+        answer: Literal["clean", "best"] = "clean",
+        refine: int = 0,
+        seed: int = 0,
+        outputs: Outputs | None = None,
+        done: Callable[[str, str, Fit | MatfitError | None], None] | None = None,
+    ) -> int:
+        """Fits picture files into `folder`, resumably: `matfit fit a.png b.png -o folder/`. Returns how many failed.
+
+        Each picture writes `<folder>/<stem>.params.json` and the other files `outputs` names (`Outputs`), every
+        path checked before the first fit (two pictures of one name are refused). A picture that cannot be fitted
+        (a MatfitError: unreadable, a mask of another size) is handed to `done` and the others go on. Stopped part
+        way (Ctrl-C, kill -9), the same call again keeps the pictures fitted already (unchanged, their files there,
+        the same settings and model) and fits the rest; once all are fitted, the folder's journal of them is
+        removed. `done(picture, its params.json, the Fit, its MatfitError, or None for one kept)` hears of each.
+        """
+        from matfit.fitting import batch
+
+        targets = [path_text(picture) for picture in picture_paths(pictures)]
+        if not isinstance(folder, str | os.PathLike):
+            raise OutputError(f"folder {shown(folder)} is no path: give the folder to write into", field="output")
+        into = os.fspath(folder)
+        if not targets:
+            raise FitError("fit_all was given no pictures: give a list of picture files", field="target")
+        if mask is not None and not isinstance(mask, str | os.PathLike):
+            raise ImageError(f"mask {shown(mask)} is no path: give a picture file's path or None", field="mask")
+        verified = self.verify if verify is None else verify
+        template = dataclasses.replace(outputs or Outputs(), params=os.path.join(into, "params.json"))
+        request, _ = self._request(
+            targets[0], mask, init, settings, False, verified, corrections, answer, refine, seed, template
+        )
+        # the model loaded after the checks (a folder that is no model is said before any fit, and leaves no folder)
+        requests = batch.plan(targets, into, request, then=lambda: self.model)
+
+        def fit_one(request: Request, written: Callable[[str], None]) -> Fit:
+            return self._fit_request(request, [], time.perf_counter(), written)
+
+        def heard(request: Request, result: Fit | MatfitError | None) -> None:
+            if done is not None:
+                done(request.target, request.outputs.params if request.outputs else into, result)
+
+        return batch.fit_all(requests, self.model_path, fit_one, done=heard)
+
+    def _fit_request(
+        self, request: Request, notices: list[str], started: float, written: Callable[[str], None] | None = None
+    ) -> Fit:
+        """Returns the fit of a request made by `_request`: checked before the model loads, its outputs written, then
+        `written(the SHA-256 of the picture fitted)` called (`fit_all`'s journal)."""
+        from matfit.fitting import fitfile
+
+        renderer = self._renderer() if request.verified and not request.refine_steps else None  # refinement: here
+        try:  # fitfile checks the request, then asks this fitter for its model (a folder's loads at the first fit)
+            if request.outputs is None:
+                outcome, _ = fitfile.fit_file(request, self, renderer=renderer)
+                outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
+            else:
+                outcome = fitfile.run(request, self, renderer=renderer, started=started)
+                if written is not None:
+                    written(str(outcome.document["target_sha256"]))
+        except BaseException:
+            if self._pool is not None and not self._pool.healthy():  # a render process ended: the next fit starts new
+                self.close()
+            raise
+        outcome = dataclasses.replace(outcome, notices=(*notices, *outcome.notices))
+        return fit_of(outcome, request.outputs.params if request.outputs else request.target)
+
+    def _request(
+        self,
+        picture: Picture,
+        mask: Picture | None,
+        init: str | os.PathLike[str] | Material | None,
+        settings: Settings | None,
+        linear: bool,
+        verified: bool,
+        corrections: int | None,
+        answer: str,
+        refine: int,
+        seed: int,
+        outputs: Outputs | None = None,
+    ) -> tuple[Request, list[str]]:
+        """Returns (the request of one fit, notices of the pixels read here): a picture file's as `matfit fit` makes
+        it, an array's with its pixels as the model's target."""
+        from matfit.fitting import search
+        from matfit.fitting.request import Request
+
+        check_choices(settings, init)
+        if outputs is not None and not isinstance(outputs, Outputs):
+            raise OutputError(
+                f"outputs {shown(outputs)} is no matfit.Outputs: give Outputs(params, ...) or None", field="output"
+            )
+        seed = whole("seed", seed, 0, params.MAX_SEED, FitError)
+        initial = (
+            None if init is None else "Material" if isinstance(init, Material) else path_text(init),
+            init.array() if isinstance(init, Material) else None,
+        )
+        target, pixels, digest, notices = ARRAY, None, None, list[str]()
+        size: tuple[int, int] | None = None  # an array's (height, width)
+        if isinstance(picture, str | os.PathLike):
+            if linear:
+                raise ImageError(
+                    "linear=True describes an array's values; a picture file says itself how it is encoded "
+                    "(EXR and HDR linear, the others sRGB): leave linear out",
+                    field="linear",
+                )
+            target = path_text(picture)
+        else:
+            given, notices = linear_pixels(picture, "picture", linear=linear)
+            size = (given.shape[0], given.shape[1])
+            pixels, more = search.prepare_target(given, self.model.resolution, "the picture array")
+            digest = hashlib.sha256(np.ascontiguousarray(np.asarray(picture)).tobytes()).hexdigest()
+            notices += more
+        named_mask, weights = None, None
+        if isinstance(mask, str | os.PathLike):
+            named_mask = path_text(mask)
+            if size is not None:  # the mask of an array is sized by the array: read here
+                weights = search.prepare_mask(read_pixels(named_mask, "mask"), size, self.model.resolution, named_mask)
+        elif mask is not None:
+            named_mask = ARRAY
+            mask_pixels = linear_pixels(mask, "mask", linear=False)[0]
+            weights = search.prepare_mask(mask_pixels, size or picture_size(target), self.model.resolution, "array")
+        request = Request(
+            target,
+            named_mask,
+            initial[0],
+            init_values=initial[1],
+            seed=seed,
+            settings=settings or Settings(),
+            verified=verified,
+            corrections=corrections,
+            refine_steps=refine,
+            variant=self.variant,
+            answer=answer,
+            pixels=pixels,
+            weights=weights,
+            target_sha256=digest,
+            outputs=None if outputs is None else outputs._request(),
+        )
+        return request, notices
+
+
+def check_choices(settings: object, init: object) -> None:
+    """Raises the MatfitError of `settings` that is no `Settings` or `init` that is no path or `Material`."""
+    if settings is not None and not isinstance(settings, Settings):
+        raise FitError(
+            f"settings {shown(settings)} is no matfit.Settings: give Settings(...) or None", field="settings"
+        )
+    if init is not None and not isinstance(init, str | os.PathLike | Material):
+        raise ParameterError(
+            f"init {shown(init)} is no params.json path or matfit.Material: give one, or "
+            "Material.from_array(values) of the 19 values in `matfit params` order",
+            field="init",
+        )
+
+
+def fit(
+    picture: Picture,
+    *,
+    mask: Picture | None = None,
+    init: str | os.PathLike[str] | Material | None = None,
+    model: str | os.PathLike[str] | Model | None = None,
+    settings: Settings | None = None,
+    linear: bool = False,
+    verify: bool = True,
+    corrections: int | None = None,
+    answer: Literal["clean", "best"] = "clean",
+    refine: int = 0,
+    seed: int = 0,
+    variant: str | None = None,
+    outputs: Outputs | None = None,
+) -> Fit:
+    """Returns the fit of the material whose render looks most like `picture`: what `matfit fit` finds.
+
+    `picture`: a file's path (PNG, JPEG, TIFF, EXR) or its pixels, an (H, W, 3) array (or (H, W, 4), alpha
+    dropped): float sRGB in 0-1, uint8 0-255 or uint16, or linear float with `linear=True`. `mask`: the same
+    kinds, white where the fit looks. `init`: a params.json or a `Material` that joins the candidates.
+    `model`: a model folder or `load_model()`'s (None: the shipped one). `settings`, `verify`, `corrections`,
+    `answer`, `refine`, `seed`, `variant`: `matfit fit`'s options of those names, with its defaults. A picture
+    file gives the parameters of `matfit fit PICTURE -o params.json` bit for bit. `outputs`: the files to write
+    (`Outputs`: checked before any work, written together once the fit is done), or None to write nothing. For many
+    pictures, a `Fitter` loads the model once.
+    """
+    with Fitter(model, verify=verify and not refine, variant=variant) as fitter:
+        return fitter.fit(
+            picture,
+            mask=mask,
+            init=init,
+            settings=settings,
+            linear=linear,
+            verify=verify,
+            corrections=corrections,
+            answer=answer,
+            refine=refine,
+            seed=seed,
+            outputs=outputs,
+        )
