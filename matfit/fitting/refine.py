@@ -38,6 +38,7 @@ target. The answer is never physically worse than the input, as that render sees
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import TYPE_CHECKING
@@ -114,14 +115,14 @@ def medium_textures(values: list[mi.Float]) -> tuple[mi.Color3f, mi.Color3f]:
     return mi.Color3f(*sigma_t), mi.Color3f(scattering, scattering, scattering)
 
 
-def set_material(scene_parameters: mi.SceneParameters, values: list[mi.Float]) -> None:
-    """Writes physical Dr.Jit values into a loaded test scene, as `engine.Renderer.set_material` writes NumPy ones."""
+def set_material(scene_parameters: mi.SceneParameters, values: list[mi.Float], keys: engine.Keys) -> None:
+    """Writes physical Dr.Jit values into a loaded scene at `keys`, as `engine.set_material` writes NumPy ones."""
     import mitsuba as mi
 
-    index, keys = params.INDEX, engine.Keys()
+    index = params.INDEX
     scene_parameters[keys.base_color] = mi.Color3f(*values[index["base_color_r"] : index["base_color_b"] + 1])
     for name in engine.SCALAR_BSDF_PARAMETERS:
-        scene_parameters[engine.Keys.scalar(name)] = values[index[name]]
+        scene_parameters[keys.scalar(name)] = values[index[name]]
     sigma_t, albedo = medium_textures(values)
     scene_parameters[keys.sigma_t] = sigma_t
     scene_parameters[keys.albedo] = albedo
@@ -254,6 +255,19 @@ def refine(
     )
 
 
+@dataclass(frozen=True)
+class Problem:
+    """A scene loaded for differentiable rendering, where the fitted material lives in it, and the picture its renders
+    are compared with: what `descend` needs, for the test scene (`refine`) and a scene file (`fitting/scene_fit`)."""
+
+    mitsuba: ModuleType
+    scene: mi.Scene
+    parameters: mi.SceneParameters
+    keys: engine.Keys
+    target: mi.TensorXf  # sRGB (H, W, 3)
+    weights: mi.TensorXf  # (H, W, 3), summing to 1 (`normalised_weights`)
+
+
 def _descend(
     start: np.ndarray,
     target: np.ndarray,
@@ -264,27 +278,53 @@ def _descend(
     rate: float,
     variant: str | None = None,
 ) -> tuple[np.ndarray, list[float]]:
+    """Returns `descend` on the test scene (loaded once per resolution)."""
+    if steps == 0:
+        return start, []
+    mi, loaded, scene_parameters = _differentiable_scene(target.shape[0], variant)
+    problem = Problem(
+        mi, loaded, scene_parameters, engine.Keys(), mi.TensorXf(target), mi.TensorXf(normalised_weights(weights))
+    )
+    return descend(problem, start, steps, spp=spp, seed=seed, rate=rate)
+
+
+def descend(
+    problem: Problem,
+    start: np.ndarray,
+    steps: int,
+    *,
+    spp: int = SPP,
+    seed: int = SEED,
+    rate: float = RATE,
+    progress: Callable[[int, float], None] | None = None,
+) -> tuple[np.ndarray, list[float]]:
     """Returns the point of lowest loss among those that `steps` projected Adam steps from `start` visited, and the
-    losses (step k's loss is that of the point before its update, so the start is a candidate too)."""
+    losses (step k's loss is that of the point before its update, so the start is a candidate too).
+
+    Step k renders with seed `seed + k`: its image takes PRIMAL x `spp` samples, its gradient `spp`.
+    `progress(step, loss)` hears of each step.
+    """
     if steps == 0:
         return start, []
     import drjit as dr
 
-    mi, loaded, scene_parameters = _differentiable_scene(target.shape[0], variant)
-    target_tensor = mi.TensorXf(target)
-    weight_tensor = mi.TensorXf(normalised_weights(weights))
+    mi = problem.mitsuba
     x, moment, second = start.copy(), np.zeros(params.COUNT), np.zeros(params.COUNT)
     losses, points = [], []
     for step in range(steps):
         points.append(x)
         unit = mi.Float(x)
         dr.enable_grad(unit)
-        set_material(scene_parameters, physical(unit))
-        image = mi.render(loaded, scene_parameters, seed=(seed + step) & 0xFFFFFFFF, spp=PRIMAL * spp, spp_grad=spp)
-        loss = srgb_rmse(image, target_tensor, weight_tensor)
+        set_material(problem.parameters, physical(unit), problem.keys)
+        image = mi.render(
+            problem.scene, problem.parameters, seed=(seed + step) & 0xFFFFFFFF, spp=PRIMAL * spp, spp_grad=spp
+        )
+        loss = srgb_rmse(image, problem.target, problem.weights)
         dr.backward(loss)
         gradient = np.array(dr.grad(unit), np.float64)
         losses.append(float(loss.array[0]))
+        if progress is not None:
+            progress(step, losses[-1])
         moment = BETAS[0] * moment + (1 - BETAS[0]) * gradient
         second = BETAS[1] * second + (1 - BETAS[1]) * gradient**2
         corrected = moment / (1 - BETAS[0] ** (step + 1)), second / (1 - BETAS[1] ** (step + 1))

@@ -21,7 +21,7 @@ import os
 import re
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
@@ -233,17 +233,30 @@ def to_mitsuba(mi, node: object) -> object:
 
 @dataclass(frozen=True)
 class Keys:
-    """Where each part of the material lives in `mi.traverse(scene)`."""
+    """Where each part of the material lives in `mi.traverse(scene)`: under the fitted shape's id (`object`, the test
+    scene's sphere; a scene file's shape, `scene_file`)."""
 
-    base_color: str = "object.bsdf.base_color.value"
-    sigma_t: str = "object.interior_medium.sigma_t.value.value"
-    albedo: str = "object.interior_medium.albedo.value.value"
-    phase_g: str = "object.interior_medium.phase_function.g"
+    shape: str = "object"
 
-    @staticmethod
-    def scalar(name: str) -> str:
+    @property
+    def base_color(self) -> str:
+        return f"{self.shape}.bsdf.base_color.value"
+
+    @property
+    def sigma_t(self) -> str:
+        return f"{self.shape}.interior_medium.sigma_t.value.value"
+
+    @property
+    def albedo(self) -> str:
+        return f"{self.shape}.interior_medium.albedo.value.value"
+
+    @property
+    def phase_g(self) -> str:
+        return f"{self.shape}.interior_medium.phase_function.g"
+
+    def scalar(self, name: str) -> str:
         """Returns the key of a scalar principled parameter."""
-        return f"object.bsdf.{name}" if name == "specular" else f"object.bsdf.{name}.value"
+        return f"{self.shape}.bsdf.{name}" if name == "specular" else f"{self.shape}.bsdf.{name}.value"
 
 
 SCALAR_BSDF_PARAMETERS = (
@@ -276,6 +289,26 @@ class Renders(Protocol):
         ...
 
 
+def set_material(mi: Any, parameters: Any, values: Float[np.ndarray, " 19"], keys: Keys) -> None:
+    """Writes a physical parameter vector (19,) into a loaded scene's traversed `parameters` at `keys`, and updates."""
+    import drjit
+
+    v = np.asarray(values, dtype=np.float64)
+    if v.shape != (params.COUNT,) or not np.all(np.isfinite(v)):
+        raise RenderError(f"a material is {params.COUNT} finite values, got shape {v.shape}")
+    index = params.INDEX
+    parameters[keys.base_color] = mi.Color3f(*(float(x) for x in v[index["base_color_r"] : index["base_color_b"] + 1]))
+    for name in SCALAR_BSDF_PARAMETERS:
+        parameters[keys.scalar(name)] = mi.Float(float(v[index[name]]))
+    sigma_t, albedo = scene.medium_textures(v)
+    parameters[keys.sigma_t] = mi.Color3f(*(float(x) for x in sigma_t))
+    parameters[keys.albedo] = mi.Color3f(*(float(x) for x in albedo))
+    # The phase function does not make its `g` opaque itself: as a literal, every new value would compile a new
+    # kernel.
+    parameters[keys.phase_g] = drjit.opaque(mi.Float, float(v[index["phase_g"]]))
+    parameters.update()
+
+
 class Renderer:
     """The test scene loaded once, rendering any material at a fixed resolution.
 
@@ -305,21 +338,7 @@ class Renderer:
 
     def set_material(self, values: Float[np.ndarray, " 19"]) -> None:
         """Applies a physical parameter vector (19,) to the loaded scene."""
-        mi, p, keys = self.mi, self.parameters, Keys()
-        v = np.asarray(values, dtype=np.float64)
-        if v.shape != (params.COUNT,) or not np.all(np.isfinite(v)):
-            raise RenderError(f"a material is {params.COUNT} finite values, got shape {v.shape}")
-        index = params.INDEX
-        p[keys.base_color] = mi.Color3f(*(float(x) for x in v[index["base_color_r"] : index["base_color_b"] + 1]))
-        for name in SCALAR_BSDF_PARAMETERS:
-            p[Keys.scalar(name)] = mi.Float(float(v[index[name]]))
-        sigma_t, albedo = scene.medium_textures(v)
-        p[keys.sigma_t] = mi.Color3f(*(float(x) for x in sigma_t))
-        p[keys.albedo] = mi.Color3f(*(float(x) for x in albedo))
-        # The phase function does not make its `g` opaque itself: as a literal, every new value
-        # would compile a new kernel.
-        p[keys.phase_g] = self.drjit.opaque(mi.Float, float(v[index["phase_g"]]))
-        p.update()
+        set_material(self.mi, self.parameters, values, Keys())
 
     def prefetch(self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None) -> None:
         """Renders nothing ahead: `Background` and `Process` do (every renderer answers `prefetch`)."""
