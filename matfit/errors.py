@@ -55,6 +55,10 @@ class SequenceError(MatfitError):
     """A frames folder or sequence output that cannot be used."""
 
 
+class SceneError(MatfitError):
+    """A scene file of the user's own, or the shape named in it, that cannot be used."""
+
+
 def check_range(
     field: str, value: int | float, low: int | float, high: int | float, error: type[MatfitError] = MatfitError
 ) -> None:

@@ -1,0 +1,298 @@
+"""The fit in a scene of the user's own: the shape's material whose Mitsuba render of that scene looks most like
+the edited picture, found by differentiable rendering (docs/scenes.md).
+
+The test scene's networks know one scene only, so here Mitsuba's differentiable renderer is the whole optimiser:
+`refine.descend`, the test scene's refinement loop (projected Adam in the unit cube, a new seed each step, the
+residual's image at `refine.PRIMAL` times the gradient's samples, the best visited point), on the scene file's
+own camera, lights and shapes. In order:
+
+1. The picture, resampled to the fit's size (`FIT_SIZE` pixels on the longer side, the camera's aspect), must
+   have the camera's aspect.
+2. Where the fit looks (`region`): the pixels the shape changes, found by rendering the scene with the shape
+   white, with it black, and without it: its silhouette, its shadow, its reflections and what shows through
+   it. A mask given instead decides alone. Outside the region the picture must look like the scene's render
+   (else it is not a picture of this scene), and inside it like something other than the scene without the
+   shape.
+3. Starts: the material given (or the shape's own, or matfit's default) and four that keep its colour over
+   metallic x roughness (an opaque start) or two over roughness (a transmissive one): one start can stick, a
+   glossy plastic fitted to a rough gold stays at roughness 0.001 (measured in the prototype). Each runs
+   `SHORT_STEPS`; the one whose render (`JUDGE_SPP`, one common seed) is closest goes on for `steps` more.
+4. The answer is judged against the start by one render each at `JUDGE_SPP` with a common seed no step used, and
+   kept only if closer: never worse than the start, as that render sees it.
+5. What one view decides: each parameter moved by `PROBE` in the unit cube both ways from the answer, the two
+   renders (one common seed) compared over the region: a change under `UNDECIDED_RMSE` is not decided by this
+   picture (`ranges` in params.json).
+
+Opaque starts differentiate with `prb` (the measured faster integrator; the medium then has no effect and is
+reported undecided); a transmissive start or one with a medium with `prbvolpath`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from matfit import images, params
+from matfit.errors import SceneError
+from matfit.fitting import refine
+from matfit.rendering import engine, scene_file
+from matfit.rendering import scene as scene_model
+
+FIT_SIZE = 64  # pixels on the longer side of the fit's renders: the prototype's measured recovery size
+SHORT_STEPS = 12  # each start's steps before the best goes on
+STEPS = 48  # the best start's further steps (`steps=`)
+STEP_SPP = refine.SPP  # a step's gradient samples (its image takes refine.PRIMAL times as many)
+JUDGE_SPP = 128  # the renders that choose between starts and accept the answer
+JUDGE_SEED = 4_000_037  # their common seed: no step uses it (steps use refine.SEED + k)
+REGION_SPP = 64  # the renders that find the region
+REGION_THRESHOLD = 6.0 / 255.0  # sRGB change (3x3 mean) that counts as the shape's doing
+NOT_THIS_SCENE_RMSE = 20.0  # 0-255 outside the region: a picture further than this from the scene is another's
+PROBE = 0.15  # unit-cube step of the per-parameter check of what the view decides
+PROBE_SPP = 32
+UNDECIDED_RMSE = 0.75  # 0-255 over the region: a parameter that changes the picture less is not decided by it
+MAX_DEPTH = 12  # the steps' path length
+ASPECT_TOLERANCE = 0.02
+
+
+@dataclass(frozen=True)
+class SceneOutcome:
+    """What a fit in a scene found: the answer, the start, their judged renders, how it went."""
+
+    values: np.ndarray  # physical (19,): the answer kept
+    start_values: np.ndarray  # the material the fit started from
+    rmse: float  # the answer's judged RMSE over the region, 0-255 sRGB
+    start_rmse: float
+    accepted: bool  # whether the descent's point was kept (else the start is the answer)
+    target: np.ndarray  # sRGB (h, w, 3) at the fit's size
+    weights: np.ndarray  # (h, w) the region (or the mask), as used
+    rendered: np.ndarray  # sRGB judged render of the answer
+    start_rendered: np.ndarray
+    starts: list[dict[str, object]]  # each start: name, judged RMSE after its short run
+    losses: list[float]  # the chosen start's step losses, short run and continuation
+    ranges: dict[str, dict[str, object]]  # per parameter: change over the region when probed, decided or not
+    integrator: str
+    seconds: float
+    notices: list[str] = field(default_factory=list)
+
+
+def check_aspect(scene: scene_file.SceneFile, height: int, width: int, name: str) -> None:
+    """Raises SceneError unless a picture of (height, width) has the scene camera's aspect."""
+    if abs(width / height - scene.aspect) > ASPECT_TOLERANCE * scene.aspect:
+        raise SceneError(
+            f"{name} is {width}x{height} (aspect {width / height:.3f}), the scene's camera "
+            f"{scene.width}x{scene.height} (aspect {scene.aspect:.3f}): give a picture of the camera's aspect, as "
+            "`matfit render --scene` renders it",
+            "target",
+        )
+
+
+def _blurred(image: np.ndarray) -> np.ndarray:
+    padded = np.pad(image, ((1, 1), (1, 1), (0, 0)), mode="edge")
+    h, w = image.shape[:2]
+    return np.mean([padded[i : i + h, j : j + w] for i in range(3) for j in range(3)], axis=0)
+
+
+def _dilated(mask: np.ndarray, pixels: int) -> np.ndarray:
+    grown = mask.copy()
+    for _ in range(pixels):
+        padded = np.pad(grown, 1)
+        grown = grown | padded[:-2, 1:-1] | padded[2:, 1:-1] | padded[1:-1, :-2] | padded[1:-1, 2:]
+    return grown
+
+
+def _probe(values: np.ndarray, **changes: float) -> np.ndarray:
+    probed = np.asarray(values, np.float64).copy()
+    for name, value in changes.items():
+        probed[params.INDEX[name]] = value
+    return probed
+
+
+def region(renderer: scene_file.Renderer) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (the pixels the shape changes as a boolean (h, w) mask, the sRGB render without the shape)."""
+    white = _probe(params.DEFAULTS, base_color_r=1.0, base_color_g=1.0, base_color_b=1.0, metallic=0.0, spec_trans=0.0,
+                   density=0.0)  # fmt: skip
+    black = _probe(white, base_color_r=0.0, base_color_g=0.0, base_color_b=0.0, specular=0.0, sheen=0.0, clearcoat=0.0)
+    renders = [images.srgb_encode(renderer.render(v, seed=JUDGE_SEED, spp=REGION_SPP)) for v in (white, black)]
+    without = images.srgb_encode(renderer.render_without(seed=JUDGE_SEED, spp=REGION_SPP))
+    changed = np.zeros(without.shape[:2], bool)
+    for a, b in ((renders[0], renders[1]), (renders[0], without), (renders[1], without)):
+        changed |= _blurred(np.abs(a - b)).max(axis=2) > REGION_THRESHOLD
+    return _dilated(changed, 1), without
+
+
+def _judge(renderer: scene_file.Renderer, values: np.ndarray, target: np.ndarray, weights: np.ndarray) -> tuple:
+    rendered = images.srgb_encode(renderer.render(values, seed=JUDGE_SEED, spp=JUDGE_SPP))
+    return float(images.rmse(rendered, target, weights)), rendered
+
+
+def starts(start: np.ndarray) -> list[tuple[str, np.ndarray]]:
+    """Returns the named starts of a fit from the material `start` (physical): it, and others that keep its colour."""
+    found = [("given", start)]
+    transmissive = start[params.INDEX["spec_trans"]] >= 0.5 or start[params.INDEX["density"]] > 0
+    if transmissive:
+        found += [(f"roughness {r}", _probe(start, roughness=r)) for r in (0.02, 0.35)]
+    else:
+        found += [
+            (f"metallic {m} roughness {r}", _probe(start, metallic=m, roughness=r))
+            for m in (0.0, 1.0)
+            for r in (0.15, 0.55)
+        ]
+    return found
+
+
+def fit(
+    scene: scene_file.SceneFile,
+    picture: np.ndarray,
+    *,
+    start: np.ndarray | None = None,
+    mask: np.ndarray | None = None,
+    steps: int = STEPS,
+    variant: str | None = None,
+    progress: Callable[[str, int, int, float], None] | None = None,
+) -> SceneOutcome:
+    """Returns the fit of the shape's material to `picture` (linear RGB (H, W, 3), the camera's aspect).
+
+    `start`: the material to start from (19 physical values; None: the shape's own, else matfit's default). `mask`:
+    weights (H, W) in [0, 1] where the fit looks, instead of the region the shape changes. `progress(stage, step,
+    steps, loss)` hears of each step ("starts", then "descent") and of the judging ("judge").
+    """
+    started = time.perf_counter()
+    check_aspect(scene, picture.shape[0], picture.shape[1], "the picture")
+    size = scene.size(FIT_SIZE)
+    target = np.clip(images.srgb_encode(images.resample(picture, *size)), 0.0, 1.0).astype(np.float32)
+    renderer = scene_file.Renderer(scene, size, variant)
+    if renderer.variant == engine.SCALAR_VARIANT:
+        raise SceneError(
+            f"a fit in a scene differentiates with {engine.LLVM_VARIANT}, which needs libLLVM >= "
+            f"{engine.MINIMUM_LLVM}: install Debian's libllvm19 or set DRJIT_LIBLLVM_PATH",
+            "variant",
+        )
+    notices = []
+    shape_region, without = region(renderer)
+    outside = ~shape_region
+    if shape_region.mean() < 0.002:
+        raise SceneError(
+            f"the shape {scene.object!r} is not seen by the scene's camera (it changes no pixel of its render): give "
+            "the id of a shape in view",
+            "object",
+        )
+    if outside.any():
+        away = float(images.rmse(target, without, outside.astype(np.float32)))
+        if away > NOT_THIS_SCENE_RMSE:
+            raise SceneError(
+                f"the picture is not a render of {scene.path}: away from the shape it differs from the scene by RMSE "
+                f"{away:.1f} (0-255): give a picture `matfit render --scene` made of this scene, edited on the shape",
+                "target",
+            )
+    nothing = float(images.rmse(target, without, shape_region.astype(np.float32)))
+    if nothing < 2.0:
+        raise SceneError(
+            f"the picture shows the scene without the shape {scene.object!r} (RMSE {nothing:.1f} from its render "
+            "without it): give a picture with the shape in it",
+            "target",
+        )
+    if mask is not None:
+        weights = np.asarray(images.resample(mask[..., None].astype(np.float32), *size)[..., 0], np.float32)
+        if weights.sum() <= 0:
+            raise SceneError("the mask is black where the picture is fitted: paint the shape white", "mask")
+    else:
+        weights = shape_region.astype(np.float32)
+    first = scene.own if start is None and scene.own is not None else params.DEFAULTS if start is None else start
+    first = np.clip(np.asarray(first, np.float64), params.LOW, params.HIGH)
+    transmissive = first[params.INDEX["spec_trans"]] >= 0.5 or first[params.INDEX["density"]] > 0
+    integrator = "prbvolpath" if transmissive else "prb"
+    mi = renderer.mi
+    start_values = scene.own if scene.own is not None else scene_model.all_lobes_values()
+    loaded = scene_file.load(
+        mi, scene, scene_file.xml(scene, start_values, size, integrator={"type": integrator, "max_depth": MAX_DEPTH})
+    )
+    problem = refine.Problem(
+        mi,
+        loaded,
+        mi.traverse(loaded),
+        engine.Keys(scene.object),
+        mi.TensorXf(target),
+        mi.TensorXf(refine.normalised_weights(weights)),
+    )
+    candidates = starts(first)
+    total = SHORT_STEPS * len(candidates) + steps
+    done = 0
+
+    def heard(stage: str) -> Callable[[int, float], None]:
+        def step(k: int, loss: float) -> None:
+            nonlocal done
+            done += 1
+            if progress is not None:
+                progress(stage, done, total, loss)
+
+        return step
+
+    tried = []
+    for name, values in candidates:
+        point, losses = refine.descend(
+            problem, params.to_unit(values), SHORT_STEPS, spp=STEP_SPP, seed=refine.SEED, progress=heard("starts")
+        )
+        judged, _ = _judge(renderer, params.from_unit(point), target, weights)
+        tried.append({"name": name, "rmse": round(judged, 3), "point": point, "losses": losses})
+    best = min(tried, key=lambda t: t["rmse"])
+    point, more = refine.descend(
+        problem,
+        np.asarray(best["point"]),
+        steps,
+        spp=STEP_SPP,
+        seed=refine.SEED + SHORT_STEPS,
+        progress=heard("descent"),
+    )
+    answer = params.from_unit(point)
+    start_rmse, start_rendered = _judge(renderer, first, target, weights)
+    rmse, rendered = _judge(renderer, answer, target, weights)
+    accepted = rmse < start_rmse
+    if not accepted:
+        notices.append(f"the descent found nothing closer than the start (RMSE {rmse:.2f} >= {start_rmse:.2f}): kept")
+        answer, rmse, rendered = first, start_rmse, start_rendered
+    if progress is not None:
+        progress("judge", total, total, rmse)
+    return SceneOutcome(
+        answer,
+        first,
+        rmse,
+        start_rmse,
+        accepted,
+        target,
+        weights,
+        rendered,
+        start_rendered,
+        [{"name": t["name"], "rmse": t["rmse"]} for t in tried],
+        [*list(best["losses"]), *more],
+        decided(renderer, answer, weights, integrator),
+        integrator,
+        time.perf_counter() - started,
+        notices,
+    )
+
+
+def decided(
+    renderer: scene_file.Renderer, values: np.ndarray, weights: np.ndarray, integrator: str
+) -> dict[str, dict[str, object]]:
+    """Returns, per parameter, how much the picture changes over `weights` when it moves by PROBE both ways from
+    `values` (RMSE of the two renders, one common seed), and whether the picture decides it."""
+    unit = params.to_unit(values)
+    found: dict[str, dict[str, object]] = {}
+    for name in params.NAMES:
+        i = params.INDEX[name]
+        low, high = unit.copy(), unit.copy()
+        low[i], high[i] = max(0.0, unit[i] - PROBE), min(1.0, unit[i] + PROBE)
+        a, b = (
+            images.srgb_encode(renderer.render(params.from_unit(u), seed=JUDGE_SEED, spp=PROBE_SPP))
+            for u in (low, high)
+        )
+        change = float(images.rmse(a, b, weights))
+        medium = name.startswith("medium_") or name in ("density", "scattering", "phase_g")
+        verdict = "decided" if change >= UNDECIDED_RMSE else "not decided by this view"
+        if medium and integrator == "prb":
+            verdict += " (the fit's integrator shows no medium)"
+        found[name] = {"change": round(change, 3), "verdict": verdict}
+    return found
