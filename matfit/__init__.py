@@ -8,6 +8,7 @@ __all__ = [
     "Material",
     "MatfitError",
     "Outputs",
+    "Scene",
     "Settings",
     "fit",
     "fit_sequence",
@@ -23,6 +24,7 @@ _HOMES = {
     "Material": "matfit.api.material",
     "MatfitError": "matfit.errors",
     "Outputs": "matfit.api.results",
+    "Scene": "matfit.api.scenes",
     "Settings": "matfit.fitting.methods",
     "fit": "matfit.api.fitter",
     "fit_sequence": "matfit.api.sequences",
@@ -34,6 +36,7 @@ if TYPE_CHECKING:
     from matfit.api.fitter import Fitter, fit, load_model
     from matfit.api.material import Material, render
     from matfit.api.results import Fit, Outputs
+    from matfit.api.scenes import Scene
     from matfit.api.sequences import fit_sequence
     from matfit.errors import MatfitError
     from matfit.fitting.methods import Settings

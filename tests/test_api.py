@@ -78,7 +78,7 @@ def test_import_matfit_loads_neither_jax_nor_mitsuba_and_names_only_its_api():
         [sys.executable, "-c", code], capture_output=True, text=True, check=True
     ).stdout.splitlines()
     assert loaded == "[]"
-    assert names == str(sorted(["Fit", "Fitter", "Material", "MatfitError", "Outputs", "Settings", "fit",
+    assert names == str(sorted(["Fit", "Fitter", "Material", "MatfitError", "Outputs", "Scene", "Settings", "fit",
                                 "fit_sequence", "load_model", "render"]))  # fmt: skip
 
 

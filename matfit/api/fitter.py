@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from matfit import params, shipped
+from matfit.api import scenes
 from matfit.api.arguments import (
     ARRAY,
     Image,
@@ -27,6 +28,7 @@ from matfit.api.arguments import (
 )
 from matfit.api.material import Material
 from matfit.api.results import Fit, Outputs, fit_of
+from matfit.api.scenes import Scene
 from matfit.errors import FitError, ImageError, MatfitError, OutputError, ParameterError, RenderError, WeightsError
 from matfit.fitting.methods import Settings
 
@@ -142,9 +144,14 @@ class Fitter:
         refine: int = 0,
         seed: int = 0,
         outputs: Outputs | None = None,
+        scene: Scene | None = None,
+        progress: Callable[[str, int, int, float], None] | None = None,
     ) -> Fit:
         """Returns the fit of one picture with this fitter's model: `matfit.fit`, warm. `outputs`: the files to write
-        (checked before any work, written together at the end: what `matfit fit` writes), or None to write nothing."""
+        (checked before any work, written together at the end: what `matfit fit` writes), or None to write nothing.
+        `scene`: fit the material of a shape in a scene of your own instead (`matfit.fit`'s)."""
+        if scene is not None:
+            return _fit_scene(picture, scene, mask, init, linear, outputs, self.variant, progress)
         from matfit.fitting import fitfile  # noqa: F401  # JAX imported before the fit's wall time starts
 
         started = time.perf_counter()
@@ -332,6 +339,8 @@ def fit(
     seed: int = 0,
     variant: str | None = None,
     outputs: Outputs | None = None,
+    scene: Scene | None = None,
+    progress: Callable[[str, int, int, float], None] | None = None,
 ) -> Fit:
     """Returns the fit of the material whose render looks most like `picture`: what `matfit fit` finds.
 
@@ -343,8 +352,14 @@ def fit(
     file gives the parameters of `matfit fit PICTURE -o params.json` bit for bit. `outputs`: the files to write
     (`Outputs`: checked before any work, written together once the fit is done), or None to write nothing. For many
     pictures, a `Fitter` loads the model once.
+
+    `scene`: a `Scene` of your own (a Mitsuba XML file and a shape's id): the picture is a render of that scene,
+    edited, and the shape's material is fitted there by Mitsuba's differentiable renderer (docs/scenes.md); `init`
+    is the material to start from (None: the shape's own where matfit reads it), `mask` where to look (None: the
+    pixels the shape changes), `progress(stage, step, steps, loss)` hears of each step; `settings`, `verify`,
+    `corrections`, `answer`, `refine` and `seed` are the test scene's and are not used. `Fit.neural_rmse` is NaN.
     """
-    with Fitter(model, verify=verify and not refine, variant=variant) as fitter:
+    with Fitter(model, verify=verify and not refine and scene is None, variant=variant) as fitter:
         return fitter.fit(
             picture,
             mask=mask,
@@ -357,4 +372,62 @@ def fit(
             refine=refine,
             seed=seed,
             outputs=outputs,
+            scene=scene,
+            progress=progress,
         )
+
+
+def _fit_scene(
+    picture: Picture,
+    scene: Scene,
+    mask: Picture | None,
+    init: str | os.PathLike[str] | Material | None,
+    linear: bool,
+    outputs: Outputs | None,
+    variant: str | None,
+    progress: Callable[[str, int, int, float], None] | None,
+) -> Fit:
+    """Returns the fit of the material of a shape in a scene of the user's own (`scenes.fit_in_scene`)."""
+    from matfit.fitting import scene_fit
+
+    check_choices(None, init)
+    if outputs is not None and not isinstance(outputs, Outputs):
+        raise OutputError(
+            f"outputs {shown(outputs)} is no matfit.Outputs: give Outputs(params, ...) or None", field="output"
+        )
+    named = None if init is None or isinstance(init, Material) else path_text(init)
+    start = None if init is None else (init if isinstance(init, Material) else Material.read(init)).array()
+    outcome, document = scenes.fit_in_scene(
+        picture,
+        scene,
+        init=start,
+        init_name="Material" if isinstance(init, Material) else named,
+        mask=mask,
+        linear=linear,
+        steps=scene_fit.STEPS,
+        variant=variant,
+        outputs=None if outputs is None else outputs._request(),
+        progress=progress,
+    )
+    summary = (
+        f"{outputs.params if outputs else document['target']}: scene {document['scene']['object']!r}, Mitsuba RMSE "
+        f"{outcome.rmse:.2f} (start {outcome.start_rmse:.2f}), {outcome.seconds:.1f} s"
+    )
+    return Fit(
+        Material.from_array(outcome.values),
+        float("nan"),
+        outcome.rmse,
+        {},
+        dict(outcome.ranges),
+        {},
+        tuple(document["notices"]),
+        summary,
+        outcome.target,
+        outcome.rendered,
+        outcome.rendered,
+        document,
+        "given",
+        outcome.start_rmse,
+        len(outcome.losses),
+        outcome.start_rendered,
+    )

@@ -17,6 +17,7 @@ from matfit.api.arguments import MAX_SIZE, Image, whole
 from matfit.errors import MatfitError, ParameterError, RenderError
 
 if TYPE_CHECKING:
+    from matfit.api.scenes import Scene
     from matfit.rendering.engine import Renderer
 
 Array = npt.NDArray[np.float64]
@@ -155,8 +156,19 @@ class Material:
 _renderers: dict[tuple[int, str | None], Renderer] = {}
 
 
-def render(material: Material, *, size: int = 256, spp: int = 256, seed: int = 0, variant: str | None = None) -> Image:
+def render(
+    material: Material,
+    *,
+    size: int = 256,
+    spp: int = 256,
+    seed: int = 0,
+    variant: str | None = None,
+    scene: Scene | None = None,
+) -> Image:
     """Returns the material rendered by Mitsuba in the test scene: linear RGB float32 (size, size, 3).
+
+    `scene`: a `Scene` of your own instead, its shape given the material: (H, W, 3) with `size` pixels on the longer
+    side and the camera's aspect.
 
     `seed` makes the noise: the same arguments give the same picture. The scene is loaded once a size and kept.
     Where no libLLVM >= 19 is found (and no GPU), it renders with the slower scalar_rgb and warns once
@@ -172,6 +184,10 @@ def render(material: Material, *, size: int = 256, spp: int = 256, seed: int = 0
             "Material.preset(name) or Material.from_dict(...)",
             field="material",
         )
+    if scene is not None:
+        from matfit.api import scenes
+
+        return scenes.render_values(material.array(), scene, size=size, spp=spp, seed=seed, variant=variant)
     size = whole("size", size, dataset.MIN_RESOLUTION, MAX_SIZE, RenderError)
     spp = whole("spp", spp, 1, dataset.MAX_SPP, RenderError)
     seed = whole("seed", seed, 0, params.MAX_SEED, RenderError)

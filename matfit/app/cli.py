@@ -20,6 +20,7 @@ import typer
 import matfit
 from matfit import documents, interrupt, params
 from matfit.app import console, options
+from matfit.app import progress as progress_module
 from matfit.fitting.methods import Box, Method, Settings
 from matfit.model import dataset, dataset_workers, dataset_writing
 from matfit.rendering import presets
@@ -72,13 +73,24 @@ def render(
     ] = False,
     seed: Annotated[int, options.seed("Seed of the random material and of the render's noise.")] = 0,
     variant: options.Variant = None,
+    scene: options.SceneFile = None,
+    object: options.SceneObject = None,
 ) -> None:
-    """Render one material in the test scene with Mitsuba: the artist's starting image."""
+    """Render one material in the test scene with Mitsuba: the artist's starting image (--scene: in a scene of your
+    own, on its shape --object, --size pixels on the longer side)."""
     from matfit.rendering import engine as render_module
 
     values = presets.material(options.text(params_file), preset, seed if random else None)
     if random:
         typer.echo(documents.dumps(params.params_document(values, source=f"--random --seed {seed}")), nl=False)
+    if scene is not None or object is not None:
+        from matfit.api import scenes
+
+        written = scenes.render_file(
+            values, options.scene(scene, object), str(output), size=size, spp=spp, seed=seed, variant=variant
+        )
+        log(f"wrote {output} ({written[0]}x{written[1]}, {spp} spp, shape {object!r} of {scene})")
+        return
     inputs = {"params_file": options.text(params_file)}
     done = render_module.render_file(values, str(output), size, spp, seed, variant, inputs)
     echo_lines(done.notices)
@@ -219,14 +231,34 @@ def fit_command(
     corrections: options.Corrections = None,
     variant: options.Variant = None,
     answer: options.Answer = "clean",
+    scene: options.SceneFile = None,
+    object: options.SceneObject = None,
 ) -> None:
-    """Find the shader parameters whose render looks most like the edited picture."""
+    """Find the shader parameters whose render looks most like the edited picture (--scene: a render of a scene of
+    your own, the material of its shape --object fitted there)."""
     from matfit.app import worker
 
     text = options.text
     several = len(targets) > 1
     written = str(output or ("." if several else "params.json"))
     outputs = matfit.Outputs(written, text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
+    if scene is not None or object is not None:
+        chosen_scene = options.scene(scene, object)
+        if several:
+            raise matfit.MatfitError("--scene fits one picture at a time: give one picture", field="target")
+        with progress_module.Progress(f"fitting {object!r} in {scene}") as shown:
+            fitted = matfit.fit(
+                str(targets[0]),
+                mask=text(mask),
+                init=text(init),
+                variant=variant,
+                outputs=outputs,
+                scene=chosen_scene,
+                progress=shown.steps(),
+            )
+        echo_lines(fitted.notices)
+        log(fitted.summary)
+        return
     settings = Settings(
         method,
         evaluations,

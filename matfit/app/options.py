@@ -11,8 +11,10 @@ from typing import Annotated, Literal
 
 import typer
 
+import matfit
 from matfit import params, shipped
 from matfit.api.arguments import MAX_SIZE
+from matfit.errors import SceneError
 from matfit.fitting.methods import (
     CORRECTIONS,
     MAX_EVALUATIONS,
@@ -42,6 +44,14 @@ def output(help: str):
 def out(help: str):
     """Returns the option of the folder a command writes into: --out, -o."""
     return typer.Option("--out", "-o", help=help)
+
+
+def scene(path: Path | None, object: str | None) -> matfit.Scene:
+    """Returns the `matfit.Scene` of --scene and --object (the one-line error of one without the other)."""
+    if path is None or object is None:
+        given, missing = ("--scene", "--object") if path is not None else ("--object", "--scene")
+        raise SceneError(f"{given} needs {missing}: give the scene file and the id of its shape", field="scene")
+    return matfit.Scene(str(path), object)
 
 
 def text(path: Path | None) -> str | None:
@@ -105,6 +115,15 @@ Corrections = Annotated[
     ),
 ]
 Init = Annotated[Path | None, typer.Option(help="params.json of the source material: joins the candidates.")]
+SceneFile = Annotated[
+    Path | None,
+    typer.Option(
+        "--scene", help="A Mitsuba 3 XML scene of your own: the picture is its render (docs/scenes.md); needs --object."
+    ),
+]
+SceneObject = Annotated[
+    str | None, typer.Option("--object", help="With --scene: the id of the shape whose material is fitted/rendered.")
+]
 Fitting = Annotated[
     Method,
     typer.Option(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
@@ -83,6 +84,16 @@ class Progress:
             rate_text = f"{rate:.1f} {unit}" if rate > 0 else ""
             eta = f", {(total - done) / rate:.0f} s left" if rate > 0 and self.bar is None else ""
             self.update(done, rate_text + eta)
+
+        return report
+
+    def steps(self) -> Callable[[str, int, int, float], None]:
+        """Returns a callback `(stage, step, steps, loss)` for an optimisation that reports each step's loss."""
+
+        def report(stage: str, step: int, steps: int, loss: float) -> None:
+            if steps != self.total:
+                self.start(self.label, steps, step)
+            self.update(step, f"{stage}, RMSE {loss:.2f}")
 
         return report
 
