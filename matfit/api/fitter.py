@@ -151,7 +151,7 @@ class Fitter:
         (checked before any work, written together at the end: what `matfit fit` writes), or None to write nothing.
         `scene`: fit the material of a shape in a scene of your own instead (`matfit.fit`'s)."""
         if scene is not None:
-            return _fit_scene(picture, scene, mask, init, linear, outputs, self.variant, progress)
+            return _fit_scene(picture, scene, mask, init, linear, refine, outputs, self.variant, progress)
         from matfit.fitting import fitfile  # noqa: F401  # JAX imported before the fit's wall time starts
 
         started = time.perf_counter()
@@ -383,6 +383,7 @@ def _fit_scene(
     mask: Picture | None,
     init: str | os.PathLike[str] | Material | None,
     linear: bool,
+    steps: int,
     outputs: Outputs | None,
     variant: str | None,
     progress: Callable[[str, int, int, float], None] | None,
@@ -404,7 +405,7 @@ def _fit_scene(
         init_name="Material" if isinstance(init, Material) else named,
         mask=mask,
         linear=linear,
-        steps=scene_fit.STEPS,
+        steps=steps or scene_fit.STEPS,
         variant=variant,
         outputs=None if outputs is None else outputs._request(),
         progress=progress,

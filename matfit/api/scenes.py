@@ -22,7 +22,7 @@ if TYPE_CHECKING:
     from matfit.fitting.scene_fit import SceneOutcome
     from matfit.rendering.scene_file import SceneFile
 
-MAX_STEPS = 1000  # the descent's steps a fit may ask for
+MAX_STEPS = 10_000  # the descent's steps a fit may ask for (`matfit fit --refine`'s most)
 
 
 @dataclass(frozen=True)
@@ -139,7 +139,7 @@ def fit_in_scene(
 
     started = time.perf_counter()
     read = check_scene(scene).read()
-    steps = whole("steps", steps, 0, MAX_STEPS, SceneError)
+    steps = whole("steps", steps, 1, MAX_STEPS, SceneError)
     if outputs is not None:
         inputs = {
             "target": path_text(picture) if isinstance(picture, str | os.PathLike) else None,
@@ -175,7 +175,7 @@ def fit_in_scene(
         },
         accepted=outcome.accepted,
         starts=outcome.starts,
-        steps={"short": scene_fit.SHORT_STEPS, "descent": steps, "spp": scene_fit.STEP_SPP},
+        steps={"short": min(scene_fit.SHORT_STEPS, max(1, steps // 4)), "descent": steps, "spp": scene_fit.STEP_SPP},
         integrator=outcome.integrator,
         region_fraction=round(float(outcome.weights.mean()), 4),
         ranges=outcome.ranges,

@@ -253,6 +253,7 @@ def fit_command(
                 init=text(init),
                 variant=variant,
                 outputs=outputs,
+                refine=refine,
                 scene=chosen_scene,
                 progress=shown.steps(),
             )

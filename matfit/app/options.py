@@ -95,7 +95,8 @@ Refine = Annotated[
         "--refine",
         min=0,
         max=MAX_REFINE,
-        help="Steps through Mitsuba's differentiable renderer after the fit (~0.1-1 s each), kept only if better.",
+        help="Steps through Mitsuba's differentiable renderer after the fit (~0.1-1 s each), kept only if better; "
+        "with --scene, the fit's own steps (0: 48).",
     ),
 ]
 MAX_CORRECTIONS = 100

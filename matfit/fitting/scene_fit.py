@@ -15,8 +15,9 @@ own camera, lights and shapes. In order:
    shape.
 3. Starts: the material given (or the shape's own, or matfit's default) and four that keep its colour over
    metallic x roughness (an opaque start) or two over roughness (a transmissive one): one start can stick, a
-   glossy plastic fitted to a rough gold stays at roughness 0.001 (measured in the prototype). Each runs
-   `SHORT_STEPS`; the one whose render (`JUDGE_SPP`, one common seed) is closest goes on for `steps` more.
+   glossy plastic fitted to a rough gold stays at roughness 0.001 (measured in the prototype). Each runs a
+   quarter of the steps (at most `SHORT_STEPS`); the one whose render (`JUDGE_SPP`, one common seed) is
+   closest goes on for `steps` more.
 4. The answer is judged against the start by one render each at `JUDGE_SPP` with a common seed no step used, and
    kept only if closer: never worse than the start, as that render sees it.
 5. What one view decides: each parameter moved by `PROBE` in the unit cube both ways from the answer, the two
@@ -42,7 +43,7 @@ from matfit.rendering import engine, scene_file
 from matfit.rendering import scene as scene_model
 
 FIT_SIZE = 64  # pixels on the longer side of the fit's renders: the prototype's measured recovery size
-SHORT_STEPS = 12  # each start's steps before the best goes on
+SHORT_STEPS = 12  # each start's steps before the best goes on (at most; a quarter of `steps` where that is less)
 STEPS = 48  # the best start's further steps (`steps=`)
 STEP_SPP = refine.SPP  # a step's gradient samples (its image takes refine.PRIMAL times as many)
 JUDGE_SPP = 128  # the renders that choose between starts and accept the answer
@@ -218,7 +219,8 @@ def fit(
         mi.TensorXf(refine.normalised_weights(weights)),
     )
     candidates = starts(first)
-    total = SHORT_STEPS * len(candidates) + steps
+    short = min(SHORT_STEPS, max(1, steps // 4))
+    total = short * len(candidates) + steps
     done = 0
 
     def heard(stage: str) -> Callable[[int, float], None]:
@@ -233,7 +235,7 @@ def fit(
     tried = []
     for name, values in candidates:
         point, losses = refine.descend(
-            problem, params.to_unit(values), SHORT_STEPS, spp=STEP_SPP, seed=refine.SEED, progress=heard("starts")
+            problem, params.to_unit(values), short, spp=STEP_SPP, seed=refine.SEED, progress=heard("starts")
         )
         judged, _ = _judge(renderer, params.from_unit(point), target, weights)
         tried.append({"name": name, "rmse": round(judged, 3), "point": point, "losses": losses})
@@ -243,7 +245,7 @@ def fit(
         np.asarray(best["point"]),
         steps,
         spp=STEP_SPP,
-        seed=refine.SEED + SHORT_STEPS,
+        seed=refine.SEED + short,
         progress=heard("descent"),
     )
     answer = params.from_unit(point)

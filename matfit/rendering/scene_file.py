@@ -302,9 +302,14 @@ def xml(
 def load(mi: Any, scene_file: SceneFile, text: str) -> Any:
     """Returns the Mitsuba scene of `xml`'s text, its relative paths read from the file's folder (SceneError naming
     Mitsuba's complaint where it cannot load)."""
-    resolver = mi.Thread.thread().file_resolver()
-    if scene_file.folder not in [str(p) for p in resolver]:
-        resolver.prepend(scene_file.folder)
+    # Mitsuba's file resolver is the process's: this scene's folder goes first, so that a mesh of the same name in
+    # another scene's folder (read earlier in this process) is never taken for this one's.
+    resolver = mi.file_resolver()
+    others = [str(path) for path in resolver if str(path) != scene_file.folder]
+    resolver.clear()
+    resolver.append(scene_file.folder)
+    for path in others:
+        resolver.append(path)
     try:
         return mi.load_string(text)
     except Exception as error:  # Mitsuba raises RuntimeError (and others) with a long trace of the XML

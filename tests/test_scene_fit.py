@@ -1,0 +1,96 @@
+"""The fit in a scene of the user's own (`fitting/scene_fit`): tiny scenes and few steps, real renders."""
+
+import numpy as np
+import pytest
+
+from matfit import images, params
+from matfit.errors import SceneError
+from matfit.fitting import scene_fit
+from matfit.rendering import presets, scene_file, scene_library
+
+
+@pytest.fixture(scope="module")
+def knot(tmp_path_factory) -> scene_file.SceneFile:
+    path = scene_library.write(str(tmp_path_factory.mktemp("scenes")), "knot", "studio", width=32, height=24)
+    return scene_file.read(path, "object")
+
+
+@pytest.fixture(scope="module")
+def red_picture(knot) -> np.ndarray:
+    """Returns the knot in red plastic, linear (48, 64, 3): the picture a user renders and edits."""
+    return scene_file.Renderer(knot, knot.size(64)).render(presets.preset("red-plastic"), seed=11, spp=64)
+
+
+def test_the_starts_keep_the_colour_over_metallic_and_roughness_or_roughness_for_glass():
+    plastic = presets.preset("red-plastic")
+    found = scene_fit.starts(plastic)
+    assert [name for name, _ in found] == [
+        "given",
+        "metallic 0.0 roughness 0.15",
+        "metallic 0.0 roughness 0.55",
+        "metallic 1.0 roughness 0.15",
+        "metallic 1.0 roughness 0.55",
+    ]
+    colour = slice(params.INDEX["base_color_r"], params.INDEX["base_color_b"] + 1)
+    assert all(np.array_equal(values[colour], plastic[colour]) for _, values in found)
+    assert found[3][1][params.INDEX["metallic"]] == 1.0 and found[3][1][params.INDEX["roughness"]] == 0.15
+    glass = scene_fit.starts(presets.preset("glass"))
+    assert [name for name, _ in glass] == ["given", "roughness 0.02", "roughness 0.35"]
+
+
+def test_a_picture_of_another_aspect_is_refused_before_any_render(knot):
+    with pytest.raises(SceneError, match=r"is 64x64 \(aspect 1.000\), the scene's camera 32x24"):
+        scene_fit.check_aspect(knot, 64, 64, "the picture")
+    scene_fit.check_aspect(knot, 48, 64, "the picture")  # the camera's aspect at another size is the scene's
+
+
+def test_the_region_holds_the_shape_and_its_shadow_not_the_whole_picture(knot):
+    renderer = scene_file.Renderer(knot, knot.size(64))
+    region, without = scene_fit.region(renderer)
+    assert region.shape == (48, 64) and without.shape == (48, 64, 3)
+    assert 0.1 < region.mean() < 0.9
+    assert region[24, 32]  # the knot sits in the middle of the picture
+
+
+def test_a_fit_from_a_start_far_off_comes_closer_and_says_what_the_view_decides(knot, red_picture):
+    start = presets.preset("red-plastic").copy()
+    start[params.INDEX["base_color_r"] : params.INDEX["base_color_b"] + 1] = [0.2, 0.5, 0.2]
+    start[params.INDEX["roughness"]] = 0.7
+    heard = []
+    outcome = scene_fit.fit(knot, red_picture, start=start, steps=8, progress=lambda *a: heard.append(a))
+    assert outcome.accepted and outcome.rmse < 0.8 * outcome.start_rmse
+    np.testing.assert_array_equal(outcome.start_values, start)
+    assert outcome.integrator == "prb" and outcome.target.shape == (48, 64, 3)
+    assert len(outcome.starts) == 5 and len(outcome.losses) == 2 + 8  # a quarter of the steps a start, then 8
+    assert [a[0] for a in heard][:10] == ["starts"] * 10 and heard[-1][0] == "judge"
+    assert heard[-1][1] == heard[-1][2] == 5 * 2 + 8
+    assert set(outcome.ranges) == set(params.NAMES)
+    assert outcome.ranges["base_color_r"]["verdict"] == "decided"
+    assert outcome.ranges["density"]["verdict"].startswith("not decided")  # an opaque fit shows no medium
+
+
+def test_a_fit_never_returns_something_worse_than_its_start(knot, red_picture):
+    truth = presets.preset("red-plastic")
+    outcome = scene_fit.fit(knot, red_picture, start=truth, steps=1)
+    assert outcome.rmse <= outcome.start_rmse
+    if not outcome.accepted:
+        np.testing.assert_array_equal(outcome.values, truth)
+
+
+def test_a_picture_of_another_scene_or_without_the_shape_is_refused(knot, red_picture):
+    noise = np.random.default_rng(0).random((48, 64, 3)).astype(np.float32)
+    with pytest.raises(SceneError, match="is not a render of"):
+        scene_fit.fit(knot, noise, steps=1)
+    without = scene_file.Renderer(knot, knot.size(64)).render_without(seed=2, spp=128)
+    with pytest.raises(SceneError, match="shows the scene without the shape"):
+        scene_fit.fit(knot, without, steps=1)
+
+
+def test_a_mask_decides_where_the_fit_looks(knot, red_picture):
+    mask = np.zeros((48, 64), np.float32)
+    mask[:, :32] = 1.0
+    outcome = scene_fit.fit(knot, red_picture, start=presets.preset("red-plastic"), mask=mask, steps=1)
+    assert outcome.weights[:, 40:].max() < 0.01 and outcome.weights[:, :24].min() > 0.99
+    with pytest.raises(SceneError, match="the mask is black"):
+        scene_fit.fit(knot, red_picture, mask=np.zeros((48, 64), np.float32), steps=1)
+    assert images.rmse(outcome.rendered, outcome.target, outcome.weights) == pytest.approx(outcome.rmse, rel=1e-5)
