@@ -1,0 +1,138 @@
+"""A scene of the user's own through the public API and the command line (`api/scenes`, `matfit fit/render --scene`)."""
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import matfit
+from matfit import images, params
+from matfit.app.cli import app
+from matfit.rendering import scene_library
+
+runner = CliRunner()
+
+
+def run(*arguments):
+    return runner.invoke(app, [str(a) for a in arguments])
+
+
+def assert_one_line_error(result, *fragments):
+    assert result.exit_code == 2, result.output
+    lines = [line for line in result.output.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), result.output
+    for fragment in fragments:
+        assert fragment in lines[0], lines[0]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    """Returns the torus knot's scene file (studio lighting, a 4:3 camera)."""
+    return Path(scene_library.write(str(tmp_path_factory.mktemp("scene")), "knot", "studio", width=32, height=24))
+
+
+@pytest.fixture(scope="module")
+def edited(scene, tmp_path_factory) -> Path:
+    """Returns a picture to fit: the knot rendered in red plastic by `matfit render --scene`, its red turned orange."""
+    folder = tmp_path_factory.mktemp("edit")
+    material = folder / "red.json"
+    material.write_text(matfit.Material.preset("red-plastic").to_json())
+    picture = folder / "render.png"
+    result = run("render", material, "--scene", scene, "--object", "object", "-o", picture, "--size", 64, "--spp", 32)
+    assert result.exit_code == 0, result.output
+    srgb = images.srgb_encode(images.load(str(picture)).pixels)
+    srgb[..., 1] = np.where(srgb[..., 0] > 2 * srgb[..., 2] + 0.05, srgb[..., 1] + 0.15, srgb[..., 1])
+    images.write(str(folder / "edited.png"), images.srgb_decode(np.clip(srgb, 0, 1)))
+    return folder / "edited.png"
+
+
+def test_matfit_render_renders_the_scene_at_the_cameras_aspect(scene, tmp_path):
+    out = tmp_path / "gold.png"
+    result = run(
+        "render", "--preset", "gold", "--scene", scene, "--object", "object", "-o", out, "--size", 40, "--spp", 4
+    )
+    assert result.exit_code == 0, result.output
+    assert "40x30" in result.output
+    assert images.header(str(out))[:2] == (40, 30)
+
+
+def test_matfit_fit_in_a_scene_writes_every_output_and_comes_closer(scene, edited, tmp_path):
+    start = tmp_path / "start.json"
+    start.write_text(matfit.Material.preset("red-plastic").to_json())
+    out = {name: tmp_path / name for name in ("p.json", "report.png", "big.png", "m.xml", "b.py")}
+    result = run(
+        "fit", edited, "--scene", scene, "--object", "object", "--init", start, "-o", out["p.json"],
+        "--report", out["report.png"], "--render", out["big.png"], "--size", 32, "--spp", 4,
+        "--mitsuba-xml", out["m.xml"], "--blender", out["b.py"], "--refine", 4,
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert all(path.is_file() for path in out.values())
+    document = json.loads(out["p.json"].read_text())
+    assert document["method"] == "scene" and set(document["params"]) == set(params.NAMES)
+    assert document["scene"]["object"] == "object" and document["scene"]["camera"] == [32, 24]
+    assert document["scene"]["path"] == str(scene.resolve())
+    assert document["start"]["material"] == str(start)
+    assert document["mitsuba_rmse"] <= document["start"]["rmse"]
+    assert document["steps"] == {"short": 1, "descent": 4, "spp": 16}
+    assert set(document["ranges"]) == set(params.NAMES)
+    assert images.header(str(out["big.png"]))[:2] == (32, 24)
+    assert "matfit-material" in out["m.xml"].read_text()
+    assert matfit.Material.read(out["p.json"]) == matfit.Material.from_dict(document["params"])
+
+
+@pytest.mark.parametrize(
+    ("arguments", "fragments"),
+    [
+        (("--scene", "{scene}"), ("--scene needs --object",)),
+        (("--object", "object"), ("--object needs --scene",)),
+        (("--scene", "{scene}", "--object", "floor2"), ("'floor2' is not a shape of", "key-light, object, floor")),
+        (("--scene", "{scene}", "--object", "key-light"), ("is an emitter",)),
+        (("--scene", "{missing}", "--object", "object"), ("is not a file",)),
+    ],
+)
+def test_a_scene_fit_that_cannot_be_done_is_one_line_and_writes_nothing(scene, edited, tmp_path, arguments, fragments):
+    names = {"scene": scene, "missing": tmp_path / "none.xml"}
+    out = tmp_path / "p.json"
+    result = run("fit", edited, *(str(a).format(**names) for a in arguments), "-o", out)
+    assert_one_line_error(result, *fragments)
+    assert not out.exists()
+
+
+def test_a_picture_of_another_aspect_or_a_missing_mesh_is_refused_before_the_fit(scene, edited, tmp_path):
+    square = tmp_path / "square.png"
+    images.write(str(square), np.full((32, 32, 3), 0.5, np.float32))
+    out = tmp_path / "p.json"
+    assert_one_line_error(run("fit", square, "--scene", scene, "--object", "object", "-o", out), "aspect 1.000")
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    (moved / "scene.xml").write_text(scene.read_text())
+    assert_one_line_error(
+        run("fit", edited, "--scene", moved / "scene.xml", "--object", "object", "-o", out), "'knot.ply', which is not"
+    )
+    assert_one_line_error(
+        run("fit", edited, "--scene", scene, "--object", "object", "-o", out, "--mitsuba-xml", scene),
+        "would overwrite",
+    )
+    assert not out.exists() and not (moved / "p.json").exists()
+
+
+def test_the_api_renders_and_fits_in_a_scene(scene, edited):
+    chosen = matfit.Scene(scene, "object")
+    gold = matfit.render(matfit.Material.preset("gold"), size=40, spp=4, scene=chosen)
+    assert gold.shape == (30, 40, 3) and gold.dtype == np.float32
+    pixels = images.srgb_encode(images.load(str(edited)).pixels)
+    heard = []
+    fitted = matfit.fit(
+        pixels, scene=chosen, init=matfit.Material.preset("red-plastic"), refine=4, progress=lambda *a: heard.append(a)
+    )
+    assert isinstance(fitted.material, matfit.Material) and np.isnan(fitted.neural_rmse)
+    assert fitted.mitsuba_rmse <= fitted.start_rmse and fitted.document["target"] == "array"
+    assert fitted.rendered.shape == fitted.target.shape == (48, 64, 3)
+    assert heard[-1][0] == "judge"
+    with pytest.raises(matfit.MatfitError, match="is no path"):
+        matfit.render(matfit.Material(), scene=matfit.Scene(5, "object"))
+    with pytest.raises(matfit.MatfitError, match=r"is no matfit\.Scene"):
+        matfit.fit(pixels, scene=os.fspath(scene))
