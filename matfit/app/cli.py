@@ -492,6 +492,23 @@ def bench_speed(
     typer.echo(speed.fit_speed(str(model_path), repeats, cold=cold))
 
 
+@command(name="bench-scene", interrupted="each finished case is kept: run the same command to go on")
+def bench_scene(
+    out: Annotated[Path, options.out("Folder for results.jsonl (resumable), the scenes and scenes.md.")] = Path(
+        "bench-scene"
+    ),
+    quick: Annotated[bool, typer.Option("--quick", help="One opaque fit only (a smoke run).")] = False,
+    steps: Annotated[int, typer.Option(min=1, max=10_000, help="Each fit's descent steps.")] = 48,
+) -> None:
+    """Fit materials in scenes that are not the test scene (meshes, lightings, truths, an edit) and judge them."""
+    from matfit import files
+    from matfit.app.bench import scenes
+
+    text = scenes.table(scenes.run(str(out), quick=quick, steps=steps, log=log))
+    files.write_text(str(out / "scenes.md"), text + "\n")
+    typer.echo(text)
+
+
 @command
 def bench_fit(
     model_path: options.Model = options.DEFAULT_MODEL,

@@ -14,7 +14,7 @@ own camera, lights and shapes. In order:
    (else it is not a picture of this scene), and inside it like something other than the scene without the
    shape.
 3. Starts: the material given (or the shape's own, or matfit's default) and four that keep its colour over
-   metallic x roughness (an opaque start) or two over roughness (a transmissive one): one start can stick, a
+   metallic x roughness (a start with spec_trans < 0.5) or two over roughness (a transmissive one): one start can stick, a
    glossy plastic fitted to a rough gold stays at roughness 0.001 (measured in the prototype). Each runs a
    quarter of the steps (at most `SHORT_STEPS`); the one whose render (`JUDGE_SPP`, one common seed) is
    closest goes on for `steps` more.
@@ -24,8 +24,8 @@ own camera, lights and shapes. In order:
    renders (one common seed) compared over the region: a change under `UNDECIDED_RMSE` is not decided by this
    picture (`ranges` in params.json).
 
-Opaque starts differentiate with `prb` (the measured faster integrator; the medium then has no effect and is
-reported undecided); a transmissive start or one with a medium with `prbvolpath`.
+A start whose medium shows (some transmission, some density) differentiates with `prbvolpath`, any other with
+`prb` (the measured faster integrator; the medium then has no effect and is reported undecided).
 """
 
 from __future__ import annotations
@@ -129,11 +129,15 @@ def _judge(renderer: scene_file.Renderer, values: np.ndarray, target: np.ndarray
     return float(images.rmse(rendered, target, weights)), rendered
 
 
+def shows_medium(values: np.ndarray) -> bool:
+    """Returns whether a material's interior medium shows: some transmission and some density."""
+    return bool(values[params.INDEX["spec_trans"]] > 0.01 and values[params.INDEX["density"]] > 0)
+
+
 def starts(start: np.ndarray) -> list[tuple[str, np.ndarray]]:
     """Returns the named starts of a fit from the material `start` (physical): it, and others that keep its colour."""
     found = [("given", start)]
-    transmissive = start[params.INDEX["spec_trans"]] >= 0.5 or start[params.INDEX["density"]] > 0
-    if transmissive:
+    if start[params.INDEX["spec_trans"]] >= 0.5:
         found += [(f"roughness {r}", _probe(start, roughness=r)) for r in (0.02, 0.35)]
     else:
         found += [
@@ -203,8 +207,7 @@ def fit(
         weights = shape_region.astype(np.float32)
     first = scene.own if start is None and scene.own is not None else params.DEFAULTS if start is None else start
     first = np.clip(np.asarray(first, np.float64), params.LOW, params.HIGH)
-    transmissive = first[params.INDEX["spec_trans"]] >= 0.5 or first[params.INDEX["density"]] > 0
-    integrator = "prbvolpath" if transmissive else "prb"
+    integrator = "prbvolpath" if shows_medium(first) else "prb"
     mi = renderer.mi
     start_values = scene.own if scene.own is not None else scene_model.all_lobes_values()
     loaded = scene_file.load(
