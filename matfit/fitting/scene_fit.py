@@ -14,8 +14,9 @@ own camera, lights and shapes. In order:
    (else it is not a picture of this scene), and inside it like something other than the scene without the
    shape.
 3. Starts: the material given (or the shape's own, or matfit's default) and four that keep its colour over
-   metallic x roughness (a start with spec_trans < 0.5) or two over roughness (a transmissive one): one start can stick, a
-   glossy plastic fitted to a rough gold stays at roughness 0.001 (measured in the prototype). Each runs a
+   metallic x roughness (a start with spec_trans < 0.5) or two over roughness (a transmissive one): one start
+   can stick, a glossy plastic fitted to a rough gold stays at roughness 0.001 (measured in the prototype). Each
+   runs a
    quarter of the steps (at most `SHORT_STEPS`); the one whose render (`JUDGE_SPP`, one common seed) is
    closest goes on for `steps` more.
 4. The answer is judged against the start by one render each at `JUDGE_SPP` with a common seed no step used, and
