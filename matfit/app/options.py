@@ -15,9 +15,11 @@ from matfit import params, shipped
 from matfit.api.arguments import MAX_SIZE
 from matfit.fitting.methods import (
     CORRECTIONS,
+    MAX_CORRECTIONS,
     MAX_EVALUATIONS,
     MAX_ITERATIONS,
     MAX_POLISH,
+    MAX_REFINE,
     MAX_STARTS,
     MIN_EVALUATIONS,
     Box,
@@ -78,7 +80,6 @@ Evaluations = Annotated[
         "--evals", min=MIN_EVALUATIONS, max=MAX_EVALUATIONS, help="Nelder-Mead budget in objective evaluations."
     ),
 ]
-MAX_REFINE = 10_000
 Refine = Annotated[
     int,
     typer.Option(
@@ -88,7 +89,6 @@ Refine = Annotated[
         help="Steps through Mitsuba's differentiable renderer after the fit (~0.1-1 s each), kept only if better.",
     ),
 ]
-MAX_CORRECTIONS = 100
 Answer = Annotated[
     Literal["clean", "best"],
     typer.Option(help="clean: the simplest material within the threshold of the best fit; best: the fit's own."),
