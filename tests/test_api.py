@@ -18,7 +18,7 @@ import pytest
 from typer.testing import CliRunner
 
 import matfit
-from matfit import images, params, shipped
+from matfit import errors, images, params, shipped
 from matfit.app.cli import app
 from matfit.model import architectures, weight_files
 from matfit.rendering import export, scene
@@ -91,8 +91,8 @@ def test_fit_and_render_are_plain_functions_beside_the_fitting_and_rendering_pac
     assert inspect.isfunction(matfit.fit) and inspect.isfunction(matfit.render)
     assert "matfit.fit" not in sys.modules and "matfit.render" not in sys.modules
     assert matfit.fitting.search.neural_search and matfit.rendering.engine.Renderer
-    assert list(inspect.signature(matfit.fit).parameters)[0] == "picture"
-    assert list(inspect.signature(matfit.render).parameters)[0] == "material"
+    assert next(iter(inspect.signature(matfit.fit).parameters)) == "picture"
+    assert next(iter(inspect.signature(matfit.render).parameters)) == "material"
     assert (
         matfit.fit.__doc__.startswith("Returns the fit of the material")
         and matfit.fit.__module__ == "matfit.api.fitter"
@@ -130,6 +130,68 @@ def test_material_exports_are_the_command_lines(tmp_path):
         jade.to_blender_script('a "quoted" name')
     (tmp_path / "params.json").write_text(jade.to_json())
     assert matfit.Material.read(tmp_path / "params.json") == jade
+
+
+MATERIAL_ORDER = "one value a parameter, in the order `matfit params` lists them"
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        pytest.param(
+            lambda: matfit.Material.from_dict(None),
+            'values None is no mapping of names to values: give a dict like {"roughness": 0.2}',
+            id="from-dict-none",
+        ),
+        pytest.param(
+            lambda: matfit.Material.from_dict({1: 0.2}),
+            "parameter name 1 is not text: give the names `matfit params` lists",
+            id="from-dict-number-name",
+        ),
+        pytest.param(
+            lambda: matfit.Material.from_array(["a"] * 19),
+            f"values of type list holds <U1 values: give 19 real numbers, {MATERIAL_ORDER}",
+            id="from-array-text",
+        ),
+        pytest.param(
+            lambda: matfit.Material.from_array([[0.1, 0.2], [0.3]]),
+            f"values [[0.1, 0.2], [0.3]] is no list of numbers: give 19 numbers, {MATERIAL_ORDER}",
+            id="from-array-ragged",
+        ),
+        pytest.param(
+            lambda: matfit.Material.from_array(np.array([None] * 19)),
+            f"values of type ndarray holds object values: give 19 real numbers, {MATERIAL_ORDER}",
+            id="from-array-objects",
+        ),
+        pytest.param(  # its imaginary part was dropped without a word (NumPy's ComplexWarning only)
+            lambda: matfit.Material.from_array(np.full(19, 0.1 + 0.5j)),
+            f"values of type ndarray holds complex128 values: give 19 real numbers, {MATERIAL_ORDER}",
+            id="from-array-complex",
+        ),
+        pytest.param(
+            lambda: matfit.Material.from_unit([0.5] * 5),
+            f"a material is 19 values, got shape (5,): give {MATERIAL_ORDER}",
+            id="from-unit-5",
+        ),
+        pytest.param(
+            lambda: matfit.Material.from_json(None),
+            "text None is no params.json text: give its str or bytes (Material.read reads a file)",
+            id="from-json-none",
+        ),
+        pytest.param(
+            lambda: matfit.Material.read(5), "path 5 is no path: give a params.json file's path", id="read-number"
+        ),
+        pytest.param(
+            lambda: matfit.Material().to_blender_script(5),
+            "name 5 is not text: give the material's name, like 'matfit'",
+            id="blender-name-number",
+        ),
+    ],
+)
+def test_bad_values_of_a_material_raise_one_line_parameter_errors(call, message):
+    with pytest.raises(matfit.MatfitError) as error:
+        call()
+    assert isinstance(error.value, errors.ParameterError) and str(error.value) == message
 
 
 def test_render_checks_its_arguments_before_rendering():
@@ -282,6 +344,172 @@ def test_bad_arguments_of_an_array_raise_matfit_errors_naming_them_and_the_fix(
     Path("init.json").write_text('{"params": [0.1, 0.2, 0.3]}')  # a material of 3 values, not 19 named
     Path("folder").mkdir()
     assert message in raised(lambda: fitter.fit(np.full((16, 16, 3), 0.5, np.float32), **arguments))
+
+
+@pytest.fixture
+def work(monkeypatch) -> list[str]:
+    """Returns the work begun while a test runs, as it begins: "search" for each neural search, "pool" for each start
+    of render processes (both the real ones, recorded on the way in)."""
+    from matfit.fitting import search
+    from matfit.rendering import process
+
+    begun: list[str] = []
+    neural_search, start_pool = search.neural_search, process.Pool.__init__
+
+    def searched(*arguments, **keywords):
+        begun.append("search")
+        return neural_search(*arguments, **keywords)
+
+    def started(pool, *arguments, **keywords):
+        begun.append("pool")
+        start_pool(pool, *arguments, **keywords)
+
+    monkeypatch.setattr(search, "neural_search", searched)
+    monkeypatch.setattr(process.Pool, "__init__", started)
+    return begun
+
+
+NN = {"settings": matfit.Settings(method="nn")}
+ARRAY = np.full((16, 16, 3), 0.5, np.float32)
+
+
+@pytest.mark.parametrize(
+    ("call", "error", "message"),
+    [
+        pytest.param(
+            lambda f, g: matfit.fit(g, model=f.model, refine="3", verify=False, **NN),
+            errors.FitError,
+            "refine '3' is not a whole number: use 0 to 10000",
+            id="refine-text",
+        ),
+        pytest.param(  # verified by default: refused before the render processes start
+            lambda f, g: matfit.fit(g, model=f.model, corrections="2", **NN),
+            errors.FitError,
+            "corrections '2' is not a whole number: use 0 to 100",
+            id="corrections-text",
+        ),
+        pytest.param(  # was verified
+            lambda f, g: matfit.fit(g, model=f.model, verify="no", **NN),
+            errors.FitError,
+            "verify 'no' is not True or False: give verify=True or verify=False",
+            id="verify-text",
+        ),
+        pytest.param(
+            lambda f, g: matfit.Fitter(f.model, verify="no"),
+            errors.FitError,
+            "verify 'no' is not True or False",
+            id="fitter-verify-text",
+        ),
+        pytest.param(  # was read as linear
+            lambda f, g: f.fit(ARRAY, linear="no", **NN),
+            errors.ImageError,
+            "linear 'no' is not True or False: give linear=True or linear=False",
+            id="linear-text",
+        ),
+        pytest.param(
+            lambda f, g: f.fit(g, answer=5, **NN),
+            errors.FitError,
+            "answer 5 is not one of clean, best: give answer='clean' or answer='best'",
+            id="answer-number",
+        ),
+        pytest.param(
+            lambda f, g: f.fit(g, settings=matfit.Settings(evaluations="abc")),
+            errors.FitError,
+            "evaluations 'abc' is not a whole number: use 21 to 1000000",
+            id="evaluations-text",
+        ),
+        pytest.param(  # failed after seconds of work
+            lambda f, g: f.fit(g, settings=matfit.Settings(method="hybrid", evaluations=60.5)),
+            errors.FitError,
+            "evaluations 60.5 is not a whole number: use 21 to 1000000",
+            id="evaluations-fraction",
+        ),
+        pytest.param(
+            lambda f, g: f.fit(g, settings=matfit.Settings(starts=2.5)),
+            errors.FitError,
+            "starts 2.5 is not a whole number: use 1 to 64",
+            id="starts-fraction",
+        ),
+        pytest.param(
+            lambda f, g: f.fit(g, settings=matfit.Settings(adaptive="no")),
+            errors.FitError,
+            "adaptive 'no' is not True or False",
+            id="adaptive-text",
+        ),
+        pytest.param(
+            lambda f, g: f.fit(g, settings=matfit.Settings(initial_step=-1.0)),
+            errors.FitError,
+            "initial_step -1.0 is out of range: use above 0 up to 1",
+            id="initial-step-negative",
+        ),
+        pytest.param(
+            lambda f, g: f.fit(g, settings=matfit.Settings(polish_rate=float("nan"))),
+            errors.FitError,
+            "polish_rate nan is out of range: use above 0 up to 1",
+            id="polish-rate-nan",
+        ),
+        pytest.param(  # was said only after the first picture was fitted and written
+            lambda f, g: f.fit_all([g], "fits", done=5, **NN),
+            errors.FitError,
+            "done 5 is not callable: give a function or None",
+            id="fit-all-done-number",
+        ),
+        pytest.param(
+            lambda f, g: f.fit_all([g], "fits", outputs="p.json", **NN),
+            errors.OutputError,
+            "outputs 'p.json' is no matfit.Outputs: give Outputs(params, ...) or None",
+            id="fit-all-outputs-text",
+        ),
+        pytest.param(
+            lambda f, g: matfit.fit_sequence([g], model=f.model, progress=5, **NN),
+            errors.FitError,
+            "progress 5 is not callable: give a function or None",
+            id="sequence-progress-number",
+        ),
+        pytest.param(
+            lambda f, g: matfit.fit_sequence(5, model=f.model, **NN),
+            errors.FitError,
+            "frames 5 is no list of pictures: give the frames' paths or arrays, or their folder with out=",
+            id="sequence-frames-number",
+        ),
+        pytest.param(
+            lambda f, g: matfit.fit_sequence([ARRAY], model=f.model, linear="no", **NN),
+            errors.ImageError,
+            "linear 'no' is not True or False",
+            id="sequence-linear-text",
+        ),
+    ],
+)
+def test_a_value_of_the_wrong_kind_is_refused_with_one_line_before_any_work(
+    fitter, tmp_path, monkeypatch, work, call, error, message
+):
+    monkeypatch.chdir(tmp_path)
+    shutil.copy(PICTURE, "g.png")
+    with pytest.raises(matfit.MatfitError) as raised:
+        call(fitter, "g.png")
+    assert type(raised.value) is error and str(raised.value).startswith(message), raised.value
+    assert "\n" not in str(raised.value)
+    assert work == [] and os.listdir(tmp_path) == ["g.png"]  # no search, no render process, nothing written
+
+
+def test_fit_all_takes_a_material_as_init_and_keys_its_journal_on_the_materials_values(fitter, tmp_path):
+    # init=Material was read as a file named 'Material' (FileNotFoundError) after the checks
+    shutil.copy(PICTURE, tmp_path / "a.png")
+    (tmp_path / "b.png").write_text("no picture")  # fails: the journal stays, and says what the next call keeps
+    pictures, folder, gold = [tmp_path / "a.png", tmp_path / "b.png"], tmp_path / "fits", matfit.Material.preset("gold")
+    heard: list[str] = []
+
+    def done(picture: str, params_json: str, fit: object) -> None:
+        heard.append(f"{os.path.basename(picture)} {type(fit).__name__}")
+
+    assert fitter.fit_all(pictures, folder, init=gold, answer="best", done=done, **NN) == 1
+    written = json.loads((folder / "a.params.json").read_text())
+    alone = fitter.fit(tmp_path / "a.png", init=gold, answer="best", **NN)
+    assert written["params"] == alone.document["params"] and written["init"] == "Material"
+    assert fitter.fit_all(pictures, folder, init=gold, answer="best", done=done, **NN) == 1  # the same material: kept
+    assert fitter.fit_all(pictures, folder, init=matfit.Material(), answer="best", done=done, **NN) == 1  # another
+    assert heard == ["a.png Fit", "b.png ImageError", "a.png NoneType", "b.png ImageError", "a.png Fit",
+                     "b.png ImageError"]  # fmt: skip
 
 
 @pytest.mark.parametrize(

@@ -243,7 +243,6 @@ def test_a_request_is_refused_before_any_work_with_the_one_line_error(tmp_path):
         (Request(picture, verified=False, corrections=2, outputs=written), FitError, "2 correction rounds need"),
         (Request(picture, corrections=-1, outputs=written), FitError, "corrections -1 must be >= 0"),
         (Request(picture, refine_steps=-1, outputs=written), FitError, "refine steps -1 must be >= 0"),
-        (Request(picture, settings=Settings(starts=0), outputs=written), FitError, "starts 0 is out of range"),
     ]
     for request, error, message in refusals:
         with pytest.raises(error, match=message):

@@ -5,7 +5,7 @@ import pytest
 from helpers import decode, random_model, true_point
 
 from matfit import files, images, params
-from matfit.errors import FitError, ImageError, OutputError
+from matfit.errors import ImageError, OutputError
 from matfit.fitting import fitfile, search, sequence
 from matfit.fitting.request import Outputs, Request
 from matfit.fitting.sequence import SequenceError
@@ -112,9 +112,6 @@ def test_a_frame_request_fits_as_the_direct_search_and_a_bad_one_is_refused(tmp_
     # pixels given are the picture: the name is only a label, as for an array fitted through the API
     named = fitfile.fit_neural(Request(str(tmp_path / "gone.png"), pixels=target, **frame), model)
     np.testing.assert_array_equal(named.unit, direct.unit)
-    bad = dict(frame, settings=search.Settings(method="hybrid", evaluations=40, starts=0))
-    with pytest.raises(FitError, match="starts 0 is out of range"):
-        fitfile.fit_neural(Request(frames[1], pixels=target, **bad), model)
 
 
 def test_no_reinit_never_offers_the_previous_frame(tmp_path, model, frames):

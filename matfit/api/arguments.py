@@ -1,17 +1,24 @@
-"""The public API's checks of its arguments: pixels given as an array, paths, whole numbers, and how an error names
-a value. Each raises the one-line `MatfitError` that names the value and the fix (docs/api.md)."""
+"""The public API's checks of its arguments, each run before any work: pixels given as an array, a material's values,
+paths, callables, and (from `matfit.errors`, which `Settings` shares) whole numbers, finite numbers, True or False,
+and how an error names a value. Each raises the one-line `MatfitError` that names the value and the fix
+(docs/api.md)."""
 
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
 
-from matfit.errors import FitError, ImageError, MatfitError, check_range
+from matfit import params
+from matfit.errors import FitError, ImageError, MatfitError, ParameterError
+from matfit.errors import flag as flag  # the checks `Settings` shares, which the API's modules take from here
+from matfit.errors import number as number
+from matfit.errors import shown as shown
+from matfit.errors import whole as whole
 
 Picture = str | os.PathLike[str] | npt.NDArray[Any]  # a picture file's path, or its pixels (`fit`)
 Image = npt.NDArray[np.float32]
@@ -69,18 +76,46 @@ def path_text(path: str | os.PathLike[str]) -> str:
     return str(Path(path))
 
 
-def shown(value: object) -> str:
-    """Returns how an error message names a value: its repr if that is short and one line, else its type."""
-    text = repr(value)
-    return text if len(text) <= 40 and "\n" not in text else f"of type {type(value).__name__}"
+Called = TypeVar("Called", bound=Callable[..., object])
 
 
-def whole(field: str, value: object, low: int, high: int, error: type[MatfitError]) -> int:
-    """Returns `value` as an int: a whole number in [low, high], else `error` naming it and the range."""
-    if isinstance(value, bool) or not isinstance(value, int | np.integer):
-        raise error(f"{field} {shown(value)} is not a whole number: use {low} to {high}", field=field)
-    check_range(field, int(value), low, high, error)
-    return int(value)
+def callback(field: str, value: Called | None, error: type[MatfitError]) -> Called | None:
+    """Returns `value`: a function (anything callable) or None, else `error` naming it."""
+    if value is not None and not callable(value):
+        raise error(f"{field} {shown(value)} is not callable: give a function or None", field=field)
+    return value
+
+
+def path_of(field: str, value: object, error: type[MatfitError], fix: str, *, name: str | None = None) -> str:
+    """Returns `value` as a path's text (`os.fspath`): a str or os.PathLike, else `error` naming it (as `name`, if
+    given: the argument's name where `field` is the command line's) and the fix."""
+    if not isinstance(value, str | os.PathLike) or not isinstance(os.fspath(value), str):
+        raise error(f"{name or field} {shown(value)} is no path: {fix}", field=field)
+    return os.fspath(value)
+
+
+MATERIAL_ORDER = "one value a parameter, in the order `matfit params` lists them"
+
+
+def material_values(field: str, values: object) -> npt.NDArray[np.float64]:
+    """Returns a material's 19 values as float64 (19,): real numbers (ints or floats, NumPy's too), else the
+    ParameterError naming them (text, None, complex, a ragged list, objects: nothing converted silently)."""
+    try:
+        array = np.asarray(values)
+    except (ValueError, TypeError):  # a ragged list
+        raise ParameterError(
+            f"{field} {shown(values)} is no list of numbers: give {params.COUNT} numbers, {MATERIAL_ORDER}", field=field
+        ) from None
+    if array.dtype.kind not in "iuf":
+        raise ParameterError(
+            f"{field} {shown(values)} holds {array.dtype} values: give {params.COUNT} real numbers, {MATERIAL_ORDER}",
+            field=field,
+        )
+    if array.shape != (params.COUNT,):
+        raise ParameterError(
+            f"a material is {params.COUNT} values, got shape {array.shape}: give {MATERIAL_ORDER}", field=field
+        )
+    return array.astype(np.float64)
 
 
 def picture_paths(pictures: object) -> list[str | os.PathLike[str]]:
@@ -89,8 +124,7 @@ def picture_paths(pictures: object) -> list[str | os.PathLike[str]]:
         raise FitError(f"pictures {shown(pictures)} is no list of paths: give a list of picture files", field="target")
     listed = list(pictures)
     for picture in listed:
-        if not isinstance(picture, str | os.PathLike):
-            raise FitError(f"picture {shown(picture)} is no path: fit_all fits picture files", field="target")
+        path_of("target", picture, FitError, "fit_all fits picture files", name="picture")
     return listed
 
 

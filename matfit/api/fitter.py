@@ -1,5 +1,5 @@
 """Fitting pictures: `Fitter` (the model and the render processes loaded once, for many fits), `fit` (one picture
-with a fitter of its own) and `load_model`; the choices both check (`check_choices`)."""
+with a fitter of its own) and `load_model`; the choices and options all check (`check_choices`, `check_options`)."""
 
 from __future__ import annotations
 
@@ -18,7 +18,10 @@ from matfit.api.arguments import (
     ARRAY,
     Image,
     Picture,
+    callback,
+    flag,
     linear_pixels,
+    path_of,
     path_text,
     picture_paths,
     picture_size,
@@ -30,7 +33,7 @@ from matfit.api.material import Material
 from matfit.api.results import Fit, Outputs, fit_of
 from matfit.api.scenes import Scene
 from matfit.errors import FitError, ImageError, MatfitError, OutputError, ParameterError, RenderError, WeightsError
-from matfit.fitting.methods import Settings
+from matfit.fitting.methods import ANSWERS, MAX_CORRECTIONS, MAX_REFINE, Settings
 
 if TYPE_CHECKING:
     from matfit.fitting.request import Request
@@ -68,6 +71,7 @@ class Fitter:
         from matfit.rendering import engine
 
         engine.check_request(variant)
+        verify = flag("verify", verify, FitError)
         if model is not None and not isinstance(model, str | os.PathLike):
             from matfit.model import models  # a loaded model's module is imported already
 
@@ -151,6 +155,9 @@ class Fitter:
         (checked before any work, written together at the end: what `matfit fit` writes), or None to write nothing.
         `scene`: fit the material of a shape in a scene of your own instead (`matfit.fit`'s)."""
         if scene is not None:
+            linear, _, _, refine, _ = check_options(linear, verify, corrections, answer, refine, seed)
+            if progress is not None and not callable(progress):
+                raise FitError(f"progress {shown(progress)} is not callable: give a function or None", "progress")
             return _fit_scene(picture, scene, mask, init, linear, refine, outputs, self.variant, progress)
         from matfit.fitting import fitfile  # noqa: F401  # JAX imported before the fit's wall time starts
 
@@ -167,7 +174,7 @@ class Fitter:
         folder: str | os.PathLike[str],
         *,
         mask: str | os.PathLike[str] | None = None,
-        init: str | os.PathLike[str] | None = None,
+        init: str | os.PathLike[str] | Material | None = None,
         settings: Settings | None = None,
         verify: bool | None = None,
         corrections: int | None = None,
@@ -188,14 +195,14 @@ class Fitter:
         """
         from matfit.fitting import batch
 
+        callback("done", done, FitError)
         targets = [path_text(picture) for picture in picture_paths(pictures)]
-        if not isinstance(folder, str | os.PathLike):
-            raise OutputError(f"folder {shown(folder)} is no path: give the folder to write into", field="output")
-        into = os.fspath(folder)
+        into = path_of("output", folder, OutputError, "give the folder to write into", name="folder")
         if not targets:
             raise FitError("fit_all was given no pictures: give a list of picture files", field="target")
-        if mask is not None and not isinstance(mask, str | os.PathLike):
-            raise ImageError(f"mask {shown(mask)} is no path: give a picture file's path or None", field="mask")
+        if mask is not None:
+            path_of("mask", mask, ImageError, "give a picture file's path or None")
+        check_choices(settings, init, outputs)  # outputs before they are read
         verified = self.verify if verify is None else verify
         template = dataclasses.replace(outputs or Outputs(), params=os.path.join(into, "params.json"))
         request, _ = self._request(
@@ -255,12 +262,8 @@ class Fitter:
         from matfit.fitting import search
         from matfit.fitting.request import Request
 
-        check_choices(settings, init)
-        if outputs is not None and not isinstance(outputs, Outputs):
-            raise OutputError(
-                f"outputs {shown(outputs)} is no matfit.Outputs: give Outputs(params, ...) or None", field="output"
-            )
-        seed = whole("seed", seed, 0, params.MAX_SEED, FitError)
+        check_choices(settings, init, outputs)
+        linear, verified, corrections, refine, seed = check_options(linear, verified, corrections, answer, refine, seed)
         initial = (
             None if init is None else "Material" if isinstance(init, Material) else path_text(init),
             init.array() if isinstance(init, Material) else None,
@@ -310,8 +313,32 @@ class Fitter:
         return request, notices
 
 
-def check_choices(settings: object, init: object) -> None:
-    """Raises the MatfitError of `settings` that is no `Settings` or `init` that is no path or `Material`."""
+def check_options(
+    linear: object, verify: object, corrections: object, answer: object, refine: object, seed: object
+) -> tuple[bool, bool, int | None, int, int]:
+    """Returns (linear, verify, corrections, refine, seed) of a fit, checked with `answer`: the FitError (the
+    ImageError of `linear`) of a value of the wrong kind or out of its range, before any work."""
+    if not isinstance(answer, str) or answer not in ANSWERS:
+        raise FitError(
+            f"answer {shown(answer)} is not one of {', '.join(ANSWERS)}: give answer='clean' or answer='best'",
+            field="answer",
+        )
+    return (
+        flag("linear", linear, ImageError),
+        flag("verify", verify, FitError),
+        None if corrections is None else whole("corrections", corrections, 0, MAX_CORRECTIONS, FitError),
+        whole("refine", refine, 0, MAX_REFINE, FitError),
+        whole("seed", seed, 0, params.MAX_SEED, FitError),
+    )
+
+
+def check_choices(settings: object, init: object, outputs: object = None) -> None:
+    """Raises the MatfitError of `settings` that is no `Settings`, `init` that is no path or `Material`, or `outputs`
+    that are no `Outputs`."""
+    if outputs is not None and not isinstance(outputs, Outputs):
+        raise OutputError(
+            f"outputs {shown(outputs)} is no matfit.Outputs: give Outputs(params, ...) or None", field="output"
+        )
     if settings is not None and not isinstance(settings, Settings):
         raise FitError(
             f"settings {shown(settings)} is no matfit.Settings: give Settings(...) or None", field="settings"
@@ -359,6 +386,7 @@ def fit(
     pixels the shape changes), `progress(stage, step, steps, loss)` hears of each step; `settings`, `verify`,
     `corrections`, `answer`, `refine` and `seed` are the test scene's and are not used. `Fit.neural_rmse` is NaN.
     """
+    _, verify, _, refine, _ = check_options(linear, verify, corrections, answer, refine, seed)  # before any start
     with Fitter(model, verify=verify and not refine and scene is None, variant=variant) as fitter:
         return fitter.fit(
             picture,

@@ -13,7 +13,7 @@ import numpy as np
 import numpy.typing as npt
 
 from matfit import documents, params
-from matfit.api.arguments import MAX_SIZE, Image, whole
+from matfit.api.arguments import MAX_SIZE, Image, material_values, path_of, shown, whole
 from matfit.errors import MatfitError, ParameterError, RenderError
 
 if TYPE_CHECKING:
@@ -65,34 +65,43 @@ class Material:
     @classmethod
     def from_array(cls, values: npt.ArrayLike) -> Material:
         """Returns the material of 19 physical values in `params.NAMES` order (`array()`'s)."""
-        array = np.asarray(values, dtype=np.float64)
-        if array.shape != (params.COUNT,):
-            raise ParameterError(
-                f"a material is {params.COUNT} values, got shape {array.shape}: give one value a parameter, in the "
-                "order `matfit params` lists them"
-            )
-        return cls(*(float(value) for value in array))
+        return cls(*(float(value) for value in material_values("values", values)))
 
     @classmethod
     def from_unit(cls, unit: npt.ArrayLike) -> Material:
         """Returns the material of 19 unit-cube coordinates (each parameter's range mapped onto [0, 1])."""
-        return cls.from_array(params.from_unit(np.asarray(unit, dtype=np.float64)))
+        return cls.from_array(params.from_unit(material_values("unit", unit)))
 
     @classmethod
     def from_dict(cls, values: Mapping[str, float]) -> Material:
         """Returns the material of named values; names left out take their defaults, unknown names are refused."""
+        if not isinstance(values, Mapping):
+            raise ParameterError(
+                f'values {shown(values)} is no mapping of names to values: give a dict like {{"roughness": 0.2}}',
+                field="values",
+            )
+        for name in values:
+            if not isinstance(name, str):
+                raise ParameterError(
+                    f"parameter name {shown(name)} is not text: give the names `matfit params` lists", field="values"
+                )
         plain = {name: value.item() if isinstance(value, np.generic) else value for name, value in values.items()}
         return cls.from_array(params.from_mapping(plain))
 
     @classmethod
     def from_json(cls, text: str | bytes) -> Material:
         """Returns the material of a params.json text (what `to_json` and `matfit fit` write, or a flat object)."""
+        if not isinstance(text, str | bytes):
+            raise ParameterError(
+                f"text {shown(text)} is no params.json text: give its str or bytes (Material.read reads a file)",
+                field="text",
+            )
         return cls.from_array(params.parse_params_json(text))
 
     @classmethod
     def read(cls, path: str | os.PathLike[str]) -> Material:
         """Returns the material of a params.json file."""
-        return cls.from_array(params.read_file(os.fspath(path)))
+        return cls.from_array(params.read_file(path_of("path", path, ParameterError, "give a params.json file's path")))
 
     @classmethod
     def preset(cls, name: str) -> Material:
@@ -145,6 +154,10 @@ class Material:
         """Returns a Python script that builds the material, named `name`, on Blender 4.x's selected meshes."""
         from matfit.rendering import export
 
+        if not isinstance(name, str):
+            raise ParameterError(
+                f"name {shown(name)} is not text: give the material's name, like 'matfit'", field="name"
+            )
         try:
             return export.blender_script(self.array(), name)
         except MatfitError:

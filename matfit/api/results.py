@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from matfit import documents
-from matfit.api.arguments import MAX_SIZE, Image, path_text, shown, whole
+from matfit.api.arguments import MAX_SIZE, Image, path_of, path_text, whole
 from matfit.api.material import Material
 from matfit.errors import FitError, OutputError
 
@@ -48,9 +48,9 @@ class Outputs:
         named = {}
         for name in ("params", "report", "render", "mitsuba_xml", "blender"):
             value = getattr(self, name)
-            if value is not None and not isinstance(value, str | os.PathLike):
-                raise OutputError(f"{name} {shown(value)} is no path: give a file's path or None", field=name)
-            named[name] = None if value is None else path_text(value)
+            named[name] = (
+                None if value is None else path_text(path_of(name, value, OutputError, "give a file's path or None"))
+            )
         size = whole("render_size", self.render_size, dataset.MIN_RESOLUTION, MAX_SIZE, OutputError)
         spp = whole("render_spp", self.render_spp, 1, dataset.MAX_SPP, OutputError)
         return RequestOutputs(

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from matfit import documents, params
-from matfit.api.arguments import MAX_SIZE, Picture, path_text, shown, whole
+from matfit.api.arguments import MAX_SIZE, Picture, callback, flag, path_of, path_text, shown, whole
 from matfit.api.fitter import Fitter, check_choices
 from matfit.api.material import Material
 from matfit.api.results import Fit, fit_of
@@ -47,8 +47,8 @@ def fit_sequence(
     settings and model, are read back, not fitted again. `progress(frames done, frames in all, frames a second)`
     hears of each frame (with `out`).
     """
-    if not isinstance(reinit, bool):
-        raise FitError(f"reinit {shown(reinit)} is not True or False", field="reinit")
+    reinit, linear = flag("reinit", reinit, FitError), flag("linear", linear, ImageError)
+    progress = callback("progress", progress, FitError)
     check_choices(settings, init)
     settings = settings or Settings(Method.hybrid, 100)
     if out is not None:
@@ -58,6 +58,12 @@ def fit_sequence(
             "a folder of frames, render= and progress= are for a sequence written to a folder: give out= too, or "
             "give the frames as a list",
             field="out",
+        )
+    if not isinstance(frames, Iterable):
+        raise FitError(
+            f"frames {shown(frames)} is no list of pictures: give the frames' paths or arrays, or their folder with "
+            "out=",
+            field="frames",
         )
     from matfit.fitting import fitfile, stages
 
@@ -98,8 +104,7 @@ def written_sequence(
         raise FitError(
             f"frames {shown(frames)} is no folder: with out=, give the folder that holds the frames", field="frames"
         )
-    if not isinstance(out, str | os.PathLike):
-        raise OutputError(f"out {shown(out)} is no path: give the folder to write into", field="out")
+    written = path_of("out", out, OutputError, "give the folder to write into")
     if linear:
         raise ImageError(
             "linear=True describes arrays; frame files say how they are encoded: leave it out", field="linear"
@@ -113,7 +118,6 @@ def written_sequence(
             whole("spp", render[1], 1, dataset.MAX_SPP, RenderError),
         )
     fitter = Fitter(model, verify=False)
-    written = os.fspath(out)
     frames_found = sequence.run(
         fitter,
         os.fspath(frames),

@@ -17,9 +17,11 @@ from matfit.api.arguments import MAX_SIZE
 from matfit.errors import SceneError
 from matfit.fitting.methods import (
     CORRECTIONS,
+    MAX_CORRECTIONS,
     MAX_EVALUATIONS,
     MAX_ITERATIONS,
     MAX_POLISH,
+    MAX_REFINE,
     MAX_STARTS,
     MIN_EVALUATIONS,
     Box,
@@ -88,7 +90,6 @@ Evaluations = Annotated[
         "--evals", min=MIN_EVALUATIONS, max=MAX_EVALUATIONS, help="Nelder-Mead budget in objective evaluations."
     ),
 ]
-MAX_REFINE = 10_000
 Refine = Annotated[
     int,
     typer.Option(
@@ -99,7 +100,6 @@ Refine = Annotated[
         "with --scene, the fit's own steps (0: 48).",
     ),
 ]
-MAX_CORRECTIONS = 100
 Answer = Annotated[
     Literal["clean", "best"],
     typer.Option(help="clean: the simplest material within the threshold of the best fit; best: the fit's own."),

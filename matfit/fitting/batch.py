@@ -24,6 +24,8 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import TypeVar
 
+import numpy as np
+
 from matfit import documents, files
 from matfit.errors import MatfitError, OutputError
 from matfit.fitting.request import Outputs, Request
@@ -170,7 +172,7 @@ def journal_key(requests: list[Request], model_path: str) -> str:
             first.outputs.render_spp,
         ],
         "mask": files.sha256(first.mask) if first.mask else None,
-        "init": files.sha256(first.init) if first.init else None,
+        "init": init_key(first),
         "model": {
             name: files.sha256(os.path.join(model_path, name))
             for name in sorted(os.listdir(model_path))
@@ -180,6 +182,14 @@ def journal_key(requests: list[Request], model_path: str) -> str:
         "matfit": metadata.version("matfit"),
     }
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def init_key(request: Request) -> str | None:
+    """Returns the SHA-256 of a request's source material: its values where they were given (`matfit.Material`, no
+    file to read: `init` only names them), else its params.json's, else None."""
+    if request.init_values is not None:
+        return hashlib.sha256(np.ascontiguousarray(request.init_values, np.float64).tobytes()).hexdigest()
+    return files.sha256(request.init) if request.init else None
 
 
 class Journal:

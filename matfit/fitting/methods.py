@@ -7,12 +7,14 @@ so one compilation serves every target and seed.
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 from enum import StrEnum
 
 from matfit import params
-from matfit.errors import FitError
+from matfit.errors import FitError, flag, number, shown
 
+ANSWERS = ("clean", "best")  # what a fit returns: the clean answer or the fit's own (docs/fitting.md)
 CORRECTIONS = 2  # rounds of correction (`correct.py`) a verified fit runs by default: docs/fitting.md#correction
 
 
@@ -48,11 +50,25 @@ MIN_EVALUATIONS = params.COUNT + 2  # Nelder-Mead's initial simplex in 19 dimens
 MAX_POLISH = 100_000
 MAX_STARTS = 64
 MAX_ITERATIONS = 100_000
+MAX_STEP = 1.0  # Nelder-Mead's initial step and the polish's learning rate: the unit cube's side at most
+MAX_CORRECTIONS = 100  # rounds of correction (`matfit fit --corrections`)
+MAX_REFINE = 10_000  # steps of refinement (`matfit fit --refine`)
+# Each whole-number setting's range, as `check` holds it (evaluations': the methods that run Nelder-Mead).
+COUNTS = {
+    "evaluations": (MIN_EVALUATIONS, MAX_EVALUATIONS),
+    "polish_steps": (0, MAX_POLISH),
+    "starts": (1, MAX_STARTS),
+    "iterations": (1, MAX_ITERATIONS),
+    "narrow_after": (1, MAX_ITERATIONS),
+}
 
 
 @dataclass(frozen=True)
 class Settings:
-    """How to fit: method, budget in objective evaluations, box handling, gradient polish steps."""
+    """How to fit: method, budget in objective evaluations, box handling, gradient polish steps.
+
+    Checked when made: a value of the wrong kind or out of its range raises the one-line FitError naming it.
+    """
 
     method: Method = Method.lbfgsb  # judged against the paper's hybrid 1500: docs/fitting.md#measured
     evaluations: int = 1500
@@ -76,9 +92,18 @@ class Settings:
             object.__setattr__(self, "box", Box(self.box))
         except ValueError:
             raise FitError(f"box {self.box!r} is unknown: use clip or barrier", field="box") from None
+        for name, (low, high) in COUNTS.items():  # their kind here (60.5 would fail deep in the search), ranges below
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral):  # NumPy's integers are Integral
+                raise FitError(f"{name} {shown(value)} is not a whole number: use {low} to {high}", field=name)
+            object.__setattr__(self, name, int(value))  # a NumPy integer as the int that params.json can hold
+        object.__setattr__(self, "adaptive", flag("adaptive", self.adaptive, FitError))
+        for name in ("initial_step", "polish_rate"):
+            object.__setattr__(self, name, number(name, getattr(self, name), 0, MAX_STEP, FitError, above_low=True))
+        self.check()
 
     def check(self) -> None:
-        """Raises FitError for settings that cannot run."""
+        """Raises FitError for a value out of its range (run when made, once the values' kinds are checked)."""
         if self.method.uses_simplex and not MIN_EVALUATIONS <= self.evaluations <= MAX_EVALUATIONS:
             raise FitError(
                 f"evaluations {self.evaluations} is out of range: Nelder-Mead in 19 dimensions needs {MIN_EVALUATIONS} "

@@ -18,7 +18,7 @@ import numpy as np
 from matfit import files, images, params
 from matfit.errors import FitError, ImageError, OutputError
 from matfit.fitting import ranges
-from matfit.fitting.methods import CORRECTIONS, Settings, check_corrections
+from matfit.fitting.methods import ANSWERS, CORRECTIONS, Settings, check_corrections
 from matfit.rendering import engine
 
 
@@ -59,9 +59,6 @@ class Outputs:
     def needs_render(self) -> bool:
         """Returns whether an output shows the Mitsuba render of the result."""
         return self.report is not None or self.render is not None
-
-
-ANSWERS = ("clean", "best")  # what a fit returns: the clean answer or the fit's own (docs/fitting.md)
 
 
 @dataclass(frozen=True)
