@@ -1,5 +1,5 @@
 """Fitting pictures: `Fitter` (the model and the render processes loaded once, for many fits), `fit` (one picture
-with a fitter of its own) and `load_model`; the choices and options all check (`check_choices`, `check_options`)."""
+with a fitter of its own) and `load_model`."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from matfit import params, shipped
-from matfit.api import scenes
+from matfit.api import scene_fits
 from matfit.api.arguments import (
     ARRAY,
     Image,
@@ -29,11 +29,12 @@ from matfit.api.arguments import (
     shown,
     whole,
 )
+from matfit.api.choices import check_choices, check_options
 from matfit.api.material import Material
 from matfit.api.results import Fit, Outputs, fit_of
 from matfit.api.scenes import Scene
 from matfit.errors import FitError, ImageError, MatfitError, OutputError, ParameterError, RenderError, WeightsError
-from matfit.fitting.methods import ANSWERS, MAX_CORRECTIONS, MAX_REFINE, Settings
+from matfit.fitting.methods import Settings
 
 if TYPE_CHECKING:
     from matfit.fitting.request import Request
@@ -158,7 +159,7 @@ class Fitter:
             linear, _, _, refine, _ = check_options(linear, verify, corrections, answer, refine, seed)
             if progress is not None and not callable(progress):
                 raise FitError(f"progress {shown(progress)} is not callable: give a function or None", "progress")
-            return _fit_scene(picture, scene, mask, init, linear, refine, outputs, self.variant, progress)
+            return scene_fits.fit_scene(picture, scene, mask, init, linear, refine, outputs, self.variant, progress)
         from matfit.fitting import fitfile  # noqa: F401  # JAX imported before the fit's wall time starts
 
         started = time.perf_counter()
@@ -313,44 +314,6 @@ class Fitter:
         return request, notices
 
 
-def check_options(
-    linear: object, verify: object, corrections: object, answer: object, refine: object, seed: object
-) -> tuple[bool, bool, int | None, int, int]:
-    """Returns (linear, verify, corrections, refine, seed) of a fit, checked with `answer`: the FitError (the
-    ImageError of `linear`) of a value of the wrong kind or out of its range, before any work."""
-    if not isinstance(answer, str) or answer not in ANSWERS:
-        raise FitError(
-            f"answer {shown(answer)} is not one of {', '.join(ANSWERS)}: give answer='clean' or answer='best'",
-            field="answer",
-        )
-    return (
-        flag("linear", linear, ImageError),
-        flag("verify", verify, FitError),
-        None if corrections is None else whole("corrections", corrections, 0, MAX_CORRECTIONS, FitError),
-        whole("refine", refine, 0, MAX_REFINE, FitError),
-        whole("seed", seed, 0, params.MAX_SEED, FitError),
-    )
-
-
-def check_choices(settings: object, init: object, outputs: object = None) -> None:
-    """Raises the MatfitError of `settings` that is no `Settings`, `init` that is no path or `Material`, or `outputs`
-    that are no `Outputs`."""
-    if outputs is not None and not isinstance(outputs, Outputs):
-        raise OutputError(
-            f"outputs {shown(outputs)} is no matfit.Outputs: give Outputs(params, ...) or None", field="output"
-        )
-    if settings is not None and not isinstance(settings, Settings):
-        raise FitError(
-            f"settings {shown(settings)} is no matfit.Settings: give Settings(...) or None", field="settings"
-        )
-    if init is not None and not isinstance(init, str | os.PathLike | Material):
-        raise ParameterError(
-            f"init {shown(init)} is no params.json path or matfit.Material: give one, or "
-            "Material.from_array(values) of the 19 values in `matfit params` order",
-            field="init",
-        )
-
-
 def fit(
     picture: Picture,
     *,
@@ -403,60 +366,3 @@ def fit(
             scene=scene,
             progress=progress,
         )
-
-
-def _fit_scene(
-    picture: Picture,
-    scene: Scene,
-    mask: Picture | None,
-    init: str | os.PathLike[str] | Material | None,
-    linear: bool,
-    steps: int,
-    outputs: Outputs | None,
-    variant: str | None,
-    progress: Callable[[str, int, int, float], None] | None,
-) -> Fit:
-    """Returns the fit of the material of a shape in a scene of the user's own (`scenes.fit_in_scene`)."""
-    from matfit.fitting import scene_fit
-
-    check_choices(None, init)
-    if outputs is not None and not isinstance(outputs, Outputs):
-        raise OutputError(
-            f"outputs {shown(outputs)} is no matfit.Outputs: give Outputs(params, ...) or None", field="output"
-        )
-    named = None if init is None or isinstance(init, Material) else path_text(init)
-    start = None if init is None else (init if isinstance(init, Material) else Material.read(init)).array()
-    outcome, document = scenes.fit_in_scene(
-        picture,
-        scene,
-        init=start,
-        init_name="Material" if isinstance(init, Material) else named,
-        mask=mask,
-        linear=linear,
-        steps=steps or scene_fit.STEPS,
-        variant=variant,
-        outputs=None if outputs is None else outputs._request(),
-        progress=progress,
-    )
-    summary = (
-        f"{outputs.params if outputs else document['target']}: scene {document['scene']['object']!r}, Mitsuba RMSE "
-        f"{outcome.rmse:.2f} (start {outcome.start_rmse:.2f}), {outcome.seconds:.1f} s"
-    )
-    return Fit(
-        Material.from_array(outcome.values),
-        float("nan"),
-        outcome.rmse,
-        {},
-        dict(outcome.ranges),
-        {},
-        tuple(document["notices"]),
-        summary,
-        outcome.target,
-        outcome.rendered,
-        outcome.rendered,
-        document,
-        "given",
-        outcome.start_rmse,
-        len(outcome.losses),
-        outcome.start_rendered,
-    )

@@ -12,7 +12,8 @@ import numpy as np
 
 from matfit import documents, params
 from matfit.api.arguments import MAX_SIZE, Picture, callback, flag, path_of, path_text, shown, whole
-from matfit.api.fitter import Fitter, check_choices
+from matfit.api.choices import check_choices
+from matfit.api.fitter import Fitter
 from matfit.api.material import Material
 from matfit.api.results import Fit, fit_of
 from matfit.errors import FitError, ImageError, OutputError, RenderError

@@ -1,0 +1,72 @@
+"""A picture of a scene of the user's own fitted through the public API: `matfit.fit(..., scene=)` and
+`Fitter.fit(..., scene=)` (`fit_scene`), its `Fit` made of what `scenes.fit_in_scene` found."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+
+from matfit.api import scenes
+from matfit.api.arguments import Picture, path_text, shown
+from matfit.api.choices import check_choices
+from matfit.api.material import Material
+from matfit.api.results import Fit, Outputs
+from matfit.api.scenes import Scene
+from matfit.errors import OutputError
+
+
+def fit_scene(
+    picture: Picture,
+    scene: Scene,
+    mask: Picture | None,
+    init: str | os.PathLike[str] | Material | None,
+    linear: bool,
+    steps: int,
+    outputs: Outputs | None,
+    variant: str | None,
+    progress: Callable[[str, int, int, float], None] | None,
+) -> Fit:
+    """Returns the fit of the material of a shape in a scene of the user's own (`scenes.fit_in_scene`)."""
+    from matfit.fitting import scene_fit
+
+    check_choices(None, init)
+    if outputs is not None and not isinstance(outputs, Outputs):
+        raise OutputError(
+            f"outputs {shown(outputs)} is no matfit.Outputs: give Outputs(params, ...) or None", field="output"
+        )
+    named = None if init is None or isinstance(init, Material) else path_text(init)
+    start = None if init is None else (init if isinstance(init, Material) else Material.read(init)).array()
+    outcome, document = scenes.fit_in_scene(
+        picture,
+        scene,
+        init=start,
+        init_name="Material" if isinstance(init, Material) else named,
+        mask=mask,
+        linear=linear,
+        steps=steps or scene_fit.STEPS,
+        variant=variant,
+        outputs=None if outputs is None else outputs._request(),
+        progress=progress,
+    )
+    summary = (
+        f"{outputs.params if outputs else document['target']}: scene {document['scene']['object']!r}, Mitsuba RMSE "
+        f"{outcome.rmse:.2f} (start {outcome.start_rmse:.2f}), {outcome.seconds:.1f} s"
+    )
+    return Fit(
+        Material.from_array(outcome.values),
+        float("nan"),
+        outcome.rmse,
+        {},
+        dict(outcome.ranges),
+        {},
+        tuple(document["notices"]),
+        summary,
+        outcome.target,
+        outcome.rendered,
+        outcome.rendered,
+        document,
+        "given",
+        outcome.start_rmse,
+        len(outcome.losses),
+        outcome.start_rendered,
+    )
