@@ -241,12 +241,21 @@ def check_outputs(
     or hard link to an input is that input. `folder_field`: the outputs are files the command names
     inside that output folder, which is the thing to change.
     """
-    named, sources = named_paths(outputs), named_paths(inputs)
+    named = named_paths(outputs)
     folder = f"another {words(folder_field)} folder" if folder_field else None
     for label, path in named:
         check_writable(path)
         fix = f"choose {folder or f'another path for the {words(label)}'}"
         check_not_model(label, path, model, fix=fix, field=folder_field or label)
+    check_apart(named, inputs, folder_field=folder_field)
+
+
+def check_apart(outputs: Named | None, inputs: Named | None = None, *, folder_field: str | None = None) -> None:
+    """Raises OutputError when two of `outputs` are one file or an output is one of `inputs`, compared on the disk
+    (`check_outputs`' comparison alone: a batch compares every picture's outputs with every other's and with every
+    picture, each already checked on its own)."""
+    named, sources = named_paths(outputs), named_paths(inputs)
+    folder = f"another {words(folder_field)} folder" if folder_field else None
     read = {_identity(source): (source_label, source) for source_label, source in reversed(sources)}
     written: dict[tuple, tuple[str, str]] = {}
     for label, path in named:

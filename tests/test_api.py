@@ -648,6 +648,43 @@ def test_fit_all_writes_each_picture_goes_on_past_a_bad_one_and_a_second_call_fi
     assert not (tmp_path / "new").exists()  # the folders made for the checks are gone
 
 
+def test_fit_all_never_replaces_a_picture_or_a_users_file_and_keeps_only_matfits_own_fit(fitter, tmp_path):
+    # a's report would be the picture a.report.png: refused before any fit, nothing written
+    shutil.copy(PICTURE, tmp_path / "a.png")
+    shutil.copy(shipped.EXAMPLES / "desaturated.png", tmp_path / "a.report.png")
+    pictures = [tmp_path / "a.png", tmp_path / "a.report.png"]
+    before = (tmp_path / "a.report.png").read_bytes()
+    with pytest.raises(matfit.MatfitError, match=r"report .*a\.report\.png is the target"):
+        fitter.fit_all(pictures, tmp_path, answer="best", outputs=matfit.Outputs(report="report.png"))
+    assert sorted(os.listdir(tmp_path)) == ["a.png", "a.report.png"]
+    assert (tmp_path / "a.report.png").read_bytes() == before
+    # a file the user keeps under a picture's params.json name is not replaced
+    (tmp_path / "b.png").write_text("no picture")
+    pictures, folder = [tmp_path / "a.png", tmp_path / "b.png"], tmp_path / "fits"
+    folder.mkdir()
+    (folder / "a.params.json").write_text("notes")
+    with pytest.raises(matfit.MatfitError, match="matfit did not write it"):
+        fitter.fit_all(pictures, folder, answer="best")
+    assert os.listdir(folder) == ["a.params.json"] and (folder / "a.params.json").read_text() == "notes"
+    (folder / "a.params.json").unlink()
+    # a run that stopped part way: its journal keeps a only while a's params.json is matfit's of that picture
+    heard: list[tuple[str, str]] = []
+
+    def done(picture: str, params_json: str, fit: object) -> None:
+        heard.append((os.path.basename(picture), type(fit).__name__))
+
+    assert fitter.fit_all(pictures, folder, answer="best", done=done) == 1
+    written = json.loads((folder / "a.params.json").read_text())
+    (folder / "a.params.json").write_text(json.dumps({**written, "target_sha256": "0" * 64}))
+    heard.clear()
+    assert fitter.fit_all(pictures, folder, answer="best", done=done) == 1
+    assert heard == [("a.png", "Fit"), ("b.png", "ImageError")]  # fitted again, not "kept"
+    assert json.loads((folder / "a.params.json").read_text())["target_sha256"] == written["target_sha256"]
+    heard.clear()
+    assert fitter.fit_all(pictures, folder, answer="best", done=done) == 1
+    assert heard == [("a.png", "NoneType"), ("b.png", "ImageError")]  # now kept
+
+
 def test_a_folder_that_is_no_model_is_the_command_lines_error(tmp_path):
     (tmp_path / "empty").mkdir()
     for folder in (tmp_path / "none", tmp_path / "empty"):

@@ -707,6 +707,44 @@ def test_train_starts_from_a_model_directory(trained, tiny_dataset, tmp_path):
     assert not (tmp_path / "m").exists()
 
 
+def test_several_pictures_never_overwrite_a_picture_or_a_users_file(tmp_path):
+    # Refused before any work (the model is not even loaded): one line, exit 2, every file as it was.
+    fast = ("--method", "nn", "--no-verify")
+    folder = tmp_path / "d"
+    folder.mkdir()
+    shutil.copy(shipped.EXAMPLES / "recoloured.png", folder / "a.png")
+    shutil.copy(shipped.EXAMPLES / "desaturated.png", folder / "a.report.png")
+    before = {path.name: path.read_bytes() for path in folder.iterdir()}
+    result = run("fit", folder / "a.png", folder / "a.report.png", "-o", folder, "--report", "report.png", *fast)
+    assert_one_line_error(result, f"report {folder / 'a.report.png'} is the target", "choose another output folder")
+    assert {path.name: path.read_bytes() for path in folder.iterdir()} == before
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "a.params.json").write_text("notes")
+    result = run("fit", folder / "a.png", folder / "a.report.png", "-o", out, *fast)
+    assert_one_line_error(result, f"{out / 'a.params.json'} is in the output folder already and matfit did not write")
+    assert os.listdir(out) == ["a.params.json"] and (out / "a.params.json").read_text() == "notes"
+    (out / "a.params.json").unlink()
+    (out / batch.JOURNAL).mkdir()  # the journal's place taken by a folder: said at once, not after every fit
+    result = run("fit", folder / "a.png", folder / "a.report.png", "-o", out, *fast)
+    assert_one_line_error(result, f"{out / batch.JOURNAL} is a folder, where matfit keeps the journal")
+    assert os.listdir(out) == [batch.JOURNAL]
+
+
+def test_a_command_without_its_argument_says_what_to_give():
+    assert_one_line_error(run("fit"), "matfit fit needs the edited picture: give its path", "matfit fit --help")
+    assert_one_line_error(run("sequence"), "matfit sequence needs the folder of frames")
+
+
+def test_a_sequence_written_into_its_frames_folder_is_refused_on_the_first_run(tmp_path):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    shutil.copy(shipped.EXAMPLES / "recoloured.png", frames / "f1.png")
+    result = run("sequence", frames, "-o", frames, "--model", tmp_path / "no-model")  # refused before the model
+    assert_one_line_error(result, f"--out {frames} is the folder of the frames", "choose another out folder")
+    assert os.listdir(frames) == ["f1.png"]
+
+
 def test_outputs_that_would_lose_a_file_are_refused_before_any_work(tmp_path):
     picture = tmp_path / "edited.png"
     images.write(str(picture), np.full((16, 16, 3), 0.5, np.float32))

@@ -170,9 +170,12 @@ def test_the_variant_is_decided_by_what_was_found(requested, cuda, llvm):
     assert (notice is not None) == (requested is None and variant == "scalar_rgb")
 
 
+ELF_SHARED_OBJECT = b"\x7fELF\x02\x01\x01" + bytes(9) + (3).to_bytes(2, "little") + bytes(46)  # a 64-bit .so's header
+
+
 def test_variant_choice_on_a_machine_without_a_gpu(monkeypatch, tmp_path):
     library = tmp_path / "libLLVM-19.so"
-    library.write_bytes(b"")
+    library.write_bytes(ELF_SHARED_OBJECT)
     monkeypatch.setattr(engine, "cuda_devices", lambda: 0)
     assert engine.choose_variant("scalar_rgb") == ("scalar_rgb", None)
     with pytest.raises(RenderError, match="use one of cuda_ad_rgb, llvm_ad_rgb, scalar_rgb"):
@@ -194,6 +197,32 @@ def test_variant_choice_on_a_machine_without_a_gpu(monkeypatch, tmp_path):
     monkeypatch.setenv("DRJIT_LIBLLVM_PATH", "/nonexistent/libLLVM.so")
     with pytest.raises(RenderError, match="does not exist"):
         engine.choose_variant(None)
+
+
+def test_a_libllvm_path_that_names_no_library_is_ignored_with_a_notice(monkeypatch, tmp_path):
+    text, executable = tmp_path / "notes.txt", tmp_path / "libLLVM-19.so"
+    text.write_text("not a library")
+    executable.write_bytes(ELF_SHARED_OBJECT[:16] + (2).to_bytes(2, "little") + ELF_SHARED_OBJECT[18:])  # ET_EXEC
+    assert engine.not_a_library(str(text)) == "it is no shared library"
+    assert engine.not_a_library(str(executable)) == "it is an ELF file but no shared library"
+    assert engine.not_a_library(str(tmp_path / "libLLVM-19.so")) is not None
+    monkeypatch.setattr(engine, "cuda_devices", lambda: 0)
+    monkeypatch.setattr(engine, "find_libllvm", lambda: None)
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(text))
+    variant, notice = engine.choose_variant(None)  # as without it: scalar_rgb here, saying why
+    assert variant == "scalar_rgb" and notice.startswith(f"notice: DRJIT_LIBLLVM_PATH={text} is not a libLLVM (")
+    assert "scalar_rgb" in notice and "DRJIT_LIBLLVM_PATH" not in os.environ  # Dr.Jit no longer reads it
+    monkeypatch.setenv("DRJIT_LIBLLVM_PATH", str(text))
+    with pytest.raises(RenderError, match=r"is not a libLLVM .*; variant llvm_ad_rgb needs libLLVM >= 19"):
+        engine.choose_variant("llvm_ad_rgb")
+    # the command line, in a process of its own: a notice and the render, not Mitsuba's ImportError
+    out = tmp_path / "gold.png"
+    command = [sys.executable, "-m", "matfit", "render", "--preset", "gold", "--size", "16", "--spp", "4", "-o", out]
+    environment = {**os.environ, "DRJIT_LIBLLVM_PATH": str(text)}
+    done = subprocess.run(command, env=environment, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    assert f"notice: DRJIT_LIBLLVM_PATH={text} is not a libLLVM" in done.stderr and "Traceback" not in done.stderr
+    assert images.read(str(out)).shape == (16, 16, 3)
 
 
 def test_a_gpu_is_looked_for_only_when_the_choice_needs_it(monkeypatch, renderer):

@@ -1,4 +1,5 @@
 import json
+import os
 
 import numpy as np
 import pytest
@@ -221,6 +222,10 @@ def test_outputs_that_are_frames_or_a_read_only_folder_are_refused(tmp_path, mod
         sequence.run(model, str(folder), out=str(folder), settings=settings)  # the results beside the frames
     with pytest.raises(OutputError, match=r"out /proc/seq cannot be written: /proc is read-only"):
         sequence.run(model, str(folder), out="/proc/seq", settings=settings)
+    (folder / "preview.png").unlink()  # the first run into the frames' folder: its preview.png would be a frame
+    with pytest.raises(OutputError, match=r"out .*frames is the folder of the frames: its preview\.png .* would be"):
+        sequence.run(model, str(folder), out=str(folder), settings=settings)
+    assert sorted(os.listdir(folder)) == [f"f{k}.png" for k in range(4)]  # nothing written
 
 
 def test_a_render_is_made_again_whenever_its_frame_was_fitted_again(tmp_path, model, frames):

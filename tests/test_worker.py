@@ -79,6 +79,7 @@ def test_bad_requests_are_answered_with_one_error_line_and_the_worker_goes_on(tm
         "bad id": running.ask(b'{"id": [1], "arguments": ["fit"]}'),
         "bad option": running.fit(6, EDITED, "-o", tmp_path / "p.json", "--evals", "abc"),
         "no picture": running.fit(7, tmp_path / "missing.png", "-o", tmp_path / "p.json"),
+        "no picture given": running.ask(b'{"id": 8, "arguments": ["fit"]}'),
     }
     assert running.close() == 0
     for kind, answer in answers.items():
@@ -93,6 +94,9 @@ def test_bad_requests_are_answered_with_one_error_line_and_the_worker_goes_on(tm
     assert answers["not fit"]["output"] == "error: the worker runs fit, not 'render'\n"
     assert answers["bad option"]["id"] == 6 and "--evals abc" in answers["bad option"]["output"]
     assert answers["no picture"]["id"] == 7 and "missing.png" in answers["no picture"]["output"]
+    assert answers["no picture given"]["output"] == (
+        "error: matfit fit needs the edited picture: give its path (`matfit fit --help` says more)\n"
+    )
     assert not (tmp_path / "p.json").exists()
 
 

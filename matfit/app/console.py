@@ -15,6 +15,7 @@ import contextlib
 import errno
 import functools
 import os
+import re
 import select
 import sys
 import typing
@@ -66,6 +67,8 @@ def usage_message(error, arguments: list[str]) -> str:
     """Returns a usage error as one line that names the option, the value given and what it takes."""
     message = error.message.removeprefix("Value error, ")
     param = getattr(error, "param", None)
+    if isinstance(error, typer._click.exceptions.MissingParameter) and param is not None and not message:
+        return missing_message(param, error.ctx)
     if param is None or not getattr(param, "opts", None):
         return message
     flag = max(param.opts, key=len)
@@ -81,6 +84,16 @@ def usage_message(error, arguments: list[str]) -> str:
         )
         return f"{flag} {given} is out of range: {limits}"
     return f"{flag} {given}: {message}" if given is not None else f"{flag}: {message}"
+
+
+def missing_message(param, ctx) -> str:
+    """Returns the line for a command's argument left out (`matfit fit` alone): what the argument is, after its help's
+    first words ("The edited picture: PNG, ..." -> "the edited picture"), and where to read more."""
+    command = f"matfit {ctx.info_name}" if ctx is not None and ctx.info_name else "the command"
+    what = re.split(r"[:.(]", getattr(param, "help", None) or "")[0].strip()
+    what = what[:1].lower() + what[1:] if what else param.name.replace("_", " ")
+    what = what if what.startswith(("the ", "a ", "an ")) else f"the {what}"
+    return f"{command} needs {what}: give its path (`{command} --help` says more)"
 
 
 def flags(function) -> dict[str, str]:

@@ -10,7 +10,12 @@ key of everything else that decides a fit (the settings, the mask and init files
 matfit's version). A rerun with the same key keeps a picture whose journal entry matches the picture as it is now
 and whose outputs are all there; anything changed fits again. The journal is removed once every picture is fitted,
 so a finished command run again fits every picture again; after a picture failed it stays, and the same command
-run again fits only the pictures that failed (or changed).
+run again fits only the pictures that failed (or changed). A kept picture's params.json must be matfit's of that very
+picture (`written_params`: its SHA-256 the one recorded, its settings the command's), not any file of that name.
+
+Nothing is lost (docs/fitting.md#several-pictures): `plan` refuses an output that is any picture of the command, the
+mask or init, or another picture's output, and one that is in the folder already but that matfit did not write
+(`check_replaceable`: a params.json holding matfit's fields for a picture of that name, and the outputs beside it).
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ import functools
 import hashlib
 import json
 import os
+import stat
 from collections.abc import Callable
 from dataclasses import replace
 from typing import TypeVar
@@ -34,6 +40,9 @@ Fitted = TypeVar("Fitted")  # what fitting one picture returns (`matfit.Fit`)
 
 PARAMS_SUFFIX = ".params.json"  # a picture's params.json in the output folder: <stem>.params.json
 JOURNAL = ".matfit-fit-journal.json"  # in the output folder while a command of several pictures has some left
+# What every params.json matfit writes holds (`document.build`): a file in the output folder under a picture's
+# params.json name is replaced only if it holds these (`written_params`, `check_replaceable`).
+PARAMS_KEYS = ("params", "units", "method", "model", "target", "target_sha256")
 
 
 def outputs_of(target: str, folder: str, outputs: Outputs) -> Outputs:
@@ -59,8 +68,10 @@ def plan(
 ) -> list[Request]:
     """Returns one request a picture of `targets`, each like `request` but for its picture and its outputs (named by
     `outputs_of` in `folder`); raises the one-line OutputError of a plan that cannot run, before any work: a folder
-    that is a file or names a .json file, two pictures of one name, a picture given twice, and any request's own
-    check (`Request.check`). `then()` runs after the checks (the model's load): whatever any of them raises, the
+    that is a file or names a .json file, two pictures of one name, a picture given twice, a journal's path that is
+    no file (`check_journal`), any request's own check (`Request.check`), an output of one picture that is another
+    picture's output or input (`files.check_apart`), and an output in the folder already that matfit did not write
+    (`check_replaceable`). `then()` runs after the checks (the model's load): whatever any of them raises, the
     folders made for the plan are removed again."""
     if not targets:
         raise ValueError("plan fits pictures: give at least one")
@@ -92,10 +103,18 @@ def plan(
         replace(request, target=target, outputs=outputs_of(target, folder, request.outputs)) for target in targets
     ]
     files.check_folder(folder, field="output")
+    check_journal(folder)
     made = _make_folder(folder)
     try:
         for each in requests:
             each.check()
+        files.check_apart(
+            [pair for each in requests for pair in _outputs(each)],
+            [(name, getattr(each, name)) for each in requests for name in ("target", "mask", "init")],
+            folder_field="output",
+        )
+        for each in requests:
+            check_replaceable(each)
         if then is not None:
             then()
     except BaseException:
@@ -104,6 +123,83 @@ def plan(
                 os.rmdir(path)
         raise
     return requests
+
+
+def _outputs(request: Request) -> list[tuple[str, str]]:
+    """Returns (what the file is, its path) of each file a request of a plan writes, its params.json first."""
+    outputs = request.outputs
+    assert outputs is not None, "a plan's requests name their outputs"
+    named = {
+        "params.json": outputs.params,
+        "report": outputs.report,
+        "render": outputs.render,
+        "mitsuba_xml": outputs.mitsuba_xml,
+        "blender": outputs.blender,
+    }
+    return files.named_paths(named)
+
+
+def check_journal(folder: str) -> None:
+    """Raises OutputError when the journal's path in `folder` holds something that is no file (a folder, a FIFO): its
+    record of each picture fitted would fail after the picture was fitted and written."""
+    path = os.path.join(folder, JOURNAL)
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:  # none yet, or a dangling link, which the first record replaces
+        return
+    except OSError as error:
+        raise OutputError(
+            f"cannot use {path}, the journal of the pictures fitted: {error.strerror}; remove it or choose another "
+            "output folder",
+            field="output",
+        ) from None
+    if not stat.S_ISREG(mode):
+        raise OutputError(
+            f"{path} is {files.kind(mode)}, where matfit keeps the journal of the pictures fitted: remove it or choose "
+            "another output folder",
+            field="output",
+        )
+
+
+def written_params(path: str) -> dict | None:
+    """Returns the document of the params.json at `path` if matfit wrote it (a JSON object holding each of
+    PARAMS_KEYS, its parameters and units as objects, its target and the target's SHA-256 as text), else None."""
+    try:
+        document = documents.read(path, "it is no params.json of matfit's")
+    except MatfitError:  # missing, no regular file, not JSON
+        return None
+    if not isinstance(document, dict) or not all(key in document for key in PARAMS_KEYS):
+        return None
+    kinds = {"params": dict, "units": dict, "target": str, "target_sha256": str}
+    return document if all(isinstance(document[key], kind) for key, kind in kinds.items()) else None
+
+
+def _stem(path: str) -> str:
+    return os.path.splitext(os.path.basename(path))[0]
+
+
+def check_replaceable(request: Request) -> None:
+    """Raises OutputError for an output of a plan's request that is in its folder already and that matfit did not
+    write: a params.json is matfit's when `written_params` says so and it names a picture of this one's name; the
+    picture's other outputs are matfit's when its params.json is (they are written together, `files.together`)."""
+    outputs = _outputs(request)
+    there = [(label, path) for label, path in outputs if os.path.lexists(path)]
+    if not there:
+        return
+    params_json, stem = outputs[0][1], _stem(request.target)
+    document = written_params(params_json)
+    if document is not None and _stem(document["target"]) == stem:
+        return
+    label, path = there[0]  # the params.json when it is there
+    if label == "params.json":
+        why = f"it is no params.json that matfit wrote for a picture named {stem}"
+    else:
+        why = f"matfit writes a picture's {files.words(label)} with its params.json, and {params_json} is not there"
+    raise OutputError(
+        f"{path} is in the output folder already and matfit did not write it ({why}): fitting {request.target} would "
+        "replace it; move it away or choose another output folder",
+        field="output",
+    )
 
 
 def _pictures(count: int) -> str:
@@ -136,7 +232,7 @@ def fit_all(
     failure of the system (OSError, a render process that ended) stops them all. `model_path`: the model folder, whose
     files key the journal."""
     folder = os.path.dirname(requests[0].outputs.params) if requests and requests[0].outputs else "."
-    journal = Journal(folder, journal_key(requests, model_path))
+    journal = Journal(folder, journal_key(requests, model_path), model_path)
     failed = 0
     for request in requests:
         if journal.fitted(request):
@@ -196,8 +292,8 @@ class Journal:
     """The pictures of one command fitted so far (module docstring): `fitted` says whether a picture can be kept,
     `record` adds one once its outputs are written, `finish` removes the journal when the command is done."""
 
-    def __init__(self, folder: str, key: str) -> None:
-        self.path, self.key = os.path.join(folder, JOURNAL), key
+    def __init__(self, folder: str, key: str, model_path: str) -> None:
+        self.path, self.key, self.model_path = os.path.join(folder, JOURNAL), key, model_path
         self.pictures: dict[str, str] = {}  # absolute path of a picture fitted -> its SHA-256 then
         with contextlib.suppress(OSError, ValueError, MatfitError):  # none, unreadable or another command's: start
             document = documents.read(self.path, "it is rewritten")
@@ -205,12 +301,29 @@ class Journal:
                 self.pictures = {str(k): str(v) for k, v in document["pictures"].items()}
 
     def fitted(self, request: Request) -> bool:
-        """Returns whether an earlier run fitted the request's picture as it is now, its outputs all still there."""
+        """Returns whether an earlier run fitted the request's picture as it is now, its outputs all still there and
+        its params.json matfit's of that picture: of its SHA-256 (the one recorded), its path, method, box, polish
+        steps, mask, init and model (what else decides the fit is the journal's key)."""
+        from matfit.fitting.document import display_path
+
         recorded = self.pictures.get(os.path.abspath(request.target))
         if recorded is None or request.outputs is None:
             return False
-        written = [path for path in vars(request.outputs).values() if isinstance(path, str)]
-        if not all(os.path.isfile(path) for path in written):
+        if not all(os.path.isfile(path) for _, path in _outputs(request)):
+            return False
+        document = written_params(request.outputs.params)
+        settings = request.settings
+        expected = {
+            "target_sha256": recorded,
+            "target": request.target,
+            "method": settings.method.value,
+            "box": settings.box.value,
+            "polish_steps": settings.polish_steps,
+            "mask": request.mask,
+            "init": request.init,
+            "model": display_path(self.model_path),
+        }
+        if document is None or any(document.get(name) != value for name, value in expected.items()):
             return False
         with contextlib.suppress(OSError):
             return files.sha256(request.target) == recorded

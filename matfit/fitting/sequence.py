@@ -20,7 +20,8 @@ settings changed, the image was replaced) is made again.
 
 Every file a run writes is checked before the first fit (`check_outputs`): two frames whose
 results would share a name (`a.png` and `a.jpg`, both `a.json`) are refused, and so is an output
-folder that is read-only or where a result would overwrite a frame.
+folder that is read-only, where a result would overwrite a frame, or that is the frames' folder
+itself (its preview.png and renders would be frames of the next run, which resumes).
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from matfit import documents, files, images, params
-from matfit.errors import SequenceError
+from matfit.errors import OutputError, SequenceError
 from matfit.fitting import fitfile, search
 from matfit.fitting.request import Request
 from matfit.model import models
@@ -114,13 +115,21 @@ def check_outputs(
 
     No two frames may share a result name, the folder must take files, and no output (a result, a
     render, summary.md, preview.png) may be a frame, the `init` file or a file of the model folder `model`
-    (or of the shipped model).
+    (or of the shipped model); nor may `out` be the frames' folder: preview.png and the renders are pictures that
+    the next run, resuming, would list as frames.
     """
     check_frame_names(frames)
     outputs = [("result", frame_json_path(out, frame)) for frame in frames]
     outputs += [("render", render_path(out, frame)) for frame in frames] if rendered else []
     outputs += [("summary", os.path.join(out, SUMMARY_FILE)), ("preview", os.path.join(out, PREVIEW_FILE))]
     files.check_folder(out, outputs, [("frame", frame) for frame in frames] + [("init", init)], model=model)
+    folder = os.path.dirname(frames[0]) or "."
+    if os.path.isdir(out) and os.path.samefile(out, folder):
+        raise OutputError(
+            f"out {out} is the folder of the frames: its {PREVIEW_FILE} (and renders) would be frames of the next "
+            f"run, which resumes; choose another out folder, such as {os.path.join(out, 'fits')}",
+            field="out",
+        )
 
 
 def run_settings(settings: search.Settings, reinit: bool, model: models.Model) -> dict:

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
-from matfit import params
+from matfit import files, params
 from matfit.errors import RenderError
 from matfit.rendering import scene
 
@@ -100,21 +100,59 @@ def cuda_problem() -> str | None:
     return None
 
 
-def libllvm_usable() -> bool:
-    """Returns whether llvm_ad_rgb can run: `DRJIT_LIBLLVM_PATH` names a file, or a libLLVM >= 19 is found on disk
-    (then `DRJIT_LIBLLVM_PATH` is pointed at it). Raises RenderError for a `DRJIT_LIBLLVM_PATH` that does not exist."""
+# The first bytes of a shared library: ELF (Linux; its type, bytes 16-17, says a shared object), Mach-O (macOS, 32
+# and 64 bits, either byte order, and the universal binary's), PE (Windows' DLLs).
+ELF_MAGIC = b"\x7fELF"
+ELF_SHARED = 3  # e_type ET_DYN
+MACH_O_MAGICS = (
+    b"\xfe\xed\xfa\xce",
+    b"\xce\xfa\xed\xfe",
+    b"\xfe\xed\xfa\xcf",
+    b"\xcf\xfa\xed\xfe",
+    b"\xca\xfe\xba\xbe",
+)
+PE_MAGIC = b"MZ"
+
+
+def not_a_library(path: str) -> str | None:
+    """Returns why the file `path` cannot be a libLLVM, from its first bytes (not a shared library: a text file, an
+    executable), or None when it looks like one. Dr.Jit would fail on it only once Mitsuba starts, with an ImportError
+    from deep inside."""
+    try:
+        head = files.read_input(path, 32)[:32]
+    except OSError as error:
+        return f"it cannot be read: {error.strerror or error}"
+    if head.startswith(ELF_MAGIC):
+        big = head[5:6] == b"\x02"  # EI_DATA: 1 little-endian, 2 big-endian
+        shared = len(head) >= 18 and int.from_bytes(head[16:18], "big" if big else "little") == ELF_SHARED
+        return None if shared else "it is an ELF file but no shared library"
+    if head.startswith(MACH_O_MAGICS) or head.startswith(PE_MAGIC):
+        return None
+    return "it is no shared library"
+
+
+def libllvm_usable() -> tuple[bool, str | None]:
+    """Returns (whether llvm_ad_rgb can run, a notice or None): it can when `DRJIT_LIBLLVM_PATH` names a shared
+    library, or a libLLVM >= 19 is found on disk (then `DRJIT_LIBLLVM_PATH` is pointed at it). Raises RenderError for
+    a `DRJIT_LIBLLVM_PATH` that does not exist. One that names a file that is no shared library (`not_a_library`) is
+    dropped from the environment, with a notice, and the choice goes on as without it."""
     configured = os.environ.get("DRJIT_LIBLLVM_PATH")
+    notice = None
     if configured:
         if not os.path.isfile(configured):
             raise RenderError(
                 f"DRJIT_LIBLLVM_PATH={configured} does not exist: point it at libLLVM >= {MINIMUM_LLVM} or unset it"
             )
-        return True
+        why = not_a_library(configured)
+        if why is None:
+            return True, None
+        del os.environ["DRJIT_LIBLLVM_PATH"]  # Dr.Jit, here and in the render processes started later, reads it
+        notice = f"notice: DRJIT_LIBLLVM_PATH={configured} is not a libLLVM ({why}), so it is ignored"
     found = find_libllvm()
     if found is not None:
         os.environ["DRJIT_LIBLLVM_PATH"] = found
-        return True
-    return False
+        return True, None if notice is None else f"{notice}: rendering with {found}"
+    return False, notice
 
 
 NO_CUDA = "no NVIDIA GPU with its CUDA driver and Mitsuba's CUDA backend"
@@ -173,8 +211,16 @@ def choose_variant(requested: str | None = None, *, start_mitsuba: bool = True) 
             cuda_problem() if start_mitsuba else None if cuda_devices() else f"no NVIDIA GPU answers {CUDA_DRIVER}"
         )
     cuda = requested != LLVM_VARIANT and problem is None
-    llvm = not cuda and libllvm_usable()
-    return decide_variant(requested, cuda, llvm, problem or NO_CUDA)
+    llvm, ignored = (False, None) if cuda else libllvm_usable()
+    try:
+        variant, notice = decide_variant(requested, cuda, llvm, problem or NO_CUDA)
+    except RenderError as error:
+        if ignored is None:
+            raise
+        raise RenderError(f"{ignored.removeprefix('notice: ')}; {error}") from None
+    if ignored is None or (notice is None and variant != LLVM_VARIANT):  # quiet where the fallback needed none
+        return variant, notice
+    return variant, f"{ignored}; {notice.removeprefix('notice: ')}" if notice else ignored
 
 
 def check_request(requested: str | None) -> None:
