@@ -317,19 +317,30 @@ def load(mi: Any, scene_file: SceneFile, text: str) -> Any:
         raise SceneError(f"scene {scene_file.path} does not load in Mitsuba: {message[:300]}", "scene") from None
 
 
-# Forward renders of a scene file (the picture to edit, the fit's judge, the answer's render) use matfit's own
-# integrator (`scene.INTEGRATOR`: volpathmis, so the interior medium shows), whatever the file's.
+# Forward renders of a scene file (the picture to edit, the answer's render) use matfit's own integrator
+# (`scene.INTEGRATOR`: volpathmis, so the interior medium shows), whatever the file's; a fit whose material shows
+# no medium judges with `path` (OPAQUE_INTEGRATOR), which renders an opaque material alike at a third of the time.
+OPAQUE_INTEGRATOR = {"type": "path", "max_depth": 16}
+
+
 class Renderer:
     """A scene file loaded once at one size, rendering any material of its shape (and the scene without the shape)."""
 
-    def __init__(self, scene_file: SceneFile, size: tuple[int, int], variant: str | None = None):
+    def __init__(
+        self,
+        scene_file: SceneFile,
+        size: tuple[int, int],
+        variant: str | None = None,
+        integrator: dict[str, object] | None = None,
+    ):
         from matfit.rendering import engine
 
         self.variant, self.notice = engine.choose_variant(variant)
         self.mi = engine.mitsuba(self.variant)
         self.scene_file, self.size = scene_file, size
+        self.integrator = dict(integrator or scene.INTEGRATOR)
         start = scene_file.own if scene_file.own is not None else scene.all_lobes_values()
-        self.scene = load(self.mi, scene_file, xml(scene_file, start, size, integrator=dict(scene.INTEGRATOR)))
+        self.scene = load(self.mi, scene_file, xml(scene_file, start, size, integrator=self.integrator))
         self.parameters = self.mi.traverse(self.scene)
         self.keys = engine.Keys(scene_file.object)
         self._without: Any = None
@@ -346,7 +357,7 @@ class Renderer:
         """Returns the linear float32 (H, W, 3) render of the scene without the fitted shape."""
         if self._without is None:
             start = scene.all_lobes_values()
-            text = xml(self.scene_file, start, self.size, integrator=dict(scene.INTEGRATOR), with_object=False)
+            text = xml(self.scene_file, start, self.size, integrator=self.integrator, with_object=False)
             self._without = load(self.mi, self.scene_file, text)
         image = self.mi.render(self._without, seed=int(seed) & 0xFFFFFFFF, spp=int(spp))
         return np.array(image, dtype=np.float32)[:, :, :3]
