@@ -4,7 +4,8 @@ Usage: python blender_extension_run.py job.json report.json, in a fresh user fol
 job.json: {"zip", "command", "size", "spp", "fit_options", "imports": {name: exported script},
 "picture": {"script", "out"}, "refusals": [kind], "unwritable": [picture path], "fit": edited picture,
 "failures": [[command, edited]], "worker": whether to fit again in the worker and after killing it,
-"planted": {"edited", "silent", "writers": {kind: command}, "blocked", "redirect", "crashes"},
+"planted": {"edited", "silent", "writers": {kind: command}, "blocked", "redirect", "crashes", "mute",
+"mute_seconds": FIT_SECONDS there},
 "follow": {"edited", "saved"}, "cancel": edited picture}.
 The scene: "source" (active, selected, holds the material to picture), "bare" (selected, no slots),
 "shared_a" (selected) and "shared_b" (not selected) sharing a mesh with the material "keep", and a selected light.
@@ -202,6 +203,16 @@ def main(job_path, report_path):
             prefs.command = planted["crashes"]
             report["planted"]["crashes"] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["edited"]))
             report["planted"]["crashes_unchanged"] = material_state() == before
+        if "mute" in planted:  # a worker that stays alive and never answers: given up after what the fit can take
+            run_script(job["picture"]["script"])
+            before = material_state()
+            prefs.command = planted["mute"]
+            extension.jobs.FIT_SECONDS, allowed = planted["mute_seconds"], extension.jobs.FIT_SECONDS
+            start = time.monotonic()
+            report["planted"]["mute"] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["edited"]))
+            report["planted"]["mute_seconds"] = time.monotonic() - start
+            extension.jobs.FIT_SECONDS = allowed
+            report["planted"]["mute_unchanged"] = material_state() == before
         prefs.command, prefs.fit_options = job["command"], planted["redirect"]
         report["planted"]["redirect"] = operator(lambda: bpy.ops.matfit.fit(filepath=planted["edited"]))
         report["planted"]["after_redirect"] = material_state()

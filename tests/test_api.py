@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+import _thread
+import contextlib
 import dataclasses
 import hashlib
 import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
+import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -21,7 +26,7 @@ import matfit
 from matfit import errors, images, params, shipped
 from matfit.app.cli import app
 from matfit.model import architectures, weight_files
-from matfit.rendering import export, scene
+from matfit.rendering import export, process, scene
 from tests.helpers import random_model
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -785,6 +790,154 @@ def test_a_fitter_renders_at_the_models_resolution_on_its_render_processes_bit_f
     np.testing.assert_array_equal(first, again)
     np.testing.assert_array_equal(first, single)
     assert not np.array_equal(first, other)
+
+
+NN = matfit.Settings(method="nn")  # a fit in a second with the tiny model, its verification renders included
+BOUND = 180.0  # seconds any fit of these tests may take, the render processes' start included: then it hangs
+
+
+def started(call: Callable[[], object]) -> tuple[threading.Thread, list]:
+    """Returns (a started daemon thread that runs `call()`, the list that then holds (True, what it returned) or
+    (False, what it raised))."""
+    outcome: list = []
+
+    def run() -> None:
+        try:
+            outcome.append((True, call()))
+        except BaseException as error:  # handed to the test's thread
+            outcome.append((False, error))
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    return thread, outcome
+
+
+def bounded(call: Callable[[], object], seconds: float = BOUND) -> object:
+    """Returns what `call()` returns (raises what it raises), run on a thread of its own: fails if it has not ended
+    within `seconds` (it hangs: the thread is left blocked)."""
+    thread, outcome = started(call)
+    thread.join(seconds)
+    assert not thread.is_alive(), f"still running after {seconds:.0f} s: it hangs"
+    done, value = outcome[0]
+    if not done:
+        raise value
+    return value
+
+
+def reading_a_render(thread: int) -> bool:
+    """Returns whether the thread `thread` waits in `read_message` for a render process's reply to a render."""
+    frame = sys._current_frames().get(thread)
+    names = []
+    while frame is not None:
+        names.append((frame.f_code.co_name, type(frame.f_locals.get("self")).__name__))
+        frame = frame.f_back
+    return ("read_message", "NoneType") in names and ("render", "Process") in names
+
+
+def when_reading_a_render(thread: int, action: Callable[[], None]) -> threading.Thread:
+    """Returns a started thread that runs `action()` once the thread `thread` waits for a render's reply (within
+    BOUND seconds; the test then checks that it ran, through what `action` did)."""
+
+    def watch() -> None:
+        deadline = time.monotonic() + BOUND
+        while time.monotonic() < deadline:
+            if reading_a_render(thread):
+                action()
+                return
+            time.sleep(0.001)
+
+    watcher = threading.Thread(target=watch, daemon=True)
+    watcher.start()
+    return watcher
+
+
+@pytest.fixture(scope="module")
+def shared_fitter(tiny_model):
+    """Returns (a verifying Fitter of the tiny model, its fit of PICTURE with NN): the tests below each leave it usable
+    (that is what they check), and start its render processes again where they broke them."""
+    with matfit.Fitter(tiny_model) as warm:
+        yield warm, warm.fit(PICTURE, settings=NN)
+
+
+def test_two_threads_fitting_on_one_fitter_queue_and_both_get_the_answer(shared_fitter):
+    # They shared its render processes' pipes: one read the other's reply ("the render process ended unexpectedly")
+    # and the other waited for ever in read_message.
+    fitter, expected = shared_fitter
+    calls = [lambda: fitter.fit(PICTURE, settings=NN), lambda: fitter.render(expected.material)] * 2
+    running = [started(call) for call in calls]
+    deadline = time.monotonic() + len(calls) * BOUND
+    for thread, _ in running:
+        thread.join(max(deadline - time.monotonic(), 0))
+    assert not any(thread.is_alive() for thread, _ in running), "a thread hangs"
+    assert [outcome[0][0] for _, outcome in running] == [True] * len(calls), [outcome for _, outcome in running]
+    fits, renders = [outcome[0][1] for _, outcome in running[0::2]], [outcome[0][1] for _, outcome in running[1::2]]
+    assert all(fit.material == expected.material for fit in fits)
+    np.testing.assert_array_equal(renders[0], renders[1])
+
+
+def test_a_keyboard_interrupt_while_a_fit_reads_a_render_leaves_the_fitter_usable(shared_fitter):
+    # Ctrl-C in a notebook (`_thread.interrupt_main()`) left a reply half read: the next fit never returned.
+    fitter, expected = shared_fitter
+    old = fitter._pool
+    watcher = when_reading_a_render(threading.main_thread().ident, _thread.interrupt_main)
+    with pytest.raises(KeyboardInterrupt):
+        fitter.fit(PICTURE, settings=NN)
+    watcher.join(BOUND)
+    assert bounded(lambda: fitter.fit(PICTURE, settings=NN)).material == expected.material
+    assert old is not None and not old.healthy() and fitter._pool is not old  # ended: its pipes' state was unknown
+
+
+def test_a_render_process_that_stops_answering_is_one_line_within_its_bound_and_replaced(shared_fitter, monkeypatch):
+    # SIGSTOP of a render process mid-fit: the fit waited for ever
+    fitter, expected = shared_fitter
+    pool = fitter._renderer()
+    children = [child._child for child in pool._children]
+    monkeypatch.setattr(process, "START_SECONDS", 2.0)  # a reply may take 2 s here: those of the tiny model take ms
+    monkeypatch.setattr(process, "SAMPLE_SECONDS", 0.0)
+    for child in children:
+        os.kill(child.pid, signal.SIGSTOP)
+    try:
+        started = time.monotonic()
+        with pytest.raises(matfit.MatfitError) as raised:
+            bounded(lambda: fitter.fit(PICTURE, settings=NN), 60)
+        seconds = time.monotonic() - started
+    finally:
+        for child in children:  # those still stopped end once they run on: their requests have ended
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(child.pid, signal.SIGCONT)
+    assert str(raised.value) == (
+        f"the render process gave no reply in 2 s, the most a {fitter.model.resolution} px render of 64 samples may "
+        "take (stopped, or stuck): it was killed; the next fit starts new render processes"
+    )
+    assert 2.0 <= seconds < 30
+    assert fitter._pool is None and any(child.wait(10) == -signal.SIGKILL for child in children)
+    monkeypatch.undo()
+    assert bounded(lambda: fitter.fit(PICTURE, settings=NN)).material == expected.material
+    assert all(child.wait(30) is not None for child in children)  # none left running
+
+
+def test_a_render_process_killed_mid_fit_is_named_so_and_the_next_fit_starts_new_ones(shared_fitter):
+    # The error said "exit code None", and the dead processes were kept: the next fit failed too.
+    fitter, expected = shared_fitter
+    children = [child._child for child in fitter._renderer()._children]
+    fits: list[threading.Thread] = []
+
+    def kill() -> None:
+        for child in children:
+            os.kill(child.pid, signal.SIGKILL)
+
+    def fit() -> matfit.Fit:
+        fits.append(when_reading_a_render(threading.get_ident(), kill))
+        return fitter.fit(PICTURE, settings=NN)
+
+    with pytest.raises(matfit.MatfitError) as raised:
+        bounded(fit)
+    assert str(raised.value) == (
+        "the render process ended unexpectedly (killed by signal 9 (SIGKILL)): the next fit starts new render "
+        "processes; if it ends again, run `matfit render` on a preset to see Mitsuba's own message"
+    )
+    assert fitter._pool is None
+    assert bounded(lambda: fitter.fit(PICTURE, settings=NN)).material == expected.material
 
 
 def page_code() -> str:

@@ -31,6 +31,8 @@ FIT_OPTIONS = ["--method", "nn"]
 PICTURE_PRESET = "jade"  # transmission and a scattering medium: every part of the mapping
 EDITED = str(shipped.EXAMPLES / "recoloured.png")
 REFUSALS = ("texture", "glass", "emission")
+SESSION_SECONDS = 900  # the whole bpy session, every step: under two minutes on a 2-core machine; more is a hang
+MUTE_SECONDS = 3.0  # the extension's FIT_SECONDS for the worker that never answers: what its fit may take, there
 STALE = {"neural_rmse": 99.0, "mitsuba_rmse": 99.0}  # the figures of a params.json that no fit of this run wrote
 WRITTEN = {
     "params": {"base_color_r": 0.2, "spec_trans": 0.9, "density": 2.0, "medium_color_g": 0.5},
@@ -116,6 +118,12 @@ def session(tmp_path_factory):
         "echo 'Traceback (most recent call last):' >&2\necho 'RuntimeError: the worker crashed' >&2\nexit 3\n"
     )
     crashes.chmod(0o755)
+    mute = folder / "mute"  # a "matfit worker" that says it is ready, then answers every fit with lines that are none
+    mute.write_text(
+        '#!/bin/sh\necho \'{"ready": "matfit worker", "protocol": 1}\'\n'
+        'while read request; do echo \'{"id": "no such fit", "exit": 0}\'; echo "not an answer"; done\n'
+    )
+    mute.chmod(0o755)
     writers = {}
     # and one that writes a params.json of matfit's form (names left out take their defaults), for a picture
     # beside which NAME.params.json cannot be saved (a folder is in the way)
@@ -159,6 +167,8 @@ def session(tmp_path_factory):
             "writers": writers,
             "blocked": str(folder / "blocked.png"),
             "crashes": str(crashes),
+            "mute": str(mute),
+            "mute_seconds": MUTE_SECONDS,
         },
         "follow": {"edited": str(folder / "follow.png"), "saved": str(shipped.EXAMPLES / "desaturated.png")},
         "cancel": str(folder / "edited.png"),
@@ -170,6 +180,7 @@ def session(tmp_path_factory):
         capture_output=True,
         text=True,
         env=environment,
+        timeout=SESSION_SECONDS,
     )
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]
     return json.loads((folder / "report.json").read_text()), folder, run.stdout + run.stderr
@@ -426,6 +437,19 @@ def test_a_worker_that_ends_during_every_fit_is_started_again_once_then_one_line
     ]
     assert planted["crashes_unchanged"] and "Traceback" not in output
     assert (folder / "crashes.count").read_text().split() == ["started", "started"]
+
+
+def test_a_worker_that_never_answers_is_given_up_after_what_the_fit_can_take_in_one_line(session):
+    # `bpy.ops.matfit.fit()` (a script, headless) waited 3600 s for it
+    report, folder, output = session
+    planted = report["planted"]
+    assert planted["mute"] == [
+        ["CANCELLED"],
+        f"Error: matfit ({folder / 'mute'}) failed: error: its worker gave no answer in {MUTE_SECONDS:.0f} s, the most "
+        "this fit may take: it was ended, and the next fit starts a new one",
+    ]
+    assert MUTE_SECONDS <= planted["mute_seconds"] < MUTE_SECONDS + 30
+    assert planted["mute_unchanged"] and "Traceback" not in output
 
 
 def test_a_command_without_a_worker_runs_each_fit_as_its_own_process_said_once(session):

@@ -444,6 +444,35 @@ def test_render_process_messages_round_trip_and_a_cut_one_is_the_pipes_end():
             process.read_message(io.BytesIO(whole[:cut]))
 
 
+def test_a_message_that_does_not_come_whole_by_its_deadline_is_a_timeout():
+    # A render process stopped (SIGSTOP) or stuck: its reply was waited for for ever.
+    pipe = io.BytesIO()
+    process.write_message(pipe, {"done": True}, np.zeros((2, 2, 3), np.float32))
+    whole = pipe.getvalue()
+    for sent, said in ((b"", "no message came in time"), (whole[:5], "part-way"), (whole[:-1], "part-way")):
+        read, write = os.pipe()
+        with os.fdopen(read, "rb", buffering=0) as replies, os.fdopen(write, "wb") as requests:
+            requests.write(sent)
+            requests.flush()
+            started = time.monotonic()
+            with pytest.raises(TimeoutError, match=said):
+                process.read_message(replies, started + 0.2)
+            assert 0.2 <= time.monotonic() - started < 5
+    read, write = os.pipe()
+    with os.fdopen(read, "rb", buffering=0) as replies, os.fdopen(write, "wb") as requests:
+        requests.write(whole)
+        requests.flush()
+        assert process.read_message(replies, time.monotonic() + 5)[0]["done"] is True  # in time
+
+
+def test_a_render_process_that_ended_is_said_with_its_exit_code_or_signal():
+    assert process.ending(3) == "exit code 3"
+    assert process.ending(-signal.SIGKILL) == "killed by signal 9 (SIGKILL)"
+    assert process.ending(-signal.SIGSEGV) == "killed by signal 11 (SIGSEGV)"
+    # a reply is given what its render may take: START_SECONDS, and SAMPLE_SECONDS a pixel sample
+    assert process.reply_seconds(64, 64) == pytest.approx(process.START_SECONDS + 64 * 64 * 64 * process.SAMPLE_SECONDS)
+
+
 def test_a_render_process_whose_caller_left_ends_without_a_word():
     # The caller's end of the replies is closed before the child's first message (Ctrl-C or kill -9 while it starts).
     requests_read, requests_write = os.pipe()

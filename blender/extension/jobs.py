@@ -29,6 +29,41 @@ import time
 
 FIX = "set its path in Edit > Preferences > Add-ons > matfit"
 
+# What a fit can take, by which `WorkerJob.wait` (a script's `bpy.ops.matfit.fit()`) gives up on a worker that has
+# not answered: about twenty times what matfit measures, so that only a worker that will never answer is given up on.
+# FIT_SECONDS for a fit at matfit's default budgets, the worker's start included (the slowest measured took 28 s: cold,
+# its programs compiled into an empty store); then, for each budget the Fit options raise above its default, STEPS'
+# seconds a unit (the shipped model's: a larger model of the user's own takes longer), and SAMPLE_SECONDS for each
+# pixel sample of a --render output (--size squared times --spp).
+FIT_SECONDS = 600.0
+STEPS = {  # option: (matfit's default, seconds each unit above it adds)
+    "--evals": (1500, 0.01),  # Nelder-Mead's evaluations: a decode each, under a millisecond
+    "--polish": (0, 0.02),  # Adam steps: a decode and its gradient each
+    "--iterations": (60, 0.02),  # the best start's L-BFGS-B steps: a decode and its gradient each
+    "--narrow-after": (35, 0.02 * 64),  # every start's L-BFGS-B steps, up to 64 starts
+    "--starts": (4, 0.02 * 35),  # L-BFGS-B starts: --narrow-after steps each (35 by default)
+    "--corrections": (2, 30.0),  # rounds of correction: a decoder fit and a 64-spp render each
+    "--refine": (0, 20.0),  # steps through Mitsuba's differentiable renderer: 0.1-1 s each
+}
+SAMPLE_SECONDS = 2e-5  # a sample of a pixel of the --render output: 2-9 us on one core, measured
+
+
+def fit_seconds(arguments):
+    """Returns how long the fit of the `matfit fit` command line `arguments` may take (the rule above)."""
+    given = {}
+    for index, word in enumerate(arguments):
+        name, equals, value = word.partition("=")
+        if not equals:
+            value = arguments[index + 1] if index + 1 < len(arguments) else ""
+        with contextlib.suppress(ValueError):  # a value matfit refuses itself, at once
+            given[name] = int(value)
+    seconds = FIT_SECONDS
+    for option, (default, each) in STEPS.items():
+        seconds += max(given.get(option, default) - default, 0) * each
+    if any(word == "--render" or word.startswith("--render=") for word in arguments):
+        seconds += given.get("--size", 512) ** 2 * given.get("--spp", 256) * SAMPLE_SECONDS
+    return seconds
+
 
 class JobError(Exception):
     """matfit could not be run or failed; the message is one line for Blender's report."""
@@ -189,6 +224,7 @@ class Worker:
                 self.ready = True
             elif isinstance(answer.get("exit"), int) and isinstance(answer.get("output"), str):
                 self._answers[answer.get("id")] = (answer["exit"], answer["output"])
+        stream.close()  # its end: nothing more comes
         self.ended = True
 
     def _read_errors(self):
@@ -196,6 +232,7 @@ class Worker:
             text = line.decode("utf-8", errors="replace").strip()
             if text:
                 self.errors.append(text)
+        self._process.stderr.close()
 
     def send(self, arguments):
         """Sends the command line `arguments` (["fit", ...]); returns the request's id (no answer comes if it ended)."""
@@ -274,7 +311,6 @@ class WorkerJob:
     """
 
     READY_SECONDS = 120.0  # a worker that has not said it is ready by then is taken for no worker
-    WAIT_SECONDS = 3600.0  # `wait` gives up on a worker that answers nothing for this long
 
     def __init__(self, command, arguments, folder=None):
         self.folder = folder or new_folder()
@@ -297,6 +333,8 @@ class WorkerJob:
 
     def _send(self, chosen):
         self._worker, self._id = chosen, chosen.send(self.arguments)
+        self._seconds = fit_seconds(self.arguments)  # `wait` gives up on the worker after what the fit can take
+        self._deadline = time.monotonic() + self._seconds
 
     def path(self, name):
         """Returns the path of `name` in the job's own folder."""
@@ -346,13 +384,20 @@ class WorkerJob:
     def wait(self):
         if self._job is not None:
             return self._job.wait()
-        deadline = time.monotonic() + self.WAIT_SECONDS
         while self.poll() is None:
             if self._job is not None:
                 return self._job.wait()
-            if time.monotonic() > deadline:
+            if time.monotonic() > self._deadline:  # alive, but no answer in what the fit can take: it never will
+                if _worker[0] is self._worker:
+                    _worker[0] = None  # the next fit starts a new worker
                 self._worker.stop(wait=False)
-                self._answer = (1, [f"error: its worker answered nothing in {self.WAIT_SECONDS:.0f} s"])
+                self._answer = (
+                    1,
+                    [
+                        f"error: its worker gave no answer in {self._seconds:.0f} s, the most this fit may take: it "
+                        "was ended, and the next fit starts a new one"
+                    ],
+                )
                 return
             time.sleep(0.05)
 

@@ -3,11 +3,13 @@ with a fitter of its own) and `load_model`."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import os
+import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -62,8 +64,14 @@ class Fitter:
     fit, once that fit's inputs and outputs were checked (a bad picture is refused without loading anything), or at
     the first use of `fitter.model`. `verify`: whether fits let Mitsuba choose among their candidates by default; the
     render processes (one a core) start here when it does, so that Mitsuba loads in them while the model loads here.
-    A fit that fails keeps them while every one runs (the picture was at fault); one that lost a render process
-    ends them, and the next fit starts new ones. `close()` (or leaving the `with` block) ends them.
+    A fit that fails keeps them while every one runs (the picture was at fault); one that lost a render process (it
+    ended, or gave no reply in the time its render may take: `process.reply_seconds`) or was interrupted while it
+    talked to one (a KeyboardInterrupt) ends them, and the next fit starts new ones. `close()` (or leaving the `with`
+    block) ends them.
+
+    A fitter may be shared between threads: its fits, renders and `close` take one lock, so they queue and run one at
+    a time (the render processes answer one fit's requests in order; the model is loaded once). Fits side by side
+    need a fitter each.
     """
 
     def __init__(
@@ -84,6 +92,7 @@ class Fitter:
                 )
         self.variant = variant
         self.verify = verify
+        self._lock = threading.RLock()  # held by each fit, render and close: they queue
         self._pool: Pool | None = None
         self._model: Model | None = None
         if model is None:
@@ -98,22 +107,37 @@ class Fitter:
     @property
     def model(self) -> Model:
         """The model the fits use (`load_model(model_path)`, loaded at the first use)."""
-        if self._model is None:
-            self._model = load_model(self.model_path)
-        return self._model
+        with self._lock:
+            if self._model is None:
+                self._model = load_model(self.model_path)
+            return self._model
 
     def _renderer(self) -> Pool:
-        if self._pool is None:
-            from matfit.rendering.process import Pool
+        with self._lock:
+            if self._pool is None:
+                from matfit.rendering.process import Pool
 
-            self._pool = Pool(self.variant)
-        return self._pool
+                self._pool = Pool(self.variant)
+            return self._pool
+
+    @contextlib.contextmanager
+    def _turn(self) -> Iterator[None]:
+        """Holds the fitter's lock for one fit or render; one that ends with a render process lost, stuck or left
+        part-way through a message (an interrupt) ends the render processes, and the next starts new ones."""
+        with self._lock:
+            try:
+                yield
+            except BaseException:
+                if self._pool is not None and not self._pool.healthy():
+                    self.close()
+                raise
 
     def close(self) -> None:
         """Ends the render processes; a later verified fit starts new ones."""
-        if self._pool is not None:
-            self._pool.close()
-            self._pool = None
+        with self._lock:
+            if self._pool is not None:
+                self._pool.close()
+                self._pool = None
 
     def __enter__(self) -> Fitter:
         return self
@@ -131,9 +155,10 @@ class Fitter:
             raise ParameterError(f"material {shown(material)} is no matfit.Material: give one", field="material")
         seed = whole("seed", seed, 0, params.MAX_SEED, RenderError)
         spp = whole("spp", spp, 1, dataset.MAX_SPP, RenderError)
-        pool = self._renderer()
-        pool.load(self.model.resolution, verify.SPP)
-        return np.asarray(pool.render(material.array(), seed=seed, spp=spp), np.float32)
+        with self._turn():
+            pool = self._renderer()
+            pool.load(self.model.resolution, verify.SPP)
+            return np.asarray(pool.render(material.array(), seed=seed, spp=spp), np.float32)
 
     def fit(
         self,
@@ -228,8 +253,8 @@ class Fitter:
         `written(the SHA-256 of the picture fitted)` called (`fit_all`'s journal)."""
         from matfit.fitting import fitfile
 
-        renderer = self._renderer() if request.verified and not request.refine_steps else None  # refinement: here
-        try:  # fitfile checks the request, then asks this fitter for its model (a folder's loads at the first fit)
+        with self._turn():  # fitfile checks the request, then asks for the model (a folder's loads at the first fit)
+            renderer = self._renderer() if request.verified and not request.refine_steps else None  # refinement: here
             if request.outputs is None:
                 outcome, _ = fitfile.fit_file(request, self, renderer=renderer)
                 outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
@@ -237,10 +262,6 @@ class Fitter:
                 outcome = fitfile.run(request, self, renderer=renderer, started=started)
                 if written is not None:
                     written(str(outcome.document["target_sha256"]))
-        except BaseException:
-            if self._pool is not None and not self._pool.healthy():  # a render process ended: the next fit starts new
-                self.close()
-            raise
         outcome = dataclasses.replace(outcome, notices=(*notices, *outcome.notices))
         return fit_of(outcome, request.outputs.params if request.outputs else request.target)
 

@@ -6,6 +6,12 @@ take another core while the caller imports JAX. The child's main (`serve_request
 requests it reads from one pipe on another. `start_child` starts such a child (a dataset's render
 workers too, `dataset_workers`); the messages on both pipes are data only
 (`write_message`, `read_message`: a JSON header and a float array), so reading one runs no code.
+
+A reply that does not come within `reply_seconds` of being awaited (a child stopped, or stuck) is a
+RenderError, and its child is killed; a child that ended is named with how it ended (its exit code or
+signal); a request or reply left part-way (a KeyboardInterrupt while it was written or read) leaves its
+process unusable. In each case `Pool.healthy` is then False, and its owner (`matfit.Fitter`) starts new
+children for the next fit.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import struct
 import subprocess
 import sys
 import threading
+import time
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from typing import TYPE_CHECKING, BinaryIO, NoReturn
 
@@ -30,6 +37,32 @@ from matfit.rendering.engine import CUDA_VARIANT, Renderer, choose_variant, cuda
 
 if TYPE_CHECKING:
     from jaxtyping import Float
+
+# The longest a child may take over one reply before it is taken for stuck (stopped, a hung driver), killed and
+# replaced: START_SECONDS for what does not grow with the render (Mitsuba's import before "ready"; loading a scene; the
+# first render of a sample count, which compiles its kernels; a machine busy with other work), plus SAMPLE_SECONDS for
+# each sample of each pixel, about 20 times the slowest cost measured (9 µs: scalar_rgb, jade's scattering medium, on
+# one thread of a busy 2-core machine; llvm_ad_rgb 2-5 µs). A 64 px render of 64 samples may take 352 s; read at each
+# wait, so a test can make them small.
+START_SECONDS = 300.0
+SAMPLE_SECONDS = 2e-4
+ENDING_SECONDS = 5.0  # how long a child whose replies ended may take to be gone, before it is killed and named so
+
+
+def reply_seconds(resolution: int, spp: int) -> float:
+    """Returns how long a reply of a render of `resolution`² pixels and `spp` samples may take (the rule above)."""
+    return START_SECONDS + SAMPLE_SECONDS * resolution * resolution * spp
+
+
+def ending(code: int) -> str:
+    """Returns how a child of return code `code` ended, in words: "exit code 3", "killed by signal 9 (SIGKILL)"."""
+    if code >= 0:
+        return f"exit code {code}"
+    try:
+        name = f" ({signal.Signals(-code).name})"
+    except ValueError:
+        name = ""
+    return f"killed by signal {-code}{name}"
 
 
 class Background:
@@ -143,10 +176,17 @@ class Process:
             "matfit.rendering.process", "serve_requests", variant, pipe_bytes=self.PIPE_BYTES
         )
         self._ready: tuple | None = None  # the child's first reply: (variant, notice)
-        self._pending: list[tuple] = []  # keys of the renders asked for and not yet read, in order
+        # (key, seconds its reply may take) of the requests sent and not yet answered, in order
+        self._pending: list[tuple[tuple, float]] = []
         self._answers: dict[tuple, np.ndarray | RenderError] = {}  # key -> image, or the RenderError of its render
         self._resolution: int | None = None
-        self._failure: RenderError | None = None  # the child's reason for not starting, raised again at every use
+        self._spp = 0  # the loaded scene's samples, those of a render that names none
+        # Why the child is of no more use (it failed to start, ended, was stuck, or was left part-way through a
+        # message), raised again at every use; None while it serves.
+        self._failure: RenderError | None = None
+        # True from the start of a request's write or a reply's read until it is filed: still True after an exception
+        # that broke into one (an interrupt), when the pipes' state is unknown and the process no longer usable.
+        self._unsettled = False
 
     @property
     def variant(self) -> str:
@@ -163,16 +203,16 @@ class Process:
         at that resolution already is kept (a warm process's next fit renders at once)."""
         if self._resolution == resolution:
             return
-        self._resolution = resolution
-        self._send({"load": [int(resolution), int(spp)]})
-        self._pending.append(("load", resolution))
+        self._resolution, self._spp = resolution, int(spp)
+        seconds = reply_seconds(resolution, 1)  # the scene, and a render of one sample that compiles its kernels
+        self._send({"load": [int(resolution), int(spp)]}, key=("load", resolution), seconds=seconds)
 
     def prefetch(self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None) -> None:
         """Asks for a render now, for a later `render` of the same arguments."""
         key = Background._key(values, seed, spp)
-        if key not in self._answers and key not in self._pending:
-            self._send({"seed": int(seed), "spp": spp}, np.asarray(values, np.float64))
-            self._pending.append(key)
+        if key not in self._answers and all(key != pending for pending, _ in self._pending):
+            seconds = reply_seconds(self._resolution or 0, int(spp or self._spp))
+            self._send({"seed": int(seed), "spp": spp}, np.asarray(values, np.float64), key=key, seconds=seconds)
 
     def render(
         self, values: Float[np.ndarray, " 19"], seed: int = 0, spp: int | None = None
@@ -195,6 +235,11 @@ class Process:
         while self._pending and self._failure is None and select.select([self._replies], [], [], 0)[0]:
             self._receive()
         return len(self._pending)
+
+    def healthy(self) -> bool:
+        """Returns whether the child runs and can be used: it started, has not ended, was not found stuck, and was not
+        left part-way through a request or a reply."""
+        return self._failure is None and not self._unsettled and self._child.poll() is None
 
     def renderer(self) -> Process:
         """Returns this process once the child has started (raises its failure to start): as `Background.renderer`."""
@@ -224,40 +269,88 @@ class Process:
             self._receive()
         return self._ready
 
-    def _send(self, header: dict, array: np.ndarray | None = None) -> None:
+    def _usable(self) -> None:
+        """Raises why the child is of no more use, if it is not."""
+        if self._failure is None and self._unsettled:  # an exception broke into a message: its end is unknown
+            self._failure = RenderError(
+                "the render process was interrupted in the middle of a request or reply: the next fit starts new "
+                "render processes"
+            )
+        if self._failure is not None:
+            raise self._failure
+
+    def _send(self, header: dict, array: np.ndarray | None = None, *, key: tuple, seconds: float) -> None:
+        """Writes a request and files it as pending (`key`, `seconds` its reply may take)."""
+        self._usable()
+        self._unsettled = True
         try:
             write_message(self._requests, header, array)
         except (BrokenPipeError, ValueError):  # ended, or closed: the reason is the child's
             self._failed()
+        self._pending.append((key, seconds))
+        self._unsettled = False
 
     def _receive(self) -> None:
-        """Reads the child's next reply and files it: its start, a load, or the oldest pending render."""
-        if self._failure is not None:
-            raise self._failure
+        """Reads the child's next reply and files it: its start, a load, or the oldest pending render; a reply that
+        does not come in time (`reply_seconds` of its request, START_SECONDS for the start) kills the child."""
+        self._usable()
+        seconds = self._pending[0][1] if self._ready is not None and self._pending else START_SECONDS
+        self._unsettled = True
         try:
-            header, image = read_message(self._replies)
+            header, image = read_message(self._replies, time.monotonic() + seconds)
+        except TimeoutError:
+            self._stuck(seconds)
         except (EOFError, OSError, ValueError):
             self._failed()
+        failure = None
         if "ready" in header:
             self._ready = (header["ready"], header["notice"])
-            return
-        if "failed" in header:  # it could not start, and has ended: every later use fails the same way
-            self._failure = RenderError(header["failed"])
-            raise self._failure
-        key = self._pending.pop(0)
-        answer = RenderError(header["error"]) if "error" in header else image
-        if key[0] == "load":
-            if isinstance(answer, RenderError):
-                raise answer
-            return
-        self._answers[key] = answer if answer is not None else RenderError("the render process sent no image")
+        elif "failed" in header:  # it could not start, and has ended: every later use fails the same way
+            self._failure = failure = RenderError(header["failed"])
+        else:
+            key, _ = self._pending.pop(0)
+            answer = RenderError(header["error"]) if "error" in header else image
+            if key[0] != "load":
+                self._answers[key] = answer if answer is not None else RenderError("the render process sent no image")
+            elif isinstance(answer, RenderError):
+                failure = answer
+        self._unsettled = False
+        if failure is not None:
+            raise failure
+
+    def _stuck(self, seconds: float) -> NoReturn:
+        """Kills the child, whose reply did not come within `seconds`, and raises (at every later use too) why."""
+        self._child.kill()
+        key = self._pending[0][0] if self._ready is not None and self._pending else ("start",)
+        asked = (
+            "its start"
+            if key[0] == "start"
+            else f"a {key[1]} px scene's load"
+            if key[0] == "load"
+            else f"a {self._resolution} px render of {key[2] or self._spp} samples"
+        )
+        self._failure = RenderError(
+            f"the render process gave no reply in {seconds:.0f} s, the most {asked} may take (stopped, or stuck): "
+            "it was killed; the next fit starts new render processes"
+        )
+        raise self._failure
 
     def _failed(self) -> NoReturn:
-        code = self._child.poll()
-        raise RenderError(
-            f"the render process ended unexpectedly (exit code {code}): run `matfit render` on a preset to see "
-            "Mitsuba's own message"
+        """Raises (at every later use too) that the child ended, and how: its exit code or signal."""
+        try:
+            code = self._child.wait(ENDING_SECONDS)  # its pipes close as it exits, a moment before it is gone
+        except subprocess.TimeoutExpired:  # it runs, but its replies ended or could not be read
+            self._child.kill()
+            self._failure = RenderError(
+                "the render process broke off its replies while it ran: it was killed; the next fit starts new "
+                "render processes"
+            )
+            raise self._failure from None
+        self._failure = RenderError(
+            f"the render process ended unexpectedly ({ending(code)}): the next fit starts new render processes; "
+            "if it ends again, run `matfit render` on a preset to see Mitsuba's own message"
         )
+        raise self._failure
 
 
 def cores() -> int:
@@ -338,9 +431,9 @@ class Pool:
         return self._owners.pop(Background._key(values, seed, spp)).render(values, seed, spp)
 
     def healthy(self) -> bool:
-        """Returns whether every child is running and none has failed to start: a pool fit to keep for the next fit
-        after one that failed (the picture's fault, not the renderer's)."""
-        return all(child._failure is None and child._child.poll() is None for child in self._children)
+        """Returns whether every child runs and can be used (`Process.healthy`): a pool fit to keep for the next fit
+        after one that failed (the picture's fault, not the renderer's) or was interrupted between two messages."""
+        return all(child.healthy() for child in self._children)
 
     def renderer(self) -> Pool:
         """Returns this pool once every child has started (raises the first failure to start)."""
@@ -420,12 +513,17 @@ def write_message(file, header: dict, array: np.ndarray | None = None) -> None:
     file.flush()
 
 
-def read_message(file) -> tuple[dict, np.ndarray | None]:
-    """Returns (header, array or None) of the next message `write_message` wrote; EOFError when the pipe ended."""
+def read_message(file, deadline: float | None = None) -> tuple[dict, np.ndarray | None]:
+    """Returns (header, array or None) of the next message `write_message` wrote; EOFError when the pipe ended.
+
+    `deadline`: the `time.monotonic()` by which the whole message must have come, else TimeoutError (`file` must then
+    be unbuffered, so that `select` sees every byte not yet read); None waits for ever."""
 
     def exactly(size: int, *, first: bool = False) -> bytes:
         data = b""
         while len(data) < size:  # an unbuffered pipe returns what has arrived: read on until the message is whole
+            if deadline is not None and not select.select([file], [], [], max(deadline - time.monotonic(), 0))[0]:
+                raise TimeoutError("no message came in time" if first and not data else "a message stopped part-way")
             more = file.read(size - len(data))
             if not more:
                 raise EOFError("the pipe ended" if first and not data else "the pipe ended inside a message")
