@@ -24,7 +24,7 @@ import tempfile
 import bpy
 from bpy.props import BoolProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from . import blender_mapping, fitted, jobs, material
+from . import blender_mapping, fitted, jobs, material, scene_export
 
 with open(os.path.join(os.path.dirname(__file__), "parameters.json")) as _file:
     TABLE = json.load(_file)  # matfit's params.table(): names, bounds, defaults
