@@ -63,10 +63,11 @@ class ExportError(Exception):
 
 
 class Export:
-    """What `export` wrote: the XML file's path, each object's shape id, the fitted one's, the notes."""
+    """What `export` wrote: the XML file's path, each object's shape id, the fitted one's, the notes, and the fitted
+    object's material as matfit's 19 named values (its shape's BSDF in the file, the picture's source)."""
 
-    def __init__(self, path, ids, fitted, notes):
-        self.path, self.ids, self.fitted, self.notes = path, ids, fitted, notes
+    def __init__(self, path, ids, fitted, notes, values):
+        self.path, self.ids, self.fitted, self.notes, self.values = path, ids, fitted, notes, values
 
 
 def shape_id(name, taken):
@@ -510,7 +511,7 @@ def export(context, folder, fitted, table):
     path = os.path.join(folder, "scene.xml")
     with open(path, "wb") as file:
         file.write(ElementTree.tostring(root, encoding="utf-8"))
-    result = Export(path, ids, ids[fitted.name], notes)
+    result = Export(path, ids, ids[fitted.name], notes, values)
     with open(os.path.join(folder, "matfit-export.json"), "w") as file:
         json.dump({"objects": ids, "fitted": {"name": fitted.name, "id": result.fitted}, "notes": notes}, file)
     return result
