@@ -148,7 +148,7 @@ def test_what_the_export_cannot_carry_is_one_line_each(session):
     assert notes["notes"] == [
         "fitted object 'Odd thing': Base Color (Image Texture) read at their unlinked values",
         "fitted object 'Odd thing': distribution MULTI_GGX shown as GGX",
-        "fitted object 'Odd thing': 2 materials; its first is fitted, on the whole object",
+        "fitted object 'Odd thing': 2 materials; its active one 'Textured' is fitted, on the whole object",
         "light 'Point': radius 0.1 shown as a point (hard shadows)",
     ]
 

@@ -1,6 +1,6 @@
 """matfit in Blender: a picture of the active material for a 2D editor, and the edited picture back to a material.
 
-A panel in the Material properties (docs/blender.md#the-extension) with two operators, each of which
+A panel in the Material properties (docs/blender.md#the-extension) with operators, each of which
 runs the matfit command line (its path in the extension's preferences) in a subprocess:
 - `matfit.picture`: reads the active material (`material.read`) into matfit's parameters through
   blender_mapping, the table the export writes with, and renders it in matfit's test scene
@@ -10,7 +10,11 @@ runs the matfit command line (its path in the extension's preferences) in a subp
   the material from that params.json through blender_mapping.to_blender (`material.write`), as the
   exported script would, on the selected meshes. No script is run: a
   params.json this job did not write, or none, is one report line and the material stays as it was.
-From the panel both run in the background (a timer polls the subprocess, its last line in the status
+- `matfit.scene_picture` ("Picture of this object"): exports the current scene for Mitsuba (`scene_export`) and
+  renders the active object's material in it (`matfit render --scene`), the scene kept beside the picture;
+- `matfit.scene_fit` ("Fit edited picture in this scene"): fits the edited picture in that scene
+  (`matfit fit --scene`, in the worker) and puts the material on the active object alone, one undo step.
+From the panel they run in the background (a timer polls the subprocess, its last line in the status
 bar, Esc cancels); called from Python (`bpy.ops.matfit.fit(filepath=...)`, as headless Blender and
 the tests do) they wait for it. `matfit.follow` refits each time the edited file changes (`Follower`, one
 step per timer tick).

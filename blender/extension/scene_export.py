@@ -7,7 +7,7 @@ Each shape's id is its object's name made safe (letters, digits, _ and -; a lett
 with -2, -3 ...), so that one export serves a fit of any of its objects; `Export.ids` maps names to ids.
 
 The conversions, each measured against Cycles in a test (tests/test_blender_scene_export.py,
-docs/blender.md#your-own-scene-in-mitsuba):
+docs/blender.md, "Your own scene"):
 - meshes: evaluated (modifiers as the viewport shows them), triangulated, world-space positions, the
   corner (split) normals, so flat and sharp edges stay sharp, and the active UV map (v turned: Mitsuba's
   bitmaps put v = 0 at the top row, Blender's at the bottom), vertices split where a corner's normal or UV
@@ -31,7 +31,7 @@ docs/blender.md#your-own-scene-in-mitsuba):
 
 What the export cannot carry is a list of one-line notes (`Export.notes`): textures and node groups on
 inputs (read at their unlinked values), Multiscatter GGX (shown as GGX), more than one material on the
-fitted object (its first is fitted), modifiers that fail to evaluate or differ between viewport and render,
+fitted object (its active one is fitted), modifiers that fail to evaluate or differ between viewport and render,
 point/spot radius (a point), a sun's angle (a direction), light nodes and colour temperature, square
 spots, area spread, a camera's shift or depth of field, a world shader other than Background.
 """
@@ -115,8 +115,8 @@ def _transform(parent, matrix):
 
 def _without_scale(matrix):
     """Returns a 4x4 matrix's rotation and translation, its scale (and any shear) taken out."""
-    rotation, _ = np.linalg.qr(matrix[:3, :3])
-    rotation = rotation @ np.diag(np.sign(np.diag(_)))  # QR's signs chosen so that the columns keep their direction
+    rotation, upper = np.linalg.qr(matrix[:3, :3])
+    rotation = rotation @ np.diag(np.sign(np.diag(upper)))  # QR's signs chosen so the columns keep their direction
     result = np.eye(4)
     result[:3, :3], result[:3, 3] = rotation, matrix[:3, 3]
     return result
@@ -272,7 +272,7 @@ def _material(shape, chosen, table, where, notes):
 
 
 def fitted_material(obj, table):
-    """Returns (matfit's 19 named values, notes) of the fitted object's first material, read as the picture's source.
+    """Returns (matfit's 19 named values, notes) of the fitted object's active material, read as the picture's source.
 
     Raises material.MaterialError where it is no Principled BSDF. Densities are per world unit (radius 1), as
     matfit's medium in a scene file is.
@@ -464,8 +464,8 @@ def _world(root, scene, folder, notes):
 def export(context, folder, fitted, table):
     """Writes the scene of `context` into `folder` (made if need be) and returns its `Export`.
 
-    `fitted` is the object whose material is fitted (a mesh with a Principled BSDF first): its shape holds
-    that material (matfit's `--object` reads it as the fit's start), in one shape whatever its slots.
+    `fitted` is the object whose material is fitted (a mesh whose active material is a Principled BSDF): its
+    shape holds that material (matfit's `--object` reads it as the fit's start), one shape whatever its slots.
     `table` is matfit's params.table() (parameters.json in the zip). Raises ExportError (no camera, a camera
     matfit cannot render, a fitted object with no surface) or material.MaterialError (the fitted object's
     material is no Principled BSDF).
@@ -486,8 +486,10 @@ def export(context, folder, fitted, table):
     values, fitted_notes = fitted_material(fitted, table)
     notes += [f"fitted object {fitted.name!r}: {note}" for note in fitted_notes]
     if len([slot for slot in fitted.material_slots if slot.material is not None]) > 1:
-        notes.append(f"fitted object {fitted.name!r}: {len(fitted.material_slots)} materials; its first is fitted, "
-                     "on the whole object")  # fmt: skip
+        notes.append(
+            f"fitted object {fitted.name!r}: {len(fitted.material_slots)} materials; its active one "
+            f"{fitted.active_material.name!r} is fitted, on the whole object"
+        )
     taken, ids, any_medium = set(), {}, False
     objects = sorted((obj for obj in scene.objects if _rendered(obj, view_layer)), key=lambda obj: obj is not fitted)
     if fitted not in objects:
