@@ -1,6 +1,6 @@
 """matfit in Blender: a picture of the active material for a 2D editor, and the edited picture back to a material.
 
-A panel in the Material properties (docs/blender.md#the-extension) with two operators, each of which
+A panel in the Material properties (docs/blender.md#the-extension) with operators, each of which
 runs the matfit command line (its path in the extension's preferences) in a subprocess:
 - `matfit.picture`: reads the active material (`material.read`) into matfit's parameters through
   blender_mapping, the table the export writes with, and renders it in matfit's test scene
@@ -10,7 +10,11 @@ runs the matfit command line (its path in the extension's preferences) in a subp
   the material from that params.json through blender_mapping.to_blender (`material.write`), as the
   exported script would, on the selected meshes. No script is run: a
   params.json this job did not write, or none, is one report line and the material stays as it was.
-From the panel both run in the background (a timer polls the subprocess, its last line in the status
+- `matfit.scene_picture` ("Picture of this object"): exports the current scene for Mitsuba (`scene_export`) and
+  renders the active object's material in it (`matfit render --scene`), the scene kept beside the picture;
+- `matfit.scene_fit` ("Fit edited picture in this scene"): fits the edited picture in that scene
+  (`matfit fit --scene`, in the worker) and puts the material on the active object alone, one undo step.
+From the panel they run in the background (a timer polls the subprocess, its last line in the status
 bar, Esc cancels); called from Python (`bpy.ops.matfit.fit(filepath=...)`, as headless Blender and
 the tests do) they wait for it. `matfit.follow` refits each time the edited file changes (`Follower`, one
 step per timer tick).
@@ -19,12 +23,13 @@ Every failure is one line in Blender's report, never a traceback.
 
 import json
 import os
+import shutil
 import tempfile
 
 import bpy
 from bpy.props import BoolProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from . import blender_mapping, fitted, jobs, material
+from . import blender_mapping, fitted, jobs, material, scene_export
 
 with open(os.path.join(os.path.dirname(__file__), "parameters.json")) as _file:
     TABLE = json.load(_file)  # matfit's params.table(): names, bounds, defaults
@@ -53,9 +58,14 @@ class MatfitPreferences(bpy.types.AddonPreferences):
     fit_options: StringProperty(
         name="Fit options", description="More options for `matfit fit`, e.g. '--method nn'", default=""
     )
+    scene_fit_options: StringProperty(
+        name="Scene fit options",
+        description="More options for `matfit fit --scene` (Fit edited picture in this scene), e.g. '--refine 24'",
+        default="",
+    )
 
     def draw(self, context):
-        for name in ("command", "size", "spp", "fit_options"):
+        for name in ("command", "size", "spp", "fit_options", "scene_fit_options"):
             self.layout.prop(self, name)
 
 
@@ -73,11 +83,16 @@ class MatfitSettings(bpy.types.PropertyGroup):
         min=0.0,
     )
     following: BoolProperty(name="Following", default=False)
+    scene_picture: StringProperty(
+        name="Scene picture",
+        description="The last Picture of this object: its scene (NAME.scene) is the one Fit in this scene fits in",
+        subtype="FILE_PATH",
+    )
 
 
 def one_line(error):
     """Returns the report line of an error: the extension's own as written, any other with its kind."""
-    if isinstance(error, (material.MaterialError, jobs.JobError, fitted.FitError)):
+    if isinstance(error, (material.MaterialError, jobs.JobError, fitted.FitError, scene_export.ExportError)):
         return str(error)
     text = str(error).strip().splitlines()
     return f"matfit: {type(error).__name__}: {text[-1] if text else 'no message'}"
@@ -243,27 +258,39 @@ class MATFIT_OT_fit(_Background, bpy.types.Operator):  # noqa: N801 (Blender's n
         self.report({"INFO"}, finish_fit(context, job))
 
 
+def _edited(path):
+    """Returns the edited picture's absolute path, or raises JobError where there is none."""
+    if not path:
+        raise jobs.JobError("matfit: choose the edited picture first (the panel's Edited picture)")
+    edited = _absolute(path)
+    if not os.path.isfile(edited):
+        raise jobs.JobError(f"matfit: no edited picture at {edited}: choose the file the 2D editor saved")
+    return edited
+
+
+def _fit_options(text, label, saved):
+    """Returns the words of the preferences' fit options, or raises JobError where they name an output."""
+    options = jobs.split(text)
+    for word in options:
+        if word in OUTPUT_OPTIONS or word.startswith("--output=") or (word.startswith("-o") and word[:2] != "--"):
+            raise jobs.JobError(
+                f"matfit: the {label} name an output ({word}): remove it from the extension's preferences; "
+                f"the fit's params.json is saved beside the picture as {os.path.basename(saved)}"
+            )
+    return options
+
+
 def start_fit(context, path):
     """Returns the running `matfit fit` of the edited picture at `path`; remembers the path in the scene.
 
     The fit writes its params.json into the job's own new folder (`finish_fit` reads it from there
     only), and `finish_fit` saves a copy beside the picture as NAME.params.json.
     """
-    if not path:
-        raise jobs.JobError("matfit: choose the edited picture first (the panel's Edited picture)")
-    edited = _absolute(path)
-    if not os.path.isfile(edited):
-        raise jobs.JobError(f"matfit: no edited picture at {edited}: choose the file the 2D editor saved")
+    edited = _edited(path)
     context.scene.matfit.edited = edited
     saved = os.path.splitext(edited)[0] + ".params.json"
     prefs = preferences(context)
-    options = jobs.split(prefs.fit_options)
-    for word in options:
-        if word in OUTPUT_OPTIONS or word.startswith("--output=") or (word.startswith("-o") and word[:2] != "--"):
-            raise jobs.JobError(
-                f"matfit: the Fit options name an output ({word}): remove it from the extension's preferences; "
-                f"the fit's params.json is saved beside the picture as {os.path.basename(saved)}"
-            )
+    options = _fit_options(prefs.fit_options, "Fit options", saved)
     folder = jobs.new_folder()
     arguments = ["fit", edited, "--size", str(prefs.size), "--spp", str(prefs.spp), *options]
     job = jobs.WorkerJob(prefs.command, [*arguments, "-o", os.path.join(folder, "params.json")], folder)
@@ -293,6 +320,167 @@ def finish_fit(context, job):
     figures += [f"Mitsuba RMSE {mitsuba:.2f}"] if mitsuba is not None else []  # absent with --no-verify
     figures += [unsaved] if unsaved else []
     return f"matfit: material {NAME!r} on {len(meshes)} selected mesh(es){hint}" + "".join(f", {f}" for f in figures)
+
+
+def scene_picture_path(picture, shape):
+    """Returns where the picture of the shape `shape` goes: the panel's Picture with the shape's id and the view
+    transform in its name (`-standard`: sRGB of linear light, as Blender's Standard transform shows it; `-linear`
+    for EXR and HDR), so that it is never taken for a picture of Blender's AgX or Filmic."""
+    stem, extension = os.path.splitext(picture)
+    transform = "linear" if extension.lower() in (".exr", ".hdr") else "standard"
+    return f"{stem}-{shape}-{transform}{extension}"
+
+
+def scene_folder(picture):
+    """Returns the folder of the scene exported with a Picture of this object: NAME.scene beside NAME.png."""
+    return os.path.splitext(picture)[0] + ".scene"
+
+
+def _put_folder(source, target):
+    """Moves the folder `source` to `target`, replacing the folder (or link, or file) there; returns None or why not."""
+    try:
+        if os.path.islink(target) or os.path.isfile(target):
+            os.unlink(target)
+        elif os.path.isdir(target):
+            shutil.rmtree(target)
+        shutil.move(source, target)
+    except OSError as error:
+        return f"{os.path.basename(target)} not saved ({error.strerror or error})"
+    return None
+
+
+class MATFIT_OT_scene_picture(_Background, bpy.types.Operator):  # noqa: N801 (Blender's naming of operators and panels)
+    """Export this scene for Mitsuba and render the active object's material in it, to edit in a 2D editor"""
+
+    bl_idname = "matfit.scene_picture"
+    bl_label = "Picture of this object"
+
+    @classmethod
+    def poll(cls, context):
+        return context.object is not None
+
+    def start(self, context):
+        settings, obj = context.scene.matfit, context.object
+        folder = jobs.new_folder()
+        try:
+            self._export = scene_export.export(context, os.path.join(folder, "scene"), obj, TABLE)
+            self._picture = scene_picture_path(_absolute(settings.picture), self._export.fitted)
+            _writable_folder(self._picture)
+        except BaseException:
+            shutil.rmtree(folder, ignore_errors=True)
+            raise
+        self._object = obj.name
+        self._source = json.dumps({"params": self._export.values}, indent=2).encode()
+        source = os.path.join(folder, "source.json")
+        with open(source, "wb") as file:
+            file.write(self._source)
+        prefs = preferences(context)
+        arguments = ["render", source, "--scene", self._export.path, "--object", self._export.fitted]
+        options = ["--size", str(prefs.size), "--spp", str(prefs.spp)]
+        return jobs.Job(prefs.command, [*arguments, "-o", self._picture, *options], folder)
+
+    def finish(self, context, job):
+        try:
+            job.check()
+            # The scene and the parameters go beside the picture only once it is rendered.
+            stem = os.path.splitext(self._picture)[0]
+            unsaved = [_put_folder(job.path("scene"), scene_folder(self._picture))]
+            unsaved.append(_save(stem + ".source.json", self._source))
+        finally:
+            job.remove()
+        context.scene.matfit.scene_picture = self._picture
+        unsaved = [line for line in unsaved if line]
+        notes = [f"not carried: {'; '.join(self._export.notes)}"] if self._export.notes else []
+        line = "; ".join(
+            [
+                f"matfit: picture of {self._object!r} in this scene saved to {self._picture} (Standard view "
+                f"transform; shape {self._export.fitted!r} of {os.path.basename(scene_folder(self._picture))})",
+                *notes,
+                *unsaved,
+            ]
+        )
+        self.report({"WARNING"} if notes or unsaved else {"INFO"}, line)
+
+
+class MATFIT_OT_scene_fit(_Background, bpy.types.Operator):  # noqa: N801 (Blender's naming of operators and panels)
+    """Fit the edited picture in the scene of the last Picture of this object and put the material on the object"""
+
+    bl_idname = "matfit.scene_fit"
+    bl_label = "Fit edited picture in this scene"
+    bl_options = {"REGISTER", "UNDO"}  # noqa: RUF012 (Blender's form) the material put on the object: one undo step
+
+    filepath: StringProperty(
+        name="Edited picture", description="Default: the panel's Edited picture", subtype="FILE_PATH"
+    )
+
+    @classmethod
+    def poll(cls, context):
+        return context.object is not None
+
+    def start(self, context):
+        settings, obj = context.scene.matfit, context.object
+        edited = _edited(self.filepath or settings.edited)
+        picture = _absolute(settings.scene_picture) if settings.scene_picture else ""
+        scene = os.path.join(scene_folder(picture), "scene.xml") if picture else ""
+        if not scene or not os.path.isfile(scene):
+            raise jobs.JobError(
+                "matfit: no scene exported: make the object's picture first (Picture of this object), then edit it"
+            )
+        try:
+            with open(os.path.join(scene_folder(picture), "matfit-export.json")) as file:
+                shapes = json.load(file)["objects"]
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            raise jobs.JobError(
+                f"matfit: cannot read the scene's matfit-export.json ({error}): make the picture again"
+            ) from None
+        if obj.name not in shapes:
+            raise jobs.JobError(
+                f"matfit: object {obj.name!r} is not in the scene of {os.path.basename(picture)}: make its picture "
+                "(Picture of this object) first"
+            )
+        settings.edited = edited
+        saved = os.path.splitext(edited)[0] + ".params.json"
+        prefs = preferences(context)
+        options = _fit_options(prefs.scene_fit_options, "Scene fit options", saved)
+        self._object, self._shape = obj.name, shapes[obj.name]
+        folder = jobs.new_folder()
+        arguments = ["fit", edited, "--scene", scene, "--object", self._shape]
+        arguments += ["--size", str(prefs.size), "--spp", str(prefs.spp), *options]
+        job = jobs.WorkerJob(prefs.command, [*arguments, "-o", os.path.join(folder, "params.json")], folder)
+        job.outputs = {"params": saved}
+        return job
+
+    def finish(self, context, job):
+        """Builds the material `matfit OBJECT` from the params.json this job wrote and puts it on the object alone."""
+        try:
+            job.check()
+            values, document, data = fitted.read(job.path("params.json"), TABLE, job.command)
+            sigma_t, albedo = fitted.medium_coefficients(values, MINIMUM_EXTINCTION)
+            # the medium per world unit: a scene's shape has matfit's medium at the scene's own scale (radius 1)
+            principled, volume = blender_mapping.to_blender(values, sigma_t, albedo)
+            with_volume = blender_mapping.has_volume(principled, volume)
+            name = f"{NAME} {self._object}"
+            built = material.write(bpy.data.materials, name, principled, volume, with_volume)
+            obj = bpy.data.objects.get(self._object)
+            material.assign(built, [obj] if obj is not None else [])
+            unsaved = _save(job.outputs["params"], data)
+        finally:
+            job.remove()
+        figures = []
+        mitsuba = fitted.figure(document, "mitsuba_rmse")
+        start = document.get("start")
+        start_rmse = fitted.figure(start, "rmse") if isinstance(start, dict) else None
+        if mitsuba is not None:
+            figures.append(
+                f"Mitsuba RMSE {mitsuba:.2f}" + (f" (start {start_rmse:.2f})" if start_rmse is not None else "")
+            )
+        figures += [unsaved] if unsaved else []
+        where = "" if obj is not None else " (the object is gone: the material is kept)"
+        self.report(
+            {"INFO"},
+            f"matfit: material {name!r} on {self._object!r}{where}, fitted in its scene"
+            + "".join(f", {f}" for f in figures),
+        )
 
 
 class Follower:
@@ -392,9 +580,22 @@ class MATFIT_PT_material(bpy.types.Panel):  # noqa: N801 (Blender's naming of op
         layout.operator(MATFIT_OT_fit.bl_idname, icon="IMPORT")
         label = "Stop following" if settings.following else MATFIT_OT_follow.bl_label
         layout.operator(MATFIT_OT_follow.bl_idname, text=label, icon="FILE_REFRESH")
+        layout.separator()
+        layout.label(text="In this scene (Mitsuba, the Standard view transform)")
+        layout.operator(MATFIT_OT_scene_picture.bl_idname, icon="SCENE")
+        layout.operator(MATFIT_OT_scene_fit.bl_idname, icon="IMPORT")
 
 
-CLASSES = (MatfitPreferences, MatfitSettings, MATFIT_OT_picture, MATFIT_OT_fit, MATFIT_OT_follow, MATFIT_PT_material)
+CLASSES = (
+    MatfitPreferences,
+    MatfitSettings,
+    MATFIT_OT_picture,
+    MATFIT_OT_fit,
+    MATFIT_OT_follow,
+    MATFIT_OT_scene_picture,
+    MATFIT_OT_scene_fit,
+    MATFIT_PT_material,
+)
 
 
 def register():
