@@ -954,7 +954,7 @@ def test_the_pages_examples_run_as_written(tmp_path):
     run = subprocess.run([sys.executable, "-c", page_code()], cwd=tmp_path, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     written = set(os.listdir(tmp_path)) - before
-    assert written == {"fits", "params.json", "rougher.exr", "material.xml", "material.py"}, written
+    assert written == {"fits", "params.json", "rougher.exr", "material.xml", "material.py", "room"}, written
     assert sorted(os.listdir(edits)) == ["recoloured.png"]
     assert sorted(os.listdir(tmp_path / "fits")) == ["recoloured.params.json", "recoloured.report.png"]  # no journal
     assert "fits/recoloured.params.json: lbfgsb" in run.stdout

@@ -20,6 +20,7 @@ import pytest
 from helpers import R, decode, random_model, true_point
 
 from matfit import images
+from matfit.fitting import batch
 from matfit.model import architectures, weight_files
 
 PROMPT = 10.0  # seconds: the promise is about a second; a hang (the bug) lasted minutes
@@ -266,7 +267,15 @@ def test_a_fit_of_several_pictures_killed_part_way_goes_on_where_it_stopped(mode
     command += ["--no-verify", "--method", "hybrid", "--evals", "3000"]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path)
     deadline = time.monotonic() + 120
-    while not (out / "a.params.json").exists() and process.poll() is None and time.monotonic() < deadline:
+    journal = out / batch.JOURNAL  # a picture is kept once the journal records it, just after its files are in place
+
+    def recorded() -> bool:
+        try:
+            return "a.png" in journal.read_text()
+        except OSError:
+            return False
+
+    while not recorded() and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.01)
     process.kill()
     process.communicate()
