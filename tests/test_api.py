@@ -466,6 +466,18 @@ ARRAY = np.full((16, 16, 3), 0.5, np.float32)
             id="fit-all-outputs-text",
         ),
         pytest.param(
+            lambda f, g: f.fit(g, answers=5, **NN),
+            errors.FitError,
+            "answers 5 is not callable: give a function or None",
+            id="answers-number",
+        ),
+        pytest.param(  # a scene fit has no stages of the test scene's: its steps go to progress
+            lambda f, g: f.fit(g, scene=matfit.Scene("scene.xml", "ball"), answers=print),
+            errors.FitError,
+            "answers hears the stages of a fit in the test scene; a scene fit reports its steps to progress",
+            id="answers-of-a-scene-fit",
+        ),
+        pytest.param(
             lambda f, g: matfit.fit_sequence([g], model=f.model, progress=5, **NN),
             errors.FitError,
             "progress 5 is not callable: give a function or None",
@@ -772,6 +784,83 @@ def test_fit_of_a_file_gives_the_command_lines_params_json_bit_for_bit(tiny_mode
     assert fit.evaluations == written["evaluations"] > 0 and fit.start_image.shape == fit.image.shape
 
 
+def render_children() -> set[int]:
+    """Returns the ids of this process's render children (`process.Process`) that still run, from /proc."""
+    found = set()
+    for entry in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            stat = Path(f"/proc/{entry}/stat").read_text().rsplit(")", 1)[1].split()
+            command = Path(f"/proc/{entry}/cmdline").read_bytes()
+        except OSError:  # ended meanwhile
+            continue
+        if int(stat[1]) == os.getpid() and stat[0] != "Z" and b"serve_requests" in command:
+            found.add(int(entry))
+    return found
+
+
+def ended(children: set[int], seconds: float = 60.0) -> bool:
+    """Returns whether each of `children` has ended within `seconds` (each ends once its render in hand is done)."""
+    deadline = time.monotonic() + seconds
+    while children & render_children():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.05)
+    return True
+
+
+class StopError(Exception):
+    """What a test's `answers` raises."""
+
+
+def test_a_fit_reports_each_stages_answer_as_it_lands_and_the_last_is_the_fit_returned(tiny_model, tmp_path):
+    heard: list[matfit.Fit] = []
+    with matfit.Fitter(tiny_model) as fitter:
+        fit = fitter.fit(PICTURE, answers=heard.append)  # verified, two rounds of correction, the clean answer
+        assert [each.stage for each in heard] == ["neural", "verified", "clean"] and fit.stage == "clean"
+        neural, verified, clean = heard
+        # the search's answer: no Mitsuba render yet, nor ranges; the same search the fit's params.json records
+        assert neural.rendered is None and neural.mitsuba_rmse is None and neural.verification == neural.ranges == {}
+        assert neural.evaluations == fit.evaluations and neural.start == fit.start
+        assert neural.document["neural_rmse"] == round(neural.neural_rmse, 3) and "mitsuba_rmse" not in neural.document
+        assert neural.image.shape == neural.target.shape == fit.image.shape and neural.start_image is not None
+        # Mitsuba's after verification: its render and figure, the ranges not measured yet
+        kept = verified.verification["kept"]
+        assert verified.verification == fit.verification and verified.ranges == {}
+        assert verified.mitsuba_rmse == verified.verification["mitsuba_rmse"][kept] and verified.rendered is not None
+        # the last is the fit's answer, heard before the call returned, params.json as written but for the timings
+        assert clean.material == fit.material and clean.ranges == fit.ranges and clean.answer == fit.answer
+        assert without_timings(clean.document) == without_timings(fit.document)
+        np.testing.assert_array_equal(clean.rendered, fit.rendered)
+        times = [each.document["wall_time_s"] for each in heard]
+        assert times == sorted(times) and times[-1] <= fit.document["wall_time_s"]
+        # an answers that raises ends the fit there: nothing written, the render processes kept for the next fit
+        children = set(fitter._pool._children[k]._child.pid for k in range(fitter._pool.children))
+
+        def stop(each: matfit.Fit) -> None:
+            raise StopError(each.stage)  # at the first answer, the start's renders for verification asked for already
+
+        with pytest.raises(StopError, match="neural"):
+            fitter.fit(PICTURE, answers=stop, outputs=matfit.Outputs(tmp_path / "p.json"))
+        assert os.listdir(tmp_path) == [] and fitter._pool.healthy() and children <= render_children()
+        again = fitter.fit(PICTURE)  # no answers: the same fit, the renders left over read by nobody
+        assert without_timings(again.document) == without_timings(fit.document) and again.stage == "clean"
+    assert ended(children)
+
+
+def test_an_answers_that_raises_at_the_last_answer_writes_nothing_and_leaves_no_render_process(tiny_model, tmp_path):
+    before, started = render_children(), set[int]()
+
+    def stop(each: matfit.Fit) -> None:
+        if each.stage == "clean":
+            started.update(render_children() - before)
+            raise StopError("the last answer")
+
+    model = matfit.load_model(tiny_model)
+    with pytest.raises(StopError, match="the last answer"):
+        matfit.fit(PICTURE, model=model, answers=stop, outputs=matfit.Outputs(tmp_path / "p.json", report="r.png"))
+    assert started and ended(started) and os.listdir(tmp_path) == []
+
+
 def test_a_fitter_renders_at_the_models_resolution_on_its_render_processes_bit_for_bit(tiny_model):
     from matfit.rendering.engine import Renderer
 
@@ -958,5 +1047,8 @@ def test_the_pages_examples_run_as_written(tmp_path):
     assert sorted(os.listdir(edits)) == ["recoloured.png"]
     assert sorted(os.listdir(tmp_path / "fits")) == ["recoloured.params.json", "recoloured.report.png"]  # no journal
     assert "fits/recoloured.params.json: lbfgsb" in run.stdout
+    landed = [line for line in run.stdout.splitlines() if " answer: neural " in line]  # answers=, as each landed
+    assert [line.split()[0] for line in landed] == ["neural", "verified", "clean"], run.stdout
+    assert landed[0].endswith(", not rendered yet") and ", Mitsuba " in landed[2]
     fitted = [json.loads((tmp_path / name).read_text()) for name in ("fits/recoloured.params.json", "params.json")]
     assert without_timings(fitted[0]) == without_timings(fitted[1])  # fit_all's and fit's params.json alike

@@ -3,6 +3,7 @@ import importlib.util
 import itertools
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -24,6 +25,18 @@ runner = CliRunner()
 
 def run(*arguments):
     return runner.invoke(app, [str(a) for a in arguments])
+
+
+ANSWER_LINE = re.compile(r"(neural|verified|clean|refined) answer: (neural|Mitsuba) RMSE (\d+\.\d\d) \(\d+\.\d s\)")
+
+
+def answer_lines(output: str) -> list[tuple[str, str]]:
+    """Returns (stage, its figure as printed: "Mitsuba RMSE 1.92") of each stage's answer `matfit fit` printed as it
+    landed, in order; every line that names a stage's answer must have that form (its time aside)."""
+    lines = [line for line in output.splitlines() if re.match(r"\w+ answer: ", line)]
+    matched = [ANSWER_LINE.fullmatch(line) for line in lines]
+    assert all(matched), output
+    return [(found[1], f"{found[2]} RMSE {found[3]}") for found in matched if found]
 
 
 def assert_one_line_error(result, *fragments):
@@ -373,6 +386,16 @@ def test_fit_writes_params_and_report(trained, target, tmp_path):
     tried = [candidate["features_off"] for candidate in document["answer"]["candidates"].values()]
     assert all(set(fewer) < set(more) for fewer, more in itertools.pairwise(tried))  # nested
     assert document["answer"]["kept"] == "best" or document["answer"]["features_off"] in tried
+    # each stage's answer as it landed, before the summary line: the last one's figure is params.json's
+    verification, landed = document["verification"], answer_lines(result.output)
+    assert [stage for stage, _ in landed] == ["neural", "verified", "clean"]
+    searched = landed[0][1]  # the search's own answer, no Mitsuba render yet: at most its start's figure
+    assert searched.startswith("neural RMSE ") and float(searched.split()[-1]) <= document["start_rmse"] + 0.005
+    assert landed[1:] == [
+        ("verified", f"Mitsuba RMSE {verification['mitsuba_rmse'][verification['kept']]:.2f}"),
+        ("clean", f"Mitsuba RMSE {document['mitsuba_rmse']:.2f}"),
+    ]
+    assert result.output.index("clean answer: ") < result.output.index(f"{out}: lbfgsb")
     # params.json feeds `matfit render` directly
     assert run("render", out, "-o", tmp_path / "again.png", "--size", 16, "--spp", 4).exit_code == 0
 
@@ -554,6 +577,7 @@ def test_fit_of_several_pictures_writes_one_params_json_each_and_goes_on_past_a_
     errors = [line for line in result.output.splitlines() if line.startswith("error: ")]
     assert len(errors) == 1 and str(broken) in errors[0] and "Traceback" not in result.output
     assert f"fitted 2 of 3 pictures into {out}" in result.output
+    assert answer_lines(result.output) == []  # each picture's summary line only
     first, second = (json.loads((out / f"{name}.params.json").read_text()) for name in ("edited", "copy"))
     assert first["target"] == str(target) and second["target"] == str(copy) and "verification" in first
     # the same picture fitted first (cold) and last (warm) in one process: the same answer, to the bit
@@ -635,9 +659,14 @@ def test_fit_records_the_variant_it_was_asked_for(trained, target, tmp_path):
     assert result.exit_code == 0, result.output
     document = json.loads(out.read_text())
     assert document["mitsuba_variant"] == "scalar_rgb" and document["mitsuba_rmse"] > 0
+    assert [stage for stage, _ in answer_lines(result.output)] == ["neural", "verified", "clean"]
     result = run(*arguments, "--no-verify")
     assert result.exit_code == 0, result.output
-    assert json.loads(out.read_text())["mitsuba_variant"] is None  # no Mitsuba render was made
+    document = json.loads(out.read_text())
+    assert document["mitsuba_variant"] is None  # no Mitsuba render was made
+    landed = answer_lines(result.output)  # nothing rendered: the neural figures, the clean answer's params.json's
+    assert [stage for stage, _ in landed] == ["neural", "clean"] and all(figure[0] == "n" for _, figure in landed)
+    assert landed[-1][1] == f"neural RMSE {document['neural_rmse']:.2f}"
 
 
 def test_fit_with_physical_refinement(trained, target, tmp_path):
@@ -660,6 +689,9 @@ def test_fit_with_physical_refinement(trained, target, tmp_path):
     assert document["mitsuba_rmse"] == (after if refinement["kept"] else chosen)
     assert f"Mitsuba RMSE {document['mitsuba_rmse']:.2f} (verification kept {verification['kept']}" in result.output
     assert f"refined 2 steps, {'kept' if refinement['kept'] else 'not kept'} (its acceptance renders: " in result.output
+    landed = answer_lines(result.output)
+    assert [stage for stage, _ in landed] == ["neural", "verified", "clean", "refined"]
+    assert landed[-1][1] == f"Mitsuba RMSE {document['mitsuba_rmse']:.2f}"
     assert document["mitsuba_variant"] == "llvm_ad_rgb"  # the variant of the fit's renderer, which differentiates
     assert_one_line_error(
         run("fit", target, "-o", tmp_path / "p3.json", "--model", trained, "--refine", 1, "--variant", "scalar_rgb"),

@@ -149,6 +149,35 @@ def test_a_fit_through_the_api_is_the_fit_the_library_makes(url, studio, alone):
     assert status == 200 and report.startswith(b"\x89PNG")
 
 
+def test_a_running_fit_shows_the_neural_answer_at_once_and_its_own_answer_replaces_it(url, studio, alone):
+    job = start_fit(url, EXAMPLE)[1]["job"]
+    seen = []  # (state, its answer's stage, whether Mitsuba checked it, the answer) each time one of them changes
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        answer = json.loads(request(f"{url}api/jobs/{job}")[1])
+        result = answer.get("result")
+        now = (answer["state"], result and result["stage"], result and result["mitsuba_checked"])
+        if not seen or seen[-1][:3] != now:
+            seen.append((*now, result))
+        if answer["state"] not in ("queued", "running"):
+            break
+        time.sleep(0.005)
+    stages = [stage for _, stage, _, _ in seen if stage is not None]
+    assert stages == sorted(stages, key=["neural", "verified", "clean"].index), seen  # in the order they land
+    assert ("running", "neural", False) in [each[:3] for each in seen] and seen[-1][:3] == ("done", "clean", True)
+    # the search's answer, marked as not yet checked in Mitsuba: no Mitsuba figure, render or ranges
+    neural = next(result for _, stage, _, result in seen if stage == "neural")
+    assert neural["mitsuba_rmse"] is None and neural["kept"] is None and neural["ranges"] is None
+    assert neural["pictures"]["mitsuba"] is None and neural["pictures"]["difference"] is None
+    assert neural["pictures"]["target"] == alone[EXAMPLE][2][1]["result"]["pictures"]["target"]
+    expected = search.neural_search(studio.model, studio_target(studio), settings=studio.settings)
+    np.testing.assert_allclose(neural["values"], params.from_unit(expected.unit), atol=1e-5)
+    assert neural["neural_rmse"] == round(expected.rmse, 3) and neural["start"] == expected.chosen
+    # replaced by the fit's own answer, the same as a fit's before answers were shown as they landed
+    done = seen[-1][3]
+    assert done["values"] == alone[EXAMPLE][2][1]["result"]["values"] and done["mitsuba_rmse"] is not None
+
+
 def test_a_fit_through_the_api_carries_what_the_picture_decides_as_its_params_json_says(url, alone):
     _, job, (_, done) = alone[EXAMPLE]
     found = done["result"]["ranges"]

@@ -58,7 +58,9 @@ def test_two_fits_in_one_worker_write_what_matfit_fit_writes(tmp_path):
     assert running.close() == 0
     assert first["id"] == 1 and first["exit"] == 0, first["output"]
     assert second["id"] == "two" and second["exit"] == 0, second["output"]
-    assert second["output"].startswith(f"{tmp_path / 'second.json'}: nn, ")
+    *landed, summary = second["output"].splitlines()  # what matfit fit prints: each stage's answer, then the summary
+    assert summary.startswith(f"{tmp_path / 'second.json'}: nn, ")
+    assert [line.split(" answer: ")[0] for line in landed] == ["neural", "verified", "clean"], landed
     reference = tmp_path / "reference.json"
     subprocess.run([sys.executable, "-m", "matfit", "fit", EDITED, "-o", reference, *FIT_OPTIONS], check=True)
     expected = without_timings(json.loads(reference.read_text()))

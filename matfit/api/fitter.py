@@ -33,7 +33,7 @@ from matfit.api.arguments import (
 )
 from matfit.api.choices import check_choices, check_options
 from matfit.api.material import Material
-from matfit.api.results import Fit, Outputs, fit_of
+from matfit.api.results import Fit, Outputs, fit_of, landed
 from matfit.api.scenes import Scene
 from matfit.errors import FitError, ImageError, MatfitError, OutputError, ParameterError, RenderError, WeightsError
 from matfit.fitting.methods import Settings
@@ -176,14 +176,23 @@ class Fitter:
         outputs: Outputs | None = None,
         scene: Scene | None = None,
         progress: Callable[[str, int, int, float], None] | None = None,
+        answers: Callable[[Fit], None] | None = None,
     ) -> Fit:
         """Returns the fit of one picture with this fitter's model: `matfit.fit`, warm. `outputs`: the files to write
         (checked before any work, written together at the end: what `matfit fit` writes), or None to write nothing.
-        `scene`: fit the material of a shape in a scene of your own instead (`matfit.fit`'s)."""
+        `scene`: fit the material of a shape in a scene of your own instead (`matfit.fit`'s). `answers`: hears each
+        stage's answer as soon as it exists (`matfit.fit`'s)."""
+        callback("answers", answers, FitError)
         if scene is not None:
-            linear, _, _, refine, _ = check_options(linear, verify, corrections, answer, refine, seed)
-            if progress is not None and not callable(progress):
-                raise FitError(f"progress {shown(progress)} is not callable: give a function or None", "progress")
+            verified = self.verify if verify is None else verify  # not used: checked as the other fits check it
+            linear, _, _, refine, _ = check_options(linear, verified, corrections, answer, refine, seed)
+            callback("progress", progress, FitError)
+            if answers is not None:
+                raise FitError(
+                    "answers hears the stages of a fit in the test scene; a scene fit reports its steps to progress: "
+                    "leave answers out",
+                    field="answers",
+                )
             return scene_fits.fit_scene(picture, scene, mask, init, linear, refine, outputs, self.variant, progress)
         from matfit.fitting import fitfile  # noqa: F401  # JAX imported before the fit's wall time starts
 
@@ -192,7 +201,7 @@ class Fitter:
         request, notices = self._request(
             picture, mask, init, settings, linear, verified, corrections, answer, refine, seed, outputs
         )
-        return self._fit_request(request, notices, started)
+        return self._fit_request(request, notices, started, answers=answers)
 
     def fit_all(
         self,
@@ -247,23 +256,31 @@ class Fitter:
         return batch.fit_all(requests, self.model_path, fit_one, done=heard)
 
     def _fit_request(
-        self, request: Request, notices: list[str], started: float, written: Callable[[str], None] | None = None
+        self,
+        request: Request,
+        notices: list[str],
+        started: float,
+        written: Callable[[str], None] | None = None,
+        answers: Callable[[Fit], None] | None = None,
     ) -> Fit:
         """Returns the fit of a request made by `_request`: checked before the model loads, its outputs written, then
-        `written(the SHA-256 of the picture fitted)` called (`fit_all`'s journal)."""
+        `written(the SHA-256 of the picture fitted)` called (`fit_all`'s journal). `answers(fit)` hears each stage's
+        answer as it lands, its params.json's wall time the seconds since `started` then."""
         from matfit.fitting import fitfile
 
+        name = request.outputs.params if request.outputs else request.target
+        on_answer = None if answers is None else lambda outcome: answers(landed(outcome, name, notices, started))
         with self._turn():  # fitfile checks the request, then asks for the model (a folder's loads at the first fit)
             renderer = self._renderer() if request.verified and not request.refine_steps else None  # refinement: here
             if request.outputs is None:
-                outcome, _ = fitfile.fit_file(request, self, renderer=renderer)
+                outcome, _ = fitfile.fit_file(request, self, renderer=renderer, on_answer=on_answer)
                 outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
             else:
-                outcome = fitfile.run(request, self, renderer=renderer, started=started)
+                outcome = fitfile.run(request, self, renderer=renderer, started=started, on_answer=on_answer)
                 if written is not None:
                     written(str(outcome.document["target_sha256"]))
         outcome = dataclasses.replace(outcome, notices=(*notices, *outcome.notices))
-        return fit_of(outcome, request.outputs.params if request.outputs else request.target)
+        return fit_of(outcome, name)
 
     def _request(
         self,
@@ -352,6 +369,7 @@ def fit(
     outputs: Outputs | None = None,
     scene: Scene | None = None,
     progress: Callable[[str, int, int, float], None] | None = None,
+    answers: Callable[[Fit], None] | None = None,
 ) -> Fit:
     """Returns the fit of the material whose render looks most like `picture`: what `matfit fit` finds.
 
@@ -363,6 +381,14 @@ def fit(
     file gives the parameters of `matfit fit PICTURE -o params.json` bit for bit. `outputs`: the files to write
     (`Outputs`: checked before any work, written together once the fit is done), or None to write nothing. For many
     pictures, a `Fitter` loads the model once.
+
+    `answers(fit)` hears each stage's answer as soon as it exists, a `Fit` whose `stage` names it: the neural search's
+    ("neural": no Mitsuba render yet, `rendered` and `mitsuba_rmse` None), Mitsuba's after verification
+    ("verified", without `ranges`: they are measured on the answer known), then the clean one ("clean") and the
+    refined one ("refined") where the fit runs those stages; the last is the answer returned, heard before any
+    output is written. Its params.json (`document`) is the fit's as if it ended there, its `wall_time_s` the
+    seconds since the call. What `answers` raises ends the fit: nothing is written and no render process is left
+    (a `Fitter` keeps its own for the next fit).
 
     `scene`: a `Scene` of your own (a Mitsuba XML file and a shape's id): the picture is a render of that scene,
     edited, and the shape's material is fitted there by Mitsuba's differentiable renderer (docs/scenes.md); `init`
@@ -386,4 +412,5 @@ def fit(
             outputs=outputs,
             scene=scene,
             progress=progress,
+            answers=answers,
         )

@@ -3,7 +3,10 @@ by `fit_of`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
+import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -73,7 +76,10 @@ class Fit:
     both as params.json holds them. RMSE on 0-255 sRGB values. The pictures are sRGB, (R, R, 3) at the
     model's resolution: `target` as fitted, `image` the decoder's picture of the material, `rendered`
     Mitsuba's (None where nothing was rendered), `start_image` the decoder's picture of the best-of-n start
-    (`start`, among the encoders' guesses and the init's material) the search began from.
+    (`start`, among the encoders' guesses and the init's material) the search began from. `stage`: the stage
+    whose answer this is, "neural" (the search's), "verified" (Mitsuba's, after rounds of correction), "clean" or
+    "refined": the last the fit ran for the `Fit` a fit returns, an earlier one for those `answers=` hears first
+    (`Fitter.fit`); "" for a scene fit.
     """
 
     material: Material
@@ -92,6 +98,7 @@ class Fit:
     start_rmse: float = float("nan")  # its neural RMSE
     evaluations: int = 0  # the search's objective evaluations
     start_image: Image | None = field(default=None, repr=False)
+    stage: str = ""
     _outcome: Outcome | None = field(default=None, repr=False)
 
     def to_json(self) -> str:
@@ -108,8 +115,15 @@ class Fit:
         return np.asarray(document.report_picture(self._outcome), np.float32)
 
 
+def landed(outcome: Outcome, name: str, notices: Sequence[str], started: float) -> Fit:
+    """Returns the `Fit` of one stage's answer as it lands (`Fitter.fit(answers=)`): `notices` (of the pixels read
+    before the fit) first, its params.json's wall time the seconds since `started` (a `time.perf_counter()`)."""
+    timed = {**outcome.document, "wall_time_s": round(time.perf_counter() - started, 3)}
+    return fit_of(dataclasses.replace(outcome, notices=(*notices, *outcome.notices), document=timed), name)
+
+
 def fit_of(outcome: Outcome, name: str) -> Fit:
-    """Returns the `Fit` of a finished fit (its document's timings set)."""
+    """Returns the `Fit` of a finished fit (its document's timings set), or of one stage's answer."""
     document = outcome.document
     rendered = None if outcome.rendered is None else np.asarray(outcome.rendered, np.float32)
     return Fit(
@@ -129,5 +143,6 @@ def fit_of(outcome: Outcome, name: str) -> Fit:
         float(outcome.result.start_rmse),
         int(outcome.result.evaluations),
         np.asarray(outcome.result.start_image, np.float32),
+        outcome.stage,
         outcome,
     )

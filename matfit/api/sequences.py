@@ -156,6 +156,7 @@ def written_sequence(
                 frame.start,
                 float(frame.start_rmse),
                 int(frame.evaluations),
+                stage="neural",  # a frame's answer is the neural search's
             )
         )
     return fits

@@ -293,7 +293,7 @@ def fit_command(
                 log("run the same command again to fit the pictures that failed; those fitted are kept")
                 raise typer.Exit(2)
             return
-        fitted = fitter.fit(str(targets[0]), **chosen)
+        fitted = fitter.fit(str(targets[0]), **chosen, answers=report_answer)
     echo_lines(fitted.notices)
     log(fitted.summary)
 
@@ -314,6 +314,16 @@ def worker_command() -> None:
     replies = os.fdopen(os.dup(sys.stdout.fileno()), "w", encoding="utf-8")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
     worker.serve(app, sys.stdin.buffer, replies, on_close=interrupt.exit_now)
+
+
+def report_answer(fitted: matfit.Fit) -> None:
+    """Prints one stage's answer as it lands (`matfit fit` of one picture): the stage, its figure (Mitsuba's, where
+    the stage rendered it, else the neural one) and the seconds since the fit began."""
+    if fitted.mitsuba_rmse is not None:
+        figure = f"Mitsuba RMSE {fitted.mitsuba_rmse:.2f}"
+    else:
+        figure = f"neural RMSE {fitted.neural_rmse:.2f}"
+    log(f"{fitted.stage} answer: {figure} ({fitted.document['wall_time_s']:.1f} s)")
 
 
 def report_fit(picture: str, params: str, fitted: matfit.Fit | matfit.MatfitError | None) -> None:

@@ -11,6 +11,7 @@ search alone for a request that asks for nothing after it (each frame of `sequen
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -59,6 +60,7 @@ def run(
     *,
     renderer: Process | Pool | None = None,
     started: float | None = None,
+    on_answer: Callable[[Outcome], None] | None = None,
 ) -> Outcome:
     """Fits the picture of `request` with a model (a model directory, or a `models.Loader`: loaded once the request
     was checked) and writes its outputs; returns what was found.
@@ -66,14 +68,15 @@ def run(
     `renderer`: a `process.Pool` (or `Process`) to verify with, started early by the caller (`fit_file`), or None. Every
     input is read and every output path checked before the fit (`Request.check`); the outputs are written
     together at the end (`files.together`), so a failure leaves none of them. `started`: the `time.perf_counter()`
-    params.json's wall time counts from (None: now).
+    params.json's wall time counts from (None: now). `on_answer`: `stages.fit_stages`'s, each stage's answer as it
+    lands (the last one's before any output is written, so that what it raises leaves none).
     """
     started = time.perf_counter() if started is None else started
     outputs = request.outputs
     if outputs is None:
         raise ValueError("run writes the request's outputs: name them (Outputs), or call fit_file")
     request.check(model_path(model))
-    outcome, used = _fit_checked(request, model, renderer)
+    outcome, used = _fit_checked(request, model, renderer, on_answer)
     with files.together() as batch:
         write_outputs(outcome, outputs, batch, renderer=used)
         outcome.document["wall_time_s"] = round(time.perf_counter() - started, 3)
@@ -86,6 +89,7 @@ def fit_file(
     model: models.Model | str | models.Loader,
     *,
     renderer: render.Renderer | Process | Pool | None = None,
+    on_answer: Callable[[Outcome], None] | None = None,
 ) -> tuple[Outcome, render.Renderer | Process | Pool | None]:
     """Returns (what a fit of the picture of `request` found, with its params.json document; the renderer used).
 
@@ -93,21 +97,23 @@ def fit_file(
     `renderer`: a loaded `engine.Renderer` at the model's resolution to reuse, a `process.Pool` or `process.Process`
     (started early by the caller; it loads the scene here, and cannot refine), or None (a
     `process.Background` with the request's variant is made when verification, refinement or a render
-    output needs one). Refinement differentiates with the renderer's variant.
+    output needs one). Refinement differentiates with the renderer's variant. `on_answer`: `stages.fit_stages`'s, each
+    stage's answer as it lands.
     """
     request.check(model_path(model))
-    return _fit_checked(request, model, renderer)
+    return _fit_checked(request, model, renderer, on_answer)
 
 
 def _fit_checked(
     request: Request,
     model: models.Model | str | models.Loader,
     renderer: render.Renderer | Process | Pool | None,
+    on_answer: Callable[[Outcome], None] | None = None,
 ) -> tuple[Outcome, render.Renderer | Process | Pool | None]:
     """Returns `fit_file`'s answer to a checked request: its inputs read, then the stages (`stages.fit_stages`)."""
     folder, model = model_path(model), loaded(model)
     target, weights, notices = request_target(request, model.resolution)
-    return stages.fit_stages(request, model, folder, target, weights, notices, renderer)
+    return stages.fit_stages(request, model, folder, target, weights, notices, renderer, on_answer)
 
 
 def fit_neural(request: Request, model: models.Model) -> search.Result:

@@ -25,7 +25,8 @@ class Answer:
 
 @dataclass(frozen=True)
 class Outcome:
-    """A finished fit of an image file: the answer, what each stage returned, the target as fitted, the document."""
+    """A finished fit of an image file (or one stage's answer, `stage`, as `stages.fit_stages` reports it): the answer,
+    what each stage returned, the target as fitted, the document."""
 
     result: search.Result
     target: np.ndarray  # sRGB (R, R, 3) at the model's resolution
@@ -36,6 +37,7 @@ class Outcome:
     variant: str | None = None  # the Mitsuba variant that verified, refined or rendered the answer; None: no Mitsuba
     notices: tuple[str, ...] = ()
     document: dict[str, Any] = field(default_factory=dict)  # params.json (`document.build`)
+    stage: str = "neural"  # the stage whose answer this is (`stages.NEURAL`, ...): the last one's, for a finished fit
 
     @property
     def unit(self) -> np.ndarray:

@@ -2,7 +2,8 @@
 (`search.Result`), Mitsuba's verification after rounds of correction (`verify.Verified`), the ranges
 (`ranges.Ranges`), the clean answer (`clean.Cleaned`), refinement (`refine.Refined`); each stage that may change
 the answer returns the next `Answer`. `fit_stages` runs them for a request whose inputs were read (`fitfile`) and
-returns the `Outcome`, with its params.json document (`document.py`).
+returns the `Outcome`, with its params.json document (`document.py`); `on_answer` hears each stage's answer as soon
+as it exists (`NEURAL`, `VERIFIED`, `CLEAN`, `REFINED`: those the request runs, in that order).
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ from matfit.rendering.engine import Renders
 from matfit.rendering.process import Background, Pool, Process
 
 Weights = np.ndarray | None  # the mask's per-pixel weights (R, R) at the model's resolution, or None: every pixel
+# The stages whose answers `fit_stages` reports (`Outcome.stage`), in the order they land.
+NEURAL, VERIFIED, CLEAN, REFINED = "neural", "verified", "clean", "refined"
 
 
 def fit_stages(
@@ -34,16 +37,31 @@ def fit_stages(
     weights: Weights,
     notices: list[str],
     renderer: render.Renderer | Process | Pool | None,
+    on_answer: Callable[[Outcome], None] | None = None,
 ) -> tuple[Outcome, render.Renderer | Process | Pool | None]:
     """Returns (what the stages found for a checked request's target and mask weights, with its params.json
-    document; the renderer used): the search, then Mitsuba's stages, the ranges, the clean answer, refinement."""
+    document; the renderer used): the search, then Mitsuba's stages, the ranges, the clean answer, refinement.
+
+    `on_answer(outcome)` hears each stage's answer as soon as it exists, with its params.json document as if the fit
+    ended there (`Outcome.stage` names the stage): an earlier stage's without the ranges, which are measured only
+    once the answer is known (after verification); the last stage's is the outcome returned, heard before it is
+    returned (before any output is written). What it raises ends the fit. Nothing is rendered or decoded for it.
+    """
     extra = request.extra_candidates()
+    last = last_stage(request)
+
+    def landed(outcome: Outcome) -> None:  # an earlier stage's answer: the last one's is heard below, with its ranges
+        if on_answer is not None and outcome.stage != last:
+            on_answer(dataclasses.replace(outcome, document=document.build(outcome, request, model_path)))
+
     background, renderer = start_renderer(request, model.resolution, renderer)
     result = search_stage(request, model, target, weights, extra, background)
     notices = list(notices)
+    landed(Outcome(result, target, Answer(result.unit, result.image, result.rmse), notices=tuple(notices)))
     if background is not None:
         renderer = background.renderer()
         notices.extend([renderer.notice] if renderer.notice else [])
+    variant = renderer.variant if renderer is not None else None
     verifier: Renders | None = background or renderer
     verified = None
     if request.verified:
@@ -54,27 +72,34 @@ def fit_stages(
         answer = dataclasses.replace(
             answer, rendered=images.srgb_encode(renderer.render(result.values, seed=verify.SEED))
         )
+    if verified is not None:
+        landed(Outcome(result, target, answer, verified, variant=variant, notices=tuple(notices), stage=VERIFIED))
     answer = dataclasses.replace(answer, ranges=ranges_stage(model, model_path, answer.unit, weights))
     cleaned = None
     if request.answer == "clean":
         cleaned = clean_stage(model, answer, target, weights, verifier if request.verified else None, verified)
         answer = clean_answer(answer, cleaned, model, model_path, target, weights)
+        landed(Outcome(result, target, answer, verified, cleaned, None, variant, tuple(notices), stage=CLEAN))
     refined = None
     if request.refine_steps:
         assert isinstance(renderer, render.Renderer), "start_renderer gives refinement a Renderer"
         refined = refine.refine(answer.unit, target, steps=request.refine_steps, weights=weights, renderer=renderer)
         answer = refined_answer(answer, refined, result, verified, model, model_path, target, weights)
-    outcome = Outcome(
-        result,
-        target,
-        answer,
-        verified,
-        cleaned,
-        refined,
-        renderer.variant if renderer is not None else None,
-        tuple(notices),
-    )
-    return dataclasses.replace(outcome, document=document.build(outcome, request, model_path)), renderer
+    outcome = Outcome(result, target, answer, verified, cleaned, refined, variant, tuple(notices), stage=last)
+    outcome = dataclasses.replace(outcome, document=document.build(outcome, request, model_path))
+    if on_answer is not None:
+        on_answer(outcome)
+    return outcome, renderer
+
+
+def last_stage(request: Request) -> str:
+    """Returns the last stage a request runs, whose answer is the fit's: refinement, the clean answer, verification
+    or the neural search."""
+    if request.refine_steps:
+        return REFINED
+    if request.answer == "clean":
+        return CLEAN
+    return VERIFIED if request.verified else NEURAL
 
 
 def neural_outcome(

@@ -36,27 +36,54 @@ async function fitFile(file, mask) {
 }
 
 async function follow(job, name) {
+  let early = null; // the stage of the running fit's answer on show
   for (;;) {
     const answer = await api(`/api/jobs/${job}`);
     $("bar").style.width = `${Math.round(100 * answer.progress)}%`;
     if (answer.state === "done") return showFit(job, answer.result, name);
     if (answer.state === "error") { setStatus("ready"); return showError(answer.error); }
     if (answer.state === "superseded" || answer.state === "cancelled") return;
+    if (answer.result && answer.result.stage !== early) { early = answer.result.stage; showAnswer(answer.result, name); }
     setStatus(`${name}: ${answer.stage}`);
     await new Promise((resolve) => setTimeout(resolve, 60));
   }
 }
 
+// The pictures of a fit or of a stage's answer; Mitsuba's and the difference hidden where it has none yet.
+function showPictures(result) {
+  for (const key of ["target", "start", "neural", "mitsuba", "difference"]) {
+    const picture = result.pictures[key];
+    $(`pic-${key}`).closest("figure").hidden = !picture;
+    if (picture) $(`pic-${key}`).src = picture;
+  }
+  $("result").hidden = false;
+}
+
+// A stage's answer while the fit runs (the neural search's first, not yet checked in Mitsuba): its pictures, figures,
+// sliders and neural preview at once; the next stage's, then the fit's own (`showFit`), replace it. No downloads yet.
+function showAnswer(result, name) {
+  showPictures(result);
+  const checked = result.mitsuba_checked ? `Mitsuba ${result.mitsuba_rmse.toFixed(2)}` : "not yet checked in Mitsuba";
+  $("figures").textContent =
+    `${name}: ${result.stage} answer, neural RMSE ${result.neural_rmse.toFixed(2)}, ${checked} ` +
+    `(${result.seconds.toFixed(2)} s; the fit goes on)`;
+  $("figures").dataset.stage = result.stage;
+  $("downloads").hidden = true;
+  setValues(result.values);
+  showRanges(result.ranges);
+}
+
 function showFit(job, result, name) {
-  for (const key of ["target", "start", "neural", "mitsuba", "difference"]) $(`pic-${key}`).src = result.pictures[key];
+  showPictures(result);
   $("figures").textContent =
     `${name}: neural RMSE ${result.neural_rmse.toFixed(2)}, Mitsuba RMSE ${result.mitsuba_rmse.toFixed(2)} ` +
     `(start ${result.start} ${result.start_rmse.toFixed(2)}; kept ${result.kept}), ${result.seconds.toFixed(2)} s` +
     (result.mask ? ", masked" : "");
   $("figures").dataset.job = job;
+  $("figures").dataset.stage = result.stage;
   const links = { "dl-params": "params.json", "dl-xml": "material.xml", "dl-blender": "material.py", "dl-report": "report.png" };
   for (const [id, file] of Object.entries(links)) $(id).href = `/api/jobs/${job}/files/${file}`;
-  $("result").hidden = false;
+  $("downloads").hidden = false;
   $("bar").style.width = "100%";
   setStatus(`fitted ${name}`);
   state.lastFit = result.values;

@@ -33,7 +33,7 @@ class Job:
     progress: float = 0.0
     error: str | None = None
     status: int = 200  # the HTTP status of the job's answer: 4xx for the user's errors
-    result: dict | None = None
+    result: dict | None = None  # a fit's while it runs: its latest stage's answer (`fit_result`), until its own lands
     outcome: Fit | None = None  # the fit of a fit job, once done
     cancelled: threading.Event = field(default_factory=threading.Event)
     created: float = field(default_factory=time.perf_counter)
@@ -61,12 +61,16 @@ def png_bytes(srgb: np.ndarray) -> bytes:
 
 
 def fit_result(fitted: Fit) -> dict:
-    """Returns the page's view of a fit: figures, the five pictures of the report, the 19 parameters."""
+    """Returns the page's view of a fit, or of one stage's answer as it lands (`Fit.stage`): figures, the five pictures
+    of the report, the 19 parameters. An answer not yet checked in Mitsuba (the neural search's: `mitsuba_checked`
+    false) has no Mitsuba figure, render or difference (None), nor ranges."""
     from matfit.fitting import report
 
-    document = fitted.document
-    assert fitted.rendered is not None and fitted.start_image is not None, "the page's fits are verified: rendered"
+    document, rendered = fitted.document, fitted.rendered
+    assert fitted.start_image is not None, "a fit of a picture keeps the search's start"
     return {
+        "stage": fitted.stage,
+        "mitsuba_checked": rendered is not None,
         "neural_rmse": round(fitted.neural_rmse, 3),
         "mitsuba_rmse": document.get("mitsuba_rmse"),
         "start": fitted.start,
@@ -79,8 +83,8 @@ def fit_result(fitted: Fit) -> dict:
             "target": png_data_url(fitted.target),
             "start": png_data_url(fitted.start_image),
             "neural": png_data_url(fitted.image),
-            "mitsuba": png_data_url(fitted.rendered),
-            "difference": png_data_url(report.difference(fitted.rendered, fitted.target)),
+            "mitsuba": None if rendered is None else png_data_url(rendered),
+            "difference": None if rendered is None else png_data_url(report.difference(rendered, fitted.target)),
         },
         "notices": list(fitted.notices),
         "mask": document.get("mask"),

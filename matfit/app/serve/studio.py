@@ -10,6 +10,7 @@ runs beside the queue, on the request's thread.
 from __future__ import annotations
 
 import contextlib
+import functools
 import itertools
 import os
 import tempfile
@@ -22,6 +23,7 @@ import numpy as np
 from matfit import files, images, interrupt, params
 from matfit.api.fitter import Fitter
 from matfit.api.material import Material
+from matfit.api.results import Fit
 from matfit.app.serve import uploads
 from matfit.app.serve.jobs import Job, fit_result, png_bytes, png_data_url
 from matfit.app.serve.watch import GONE, gone
@@ -123,7 +125,8 @@ class Studio:
         try:
             picture = self.snapshot(target) if watched else target  # the editor may save or delete it meanwhile
             source = None if init is None else Material.from_array(init)
-            fitted = self.fitter.fit(picture, mask=mask, init=source, settings=self.settings)
+            landed = functools.partial(self._landed, job)
+            fitted = self.fitter.fit(picture, mask=mask, init=source, settings=self.settings, answers=landed)
             if watched and not os.path.exists(target):
                 raise gone(target, "while it was fitted")
             fitted.document.update(target=label, target_sha256=files.sha256(picture), model=self.model_label)
@@ -137,10 +140,11 @@ class Studio:
         except MatfitError as error:
             status = 410 if error.field == GONE else 422
             message = str(error).replace(picture, target) if watched and picture else str(error)  # the file it names
-            job.state, job.stage, job.error, job.status = "error", "error", message, status
+            job.state, job.stage, job.error, job.status, job.result = "error", "error", message, status, None
         except Exception as error:  # a failure of matfit's own: the job ends (never "running" for ever), said in a line
             message = str(error).splitlines()[0] if str(error) else type(error).__name__
             job.state, job.stage, job.error, job.status = "error", "error", f"the fit failed: {message}", 500
+            job.result = None  # an earlier stage's answer is no fit's
         finally:
             if watched and picture is not None:
                 with contextlib.suppress(OSError):
@@ -149,6 +153,13 @@ class Studio:
             job.finished = time.perf_counter()
             if job.cancelled.is_set() and job.state == "done":
                 job.state = job.stage = "superseded"
+
+    @staticmethod
+    def _landed(job: Job, answer: Fit) -> None:
+        """Shows the page a stage's answer of a running fit as soon as it exists, the neural search's first (not yet
+        checked in Mitsuba), until the next one, and then the fit's own, replaces it."""
+        if job.state == "running":
+            job.result = fit_result(answer)
 
     def snapshot(self, path: str) -> str:
         """Returns a private copy of the watched file as it is now (fitted and hashed as one picture); the error GONE
