@@ -35,7 +35,8 @@ def test_the_starts_keep_the_colour_over_metallic_and_roughness_or_roughness_for
     assert all(np.array_equal(values[colour], plastic[colour]) for _, values in found)
     assert found[3][1][params.INDEX["metallic"]] == 1.0 and found[3][1][params.INDEX["roughness"]] == 0.15
     glass = scene_fit.starts(presets.preset("glass"))
-    assert [name for name, _ in glass] == ["given", "roughness 0.02", "roughness 0.35"]
+    assert [name for name, _ in glass] == ["given", "roughness 0.02", "roughness 0.35", "clear glass"]
+    assert glass[3][1][params.INDEX["spec_trans"]] == 1.0 and glass[3][1][params.INDEX["clearcoat"]] == 0.0
 
 
 def test_a_picture_of_another_aspect_is_refused_before_any_render(knot):

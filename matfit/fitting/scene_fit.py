@@ -15,10 +15,10 @@ own camera, lights and shapes. In order:
    shape.
 3. Starts: the material given (or the shape's own, or matfit's default) and four that keep its colour over
    metallic x roughness (a start with spec_trans < 0.5) or two over roughness (a transmissive one): one start
-   can stick, a glossy plastic fitted to a rough gold stays at roughness 0.001 (measured in the prototype). Each
-   runs a
-   quarter of the steps (at most `SHORT_STEPS`); the one whose render (`JUDGE_SPP`, one common seed) is
-   closest goes on for `steps` more.
+   can stick, a glossy plastic fitted to a rough gold stays at roughness 0.001 (measured in the prototype); a
+   transmissive start also starts as clear glass without coat or sheen (the bench's glass box under a sky).
+   Each runs a quarter of the steps (at most `SHORT_STEPS`); the one whose render (`JUDGE_SPP`, one common
+   seed) is closest goes on for `steps` more.
 4. The answer is judged against the start by one render each at `JUDGE_SPP` with a common seed no step used, and
    kept only if closer: never worse than the start, as that render sees it.
 5. What one view decides: each parameter moved by `PROBE` in the unit cube both ways from the answer, the two
@@ -141,6 +141,9 @@ def starts(start: np.ndarray) -> list[tuple[str, np.ndarray]]:
     found = [("given", start)]
     if start[params.INDEX["spec_trans"]] >= 0.5:
         found += [(f"roughness {r}", _probe(start, roughness=r)) for r in (0.02, 0.35)]
+        # clear glass with no coat or sheen: against a smooth environment a coated, half-transmissive material
+        # can look alike to the gradient, and the descent stays there (the bench's box under the sky)
+        found.append(("clear glass", _probe(start, spec_trans=1.0, roughness=0.02, clearcoat=0.0, sheen=0.0)))
     else:
         found += [
             (f"metallic {m} roughness {r}", _probe(start, metallic=m, roughness=r))
