@@ -881,7 +881,7 @@ def test_a_fitter_renders_at_the_models_resolution_on_its_render_processes_bit_f
     assert not np.array_equal(first, other)
 
 
-NN = matfit.Settings(method="nn")  # a fit in a second with the tiny model, its verification renders included
+NEURAL = matfit.Settings(method="nn")  # a fit in a second with the tiny model, its verification renders included
 BOUND = 180.0  # seconds any fit of these tests may take, the render processes' start included: then it hangs
 
 
@@ -942,17 +942,17 @@ def when_reading_a_render(thread: int, action: Callable[[], None]) -> threading.
 
 @pytest.fixture(scope="module")
 def shared_fitter(tiny_model):
-    """Returns (a verifying Fitter of the tiny model, its fit of PICTURE with NN): the tests below each leave it usable
+    """Returns (a verifying Fitter of the tiny model, its fit of PICTURE with NEURAL): the tests below each leave it usable
     (that is what they check), and start its render processes again where they broke them."""
     with matfit.Fitter(tiny_model) as warm:
-        yield warm, warm.fit(PICTURE, settings=NN)
+        yield warm, warm.fit(PICTURE, settings=NEURAL)
 
 
 def test_two_threads_fitting_on_one_fitter_queue_and_both_get_the_answer(shared_fitter):
     # They shared its render processes' pipes: one read the other's reply ("the render process ended unexpectedly")
     # and the other waited for ever in read_message.
     fitter, expected = shared_fitter
-    calls = [lambda: fitter.fit(PICTURE, settings=NN), lambda: fitter.render(expected.material)] * 2
+    calls = [lambda: fitter.fit(PICTURE, settings=NEURAL), lambda: fitter.render(expected.material)] * 2
     running = [started(call) for call in calls]
     deadline = time.monotonic() + len(calls) * BOUND
     for thread, _ in running:
@@ -970,9 +970,9 @@ def test_a_keyboard_interrupt_while_a_fit_reads_a_render_leaves_the_fitter_usabl
     old = fitter._pool
     watcher = when_reading_a_render(threading.main_thread().ident, _thread.interrupt_main)
     with pytest.raises(KeyboardInterrupt):
-        fitter.fit(PICTURE, settings=NN)
+        fitter.fit(PICTURE, settings=NEURAL)
     watcher.join(BOUND)
-    assert bounded(lambda: fitter.fit(PICTURE, settings=NN)).material == expected.material
+    assert bounded(lambda: fitter.fit(PICTURE, settings=NEURAL)).material == expected.material
     assert old is not None and not old.healthy() and fitter._pool is not old  # ended: its pipes' state was unknown
 
 
@@ -988,7 +988,7 @@ def test_a_render_process_that_stops_answering_is_one_line_within_its_bound_and_
     try:
         started = time.monotonic()
         with pytest.raises(matfit.MatfitError) as raised:
-            bounded(lambda: fitter.fit(PICTURE, settings=NN), 60)
+            bounded(lambda: fitter.fit(PICTURE, settings=NEURAL), 60)
         seconds = time.monotonic() - started
     finally:
         for child in children:  # those still stopped end once they run on: their requests have ended
@@ -1001,7 +1001,7 @@ def test_a_render_process_that_stops_answering_is_one_line_within_its_bound_and_
     assert 2.0 <= seconds < 30
     assert fitter._pool is None and any(child.wait(10) == -signal.SIGKILL for child in children)
     monkeypatch.undo()
-    assert bounded(lambda: fitter.fit(PICTURE, settings=NN)).material == expected.material
+    assert bounded(lambda: fitter.fit(PICTURE, settings=NEURAL)).material == expected.material
     assert all(child.wait(30) is not None for child in children)  # none left running
 
 
@@ -1017,7 +1017,7 @@ def test_a_render_process_killed_mid_fit_is_named_so_and_the_next_fit_starts_new
 
     def fit() -> matfit.Fit:
         fits.append(when_reading_a_render(threading.get_ident(), kill))
-        return fitter.fit(PICTURE, settings=NN)
+        return fitter.fit(PICTURE, settings=NEURAL)
 
     with pytest.raises(matfit.MatfitError) as raised:
         bounded(fit)
@@ -1026,7 +1026,7 @@ def test_a_render_process_killed_mid_fit_is_named_so_and_the_next_fit_starts_new
         "processes; if it ends again, run `matfit render` on a preset to see Mitsuba's own message"
     )
     assert fitter._pool is None
-    assert bounded(lambda: fitter.fit(PICTURE, settings=NN)).material == expected.material
+    assert bounded(lambda: fitter.fit(PICTURE, settings=NEURAL)).material == expected.material
 
 
 def page_code() -> str:

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import hashlib
 import os
 import threading
 import time
@@ -15,19 +14,15 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from matfit import params, shipped
-from matfit.api import scene_fits
+from matfit.api import requests, scene_fits
 from matfit.api.arguments import (
-    ARRAY,
     Image,
     Picture,
     callback,
     flag,
-    linear_pixels,
     path_of,
     path_text,
     picture_paths,
-    picture_size,
-    read_pixels,
     shown,
     whole,
 )
@@ -198,8 +193,20 @@ class Fitter:
 
         started = time.perf_counter()
         verified = self.verify if verify is None else verify
-        request, notices = self._request(
-            picture, mask, init, settings, linear, verified, corrections, answer, refine, seed, outputs
+        request, notices = requests.request_of(
+            self,
+            self.variant,
+            picture,
+            mask,
+            init,
+            settings,
+            linear,
+            verified,
+            corrections,
+            answer,
+            refine,
+            seed,
+            outputs,
         )
         return self._fit_request(request, notices, started, answers=answers)
 
@@ -240,11 +247,23 @@ class Fitter:
         check_choices(settings, init, outputs)  # outputs before they are read
         verified = self.verify if verify is None else verify
         template = dataclasses.replace(outputs or Outputs(), params=os.path.join(into, "params.json"))
-        request, _ = self._request(
-            targets[0], mask, init, settings, False, verified, corrections, answer, refine, seed, template
+        request, _ = requests.request_of(
+            self,
+            self.variant,
+            targets[0],
+            mask,
+            init,
+            settings,
+            False,
+            verified,
+            corrections,
+            answer,
+            refine,
+            seed,
+            template,
         )
         # the model loaded after the checks (a folder that is no model is said before any fit, and leaves no folder)
-        requests = batch.plan(targets, into, request, then=lambda: self.model)
+        planned = batch.plan(targets, into, request, then=lambda: self.model)
 
         def fit_one(request: Request, written: Callable[[str], None]) -> Fit:
             return self._fit_request(request, [], time.perf_counter(), written)
@@ -253,7 +272,7 @@ class Fitter:
             if done is not None:
                 done(request.target, request.outputs.params if request.outputs else into, result)
 
-        return batch.fit_all(requests, self.model_path, fit_one, done=heard)
+        return batch.fit_all(planned, self.model_path, fit_one, done=heard)
 
     def _fit_request(
         self,
@@ -281,75 +300,6 @@ class Fitter:
                     written(str(outcome.document["target_sha256"]))
         outcome = dataclasses.replace(outcome, notices=(*notices, *outcome.notices))
         return fit_of(outcome, name)
-
-    def _request(
-        self,
-        picture: Picture,
-        mask: Picture | None,
-        init: str | os.PathLike[str] | Material | None,
-        settings: Settings | None,
-        linear: bool,
-        verified: bool,
-        corrections: int | None,
-        answer: str,
-        refine: int,
-        seed: int,
-        outputs: Outputs | None = None,
-    ) -> tuple[Request, list[str]]:
-        """Returns (the request of one fit, notices of the pixels read here): a picture file's as `matfit fit` makes
-        it, an array's with its pixels as the model's target."""
-        from matfit.fitting import search
-        from matfit.fitting.request import Request
-
-        check_choices(settings, init, outputs)
-        linear, verified, corrections, refine, seed = check_options(linear, verified, corrections, answer, refine, seed)
-        initial = (
-            None if init is None else "Material" if isinstance(init, Material) else path_text(init),
-            init.array() if isinstance(init, Material) else None,
-        )
-        target, pixels, digest, notices = ARRAY, None, None, list[str]()
-        size: tuple[int, int] | None = None  # an array's (height, width)
-        if isinstance(picture, str | os.PathLike):
-            if linear:
-                raise ImageError(
-                    "linear=True describes an array's values; a picture file says itself how it is encoded "
-                    "(EXR and HDR linear, the others sRGB): leave linear out",
-                    field="linear",
-                )
-            target = path_text(picture)
-        else:
-            given, notices = linear_pixels(picture, "picture", linear=linear)
-            size = (given.shape[0], given.shape[1])
-            pixels, more = search.prepare_target(given, self.model.resolution, "the picture array")
-            digest = hashlib.sha256(np.ascontiguousarray(np.asarray(picture)).tobytes()).hexdigest()
-            notices += more
-        named_mask, weights = None, None
-        if isinstance(mask, str | os.PathLike):
-            named_mask = path_text(mask)
-            if size is not None:  # the mask of an array is sized by the array: read here
-                weights = search.prepare_mask(read_pixels(named_mask, "mask"), size, self.model.resolution, named_mask)
-        elif mask is not None:
-            named_mask = ARRAY
-            mask_pixels = linear_pixels(mask, "mask", linear=False)[0]
-            weights = search.prepare_mask(mask_pixels, size or picture_size(target), self.model.resolution, "array")
-        request = Request(
-            target,
-            named_mask,
-            initial[0],
-            init_values=initial[1],
-            seed=seed,
-            settings=settings or Settings(),
-            verified=verified,
-            corrections=corrections,
-            refine_steps=refine,
-            variant=self.variant,
-            answer=answer,
-            pixels=pixels,
-            weights=weights,
-            target_sha256=digest,
-            outputs=None if outputs is None else outputs._request(),
-        )
-        return request, notices
 
 
 def fit(

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from matfit import documents, params
+from matfit.api import requests
 from matfit.api.arguments import MAX_SIZE, Picture, callback, flag, path_of, path_text, shown, whole
 from matfit.api.choices import check_choices
 from matfit.api.fitter import Fitter
@@ -73,7 +74,9 @@ def fit_sequence(
     previous = None if start is None else np.asarray(start, np.float32)
     fits: list[Fit] = []
     for frame in frames:
-        request, notices = fitter._request(frame, None, None, settings, linear, False, None, "best", 0, 0)
+        request, notices = requests.request_of(
+            fitter, fitter.variant, frame, None, None, settings, linear, False, None, "best", 0, 0
+        )
         if request.pixels is None:  # a file: read as `matfit sequence` reads a frame
             pixels, _, _ = fitfile.request_target(request, fitter.model.resolution)
             request = dataclasses.replace(request, pixels=pixels)

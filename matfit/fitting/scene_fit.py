@@ -53,6 +53,9 @@ JUDGE_SEED = 4_000_037  # their common seed: no step uses it (steps use refine.S
 REGION_SPP = 64  # the renders that find the region
 REGION_THRESHOLD = 6.0 / 255.0  # sRGB change (3x3 mean) that counts as the shape's doing
 NOT_THIS_SCENE_RMSE = 20.0  # 0-255 outside the region: a picture further than this from the scene is another's
+# 0-255 over the region: a picture this close to the scene without the shape has nothing of the shape in it (the
+# region's pixels are those the shape changes by 6 or more; two renders' noise alone stays under it)
+NOTHING_RMSE = 4.0
 PROBE = 0.15  # unit-cube step of the per-parameter check of what the view decides
 PROBE_SPP = 32
 UNDECIDED_RMSE = 0.75  # 0-255 over the region: a parameter that changes the picture less is not decided by it
@@ -202,7 +205,7 @@ def fit(
                 "target",
             )
     nothing = float(images.rmse(target, without, shape_region.astype(np.float32)))
-    if nothing < 2.0:
+    if nothing < NOTHING_RMSE:
         raise SceneError(
             f"the picture shows the scene without the shape {scene.object!r} (RMSE {nothing:.1f} from its render "
             "without it): give a picture with the shape in it",
