@@ -942,8 +942,8 @@ def when_reading_a_render(thread: int, action: Callable[[], None]) -> threading.
 
 @pytest.fixture(scope="module")
 def shared_fitter(tiny_model):
-    """Returns (a verifying Fitter of the tiny model, its fit of PICTURE with NEURAL): the tests below each leave it usable
-    (that is what they check), and start its render processes again where they broke them."""
+    """Returns (a verifying Fitter of the tiny model, its fit of PICTURE with NEURAL): the tests below each leave it
+    usable (that is what they check), and start its render processes again where they broke them."""
     with matfit.Fitter(tiny_model) as warm:
         yield warm, warm.fit(PICTURE, settings=NEURAL)
 
