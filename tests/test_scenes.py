@@ -136,3 +136,16 @@ def test_the_api_renders_and_fits_in_a_scene(scene, edited):
         matfit.render(matfit.Material(), scene=matfit.Scene(5, "object"))
     with pytest.raises(matfit.MatfitError, match=r"is no matfit\.Scene"):
         matfit.fit(pixels, scene=os.fspath(scene))
+
+
+def test_no_output_replaces_a_file_the_scene_names(tmp_path):
+    sky = Path(scene_library.write(str(tmp_path), "box", "sky", width=32, height=24))
+    image = tmp_path / "sky.exr"
+    before = image.read_bytes()
+    rendered = run("render", "--preset", "gold", "--scene", sky, "--object", "object", "-o", image, "--size", 16)
+    assert_one_line_error(rendered, "is the scene's file", "sky.exr")
+    picture = tmp_path / "picture.png"
+    images.write(str(picture), np.full((24, 32, 3), 0.5, np.float32))
+    fitted = run("fit", picture, "--scene", sky, "--object", "object", "-o", tmp_path / "p.json", "--report", image)
+    assert_one_line_error(fitted, "--report", "is the scene's file")
+    assert image.read_bytes() == before and not (tmp_path / "p.json").exists()

@@ -73,6 +73,11 @@ def render_values(
     return np.asarray(_renderers[key].render(values, seed=seed, spp=spp), np.float32)
 
 
+def scene_inputs(read: SceneFile) -> list[tuple[str, str]]:
+    """Returns the scene file and every file it names, as inputs no output may replace (`files.check_outputs`)."""
+    return [("scene", read.path), *(("scene's file", path) for path in read.files)]
+
+
 def render_file(
     values: np.ndarray, scene: Scene, output: str, *, size: int, spp: int, seed: int, variant: str | None
 ) -> tuple[int, int]:
@@ -80,7 +85,7 @@ def render_file(
     and returns its (width, height); the output is checked before any work and is not the scene's own file."""
     read = check_scene(scene).read()
     images.check_output(output)
-    files.check_outputs({"output": output}, {"scene": read.path})
+    files.check_outputs({"output": output}, scene_inputs(read))
     pixels = render_values(values, scene, size=size, spp=spp, seed=seed, variant=variant)
     with files.together() as batch:
         images.write(batch.path(output), pixels)
@@ -148,6 +153,10 @@ def fit_in_scene(
             "scene": read.path,
         }
         outputs.check(inputs)
+        named = {"output": outputs.params, "report": outputs.report, "render": outputs.render}
+        files.check_outputs(
+            {**named, "mitsuba_xml": outputs.mitsuba_xml, "blender": outputs.blender}, scene_inputs(read)
+        )
     pixels, target_name, digest, notices = _picture(picture, linear)
     scene_fit.check_aspect(read, pixels.shape[0], pixels.shape[1], f"the picture {target_name}")
     weights, mask_name = _mask(mask, (pixels.shape[0], pixels.shape[1]))

@@ -51,6 +51,7 @@ class SceneFile:
     shapes: tuple[str, ...]  # the ids of every shape with one, in file order
     own: np.ndarray | None  # the shape's own material (19 physical values), where it could be read
     own_note: str  # how the shape's own material was read, or why not
+    files: tuple[str, ...] = ()  # the files it names (meshes, images, included XML): inputs no output may replace
 
     @property
     def folder(self) -> str:
@@ -96,9 +97,9 @@ def _film_size(root: ElementTree.Element, defaults: dict[str, str], path: str) -
     return size[0], size[1]
 
 
-def _named_files(root: ElementTree.Element, defaults: dict[str, str], folder: str) -> list[str]:
-    """Returns the files the scene names (meshes, images, included XML) that are not there."""
-    missing = []
+def _named_files(root: ElementTree.Element, defaults: dict[str, str], folder: str) -> tuple[list[str], list[str]]:
+    """Returns (the files the scene names (meshes, images, included XML) that are not there, those that are)."""
+    missing, found = [], []
     for element in root.iter():
         value = None
         if element.tag == "include":
@@ -108,7 +109,9 @@ def _named_files(root: ElementTree.Element, defaults: dict[str, str], folder: st
         value = _resolved(value, defaults)
         if value and not os.path.isfile(os.path.join(folder, value)):
             missing.append(value)
-    return missing
+        elif value:
+            found.append(os.path.join(folder, value))
+    return missing, found
 
 
 def _values(element: ElementTree.Element, defaults: dict[str, str]) -> dict[str, list[float]]:
@@ -186,7 +189,7 @@ def read(path: str, object: str) -> SceneFile:
         raise SceneError(f"scene {path}'s root is <{root.tag}>, not <scene>: give a Mitsuba 3 XML scene", "scene")
     defaults = _defaults(root)
     folder = os.path.dirname(os.path.abspath(path))
-    missing = _named_files(root, defaults, folder)
+    missing, named = _named_files(root, defaults, folder)
     if missing:
         raise SceneError(
             f"scene {path} names {missing[0]!r}, which is not in {folder}: put the file beside the scene, or fix the "
@@ -222,6 +225,7 @@ def read(path: str, object: str) -> SceneFile:
         ids,
         own,
         note,
+        tuple(named),
     )
 
 
