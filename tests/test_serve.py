@@ -178,6 +178,30 @@ def test_a_running_fit_shows_the_neural_answer_at_once_and_its_own_answer_replac
     assert done["values"] == alone[EXAMPLE][2][1]["result"]["values"] and done["mitsuba_rmse"] is not None
 
 
+def test_a_fit_cancelled_once_its_neural_answer_shows_ends_at_its_next_answer_and_the_next_fit_is_whole(url, alone):
+    job = start_fit(url, EXAMPLE)[1]["job"]
+    deadline, cancelled = time.monotonic() + 120, False
+    while time.monotonic() < deadline:
+        answer = json.loads(request(f"{url}api/jobs/{job}")[1])
+        if not cancelled and (answer.get("result") or {}).get("stage") == "neural":
+            request(f"{url}api/jobs/{job}/cancel", b"")  # as a newer save does: the rest of the fit is not run
+            cancelled = True
+        if answer["state"] not in ("queued", "running"):
+            break
+        time.sleep(0.005)
+    assert cancelled and answer["state"] == "cancelled" and answer.get("result") is None, answer
+    status, _ = request(f"{url}api/jobs/{job}/files/params.json")
+    assert status >= 400  # nothing to download: the fit wrote nothing
+    again = start_fit(url, EXAMPLE)[1]["job"]
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        done = json.loads(request(f"{url}api/jobs/{again}")[1])
+        if done["state"] not in ("queued", "running"):
+            break
+        time.sleep(0.05)
+    assert done["state"] == "done" and done["result"]["values"] == alone[EXAMPLE][2][1]["result"]["values"]
+
+
 def test_a_fit_through_the_api_carries_what_the_picture_decides_as_its_params_json_says(url, alone):
     _, job, (_, done) = alone[EXAMPLE]
     found = done["result"]["ranges"]

@@ -37,6 +37,10 @@ MAX_RENDER_SPP = 4096
 RENDER_PASSES = 8  # a Mitsuba render from the page: spp split into passes, for progress and cancellation
 
 
+class SupersededError(Exception):
+    """A fit's job was cancelled or superseded while it ran: raised at its next stage's answer, ending the fit."""
+
+
 class Studio:
     """The loaded model, its renderer, the one worker that runs fits and renders, and every job."""
 
@@ -137,6 +141,9 @@ class Studio:
             fitted.document["wall_time_s"] = round(time.perf_counter() - started, 3)
             job.outcome, job.result = fitted, fit_result(fitted)
             job.state, job.stage, job.progress = "done", "done", 1.0
+        except SupersededError:  # cancelled, or a newer save of the watched file: the rest of the fit is not run
+            job.state = job.stage = "superseded" if watched else "cancelled"
+            job.result = None  # an earlier stage's answer is no fit's
         except MatfitError as error:
             status = 410 if error.field == GONE else 422
             message = str(error).replace(picture, target) if watched and picture else str(error)  # the file it names
@@ -157,7 +164,10 @@ class Studio:
     @staticmethod
     def _landed(job: Job, answer: Fit) -> None:
         """Shows the page a stage's answer of a running fit as soon as it exists, the neural search's first (not yet
-        checked in Mitsuba), until the next one, and then the fit's own, replaces it."""
+        checked in Mitsuba), until the next one, and then the fit's own, replaces it. A job cancelled meanwhile (or
+        superseded by a newer save) ends here, its later stages not run (`SupersededError`)."""
+        if job.cancelled.is_set():
+            raise SupersededError
         if job.state == "running":
             job.result = fit_result(answer)
 
@@ -221,7 +231,8 @@ class Studio:
         return png_bytes(self.model.decode(params.to_unit(values))[0])
 
     def cancel(self, job_id: str) -> Job:
-        """Marks a job cancelled: a queued one never runs, a render stops after its current pass."""
+        """Marks a job cancelled: a queued one never runs, a render stops after its current pass, a fit at its next
+        stage's answer."""
         job = self.job(job_id)
         job.cancelled.set()
         return job
