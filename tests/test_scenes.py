@@ -70,6 +70,10 @@ def test_matfit_fit_in_a_scene_writes_every_output_and_comes_closer(scene, edite
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     assert all(path.is_file() for path in out.values())
+    # progress by step (stage, RMSE, time left), then the summary line
+    steps = [line for line in result.output.splitlines() if line.startswith("fitting 'object' in ")]
+    assert steps and all(", RMSE " in line for line in steps) and " s left" in steps[0], steps
+    assert result.output.splitlines()[-1].startswith(f"{out['p.json']}: scene 'object', Mitsuba RMSE ")
     document = json.loads(out["p.json"].read_text())
     assert document["method"] == "scene" and set(document["params"]) == set(params.NAMES)
     assert document["scene"]["object"] == "object" and document["scene"]["camera"] == [32, 24]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
@@ -90,10 +91,14 @@ class Progress:
     def steps(self) -> Callable[[str, int, int, float], None]:
         """Returns a callback `(stage, step, steps, loss)` for an optimisation that reports each step's loss."""
 
+        began = time.perf_counter()
+
         def report(stage: str, step: int, steps: int, loss: float) -> None:
             if steps != self.total:
                 self.start(self.label, steps, step)
-            self.update(step, f"{stage}, RMSE {loss:.2f}")
+            elapsed = time.perf_counter() - began
+            left = f", {elapsed / step * (steps - step):.0f} s left" if self.bar is None and 0 < step < steps else ""
+            self.update(step, f"{stage}, RMSE {loss:.2f}{left}")
 
         return report
 
