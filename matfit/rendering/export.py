@@ -71,11 +71,15 @@ def _value_element(parent: ElementTree.Element, name: str, value: dict | float) 
         ElementTree.SubElement(parent, "float", name=name, value=repr(float(value)))
 
 
-def _object(root: ElementTree.Element, tag: str, identifier: str, description: dict) -> None:
-    element = ElementTree.SubElement(root, tag, type=description["type"], id=identifier)
+def element(tag: str, description: dict, **attributes: str) -> ElementTree.Element:
+    """Returns a Mitsuba XML element of plain `mi.load_dict` data (`scene.bsdf`, `scene.medium`): its type and
+    `attributes` (an id, a name), then each value as a float, rgb or nested phase element. The export and a scene
+    file's fitted shape (`scene_file.xml`) write the material alike."""
+    made = ElementTree.Element(tag, {"type": description["type"], **attributes})
     for key, value in description.items():
         if key != "type":
-            _value_element(element, key, value)
+            _value_element(made, key, value)
+    return made
 
 
 def mitsuba_xml(values: np.ndarray) -> str:
@@ -87,8 +91,8 @@ def mitsuba_xml(values: np.ndarray) -> str:
             'and <ref name="interior" id="matfit-interior"/> for a medium '
         )
     )
-    _object(root, "bsdf", MATERIAL_ID, scene.bsdf(values))
-    _object(root, "medium", MEDIUM_ID, scene.medium(values))
+    root.append(element("bsdf", scene.bsdf(values), id=MATERIAL_ID))
+    root.append(element("medium", scene.medium(values), id=MEDIUM_ID))
     ElementTree.indent(root)
     return ElementTree.tostring(root, encoding="unicode") + "\n"
 

@@ -29,7 +29,7 @@ import numpy as np
 
 from matfit import params
 from matfit.errors import SceneError
-from matfit.rendering import scene
+from matfit.rendering import export, scene
 
 DEFAULT_FILM = (768, 576)  # Mitsuba's hdrfilm's width and height where the file gives none
 MAX_SCENE_BYTES = 64 * 1024 * 1024  # an XML file larger than this is refused before parsing
@@ -229,30 +229,9 @@ def read(path: str, object: str) -> SceneFile:
     )
 
 
-def _value_element(parent: ElementTree.Element, name: str, value: object) -> None:
-    if isinstance(value, dict) and value.get("type") == "rgb":
-        ElementTree.SubElement(parent, "rgb", name=name, value=" ".join(repr(float(v)) for v in value["value"]))
-    elif isinstance(value, dict):
-        child = ElementTree.SubElement(parent, "phase", type=str(value["type"]), name=name)
-        for key, item in value.items():
-            if key != "type":
-                _value_element(child, key, item)
-    else:
-        ElementTree.SubElement(parent, "float", name=name, value=repr(float(value)))  # type: ignore[arg-type]
-
-
 def _material_elements(values: np.ndarray) -> list[ElementTree.Element]:
     """Returns matfit's principled BSDF and interior medium of a material as XML elements, for inside a shape."""
-    made = []
-    for tag, description, name in (("bsdf", scene.bsdf(values), None), ("medium", scene.medium(values), "interior")):
-        element = ElementTree.Element(tag, type=str(description["type"]))
-        if name:
-            element.set("name", name)
-        for key, value in description.items():
-            if key != "type":
-                _value_element(element, key, value)
-        made.append(element)
-    return made
+    return [export.element("bsdf", scene.bsdf(values)), export.element("medium", scene.medium(values), name="interior")]
 
 
 def xml(
