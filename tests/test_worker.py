@@ -1,4 +1,5 @@
-"""`matfit worker`: fits sent as JSON lines to one process answer what `matfit fit` writes; bad lines are errors."""
+"""`matfit worker`: fits sent as JSON lines to one process answer what `matfit fit` writes, each stage's answer first
+where asked; bad lines are errors."""
 
 import json
 import subprocess
@@ -24,7 +25,7 @@ def without_timings(document):
 
 
 class Worker:
-    """A `matfit worker` process: `ask` writes one line and returns the answer."""
+    """A `matfit worker` process: `ask` writes one line and returns the answer (the stage lines before it: `stages`)."""
 
     def __init__(self):
         self.process = subprocess.Popen(
@@ -38,10 +39,14 @@ class Worker:
     def ask(self, line: bytes) -> dict:
         self.process.stdin.write(line + b"\n")
         self.process.stdin.flush()
-        return json.loads(self.process.stdout.readline())
+        self.stages = []
+        while "exit" not in (answer := json.loads(self.process.stdout.readline())):
+            self.stages.append(answer)
+        return answer
 
-    def fit(self, identifier, *arguments) -> dict:
-        return self.ask(json.dumps({"id": identifier, "arguments": ["fit", *map(str, arguments)]}).encode())
+    def fit(self, identifier, *arguments, **fields) -> dict:
+        request = {"id": identifier, "arguments": ["fit", *map(str, arguments)], **fields}
+        return self.ask(json.dumps(request).encode())
 
     def close(self, seconds=30) -> int:
         self.process.stdin.close()
@@ -51,10 +56,12 @@ class Worker:
         return code
 
 
-def test_two_fits_in_one_worker_write_what_matfit_fit_writes(tmp_path):
+def test_two_fits_in_one_worker_write_what_matfit_fit_writes_and_one_asking_hears_each_stage_first(tmp_path):
     running = Worker()
     first = running.fit(1, EDITED, "-o", tmp_path / "first.json", *FIT_OPTIONS)
-    second = running.fit("two", EDITED, "-o", tmp_path / "second.json", *FIT_OPTIONS)
+    assert running.stages == []  # not asked for: the final line alone, as a client of protocol 1 reads it
+    second = running.fit("two", EDITED, "-o", tmp_path / "second.json", *FIT_OPTIONS, stages=True)
+    heard = running.stages
     assert running.close() == 0
     assert first["id"] == 1 and first["exit"] == 0, first["output"]
     assert second["id"] == "two" and second["exit"] == 0, second["output"]
@@ -66,6 +73,17 @@ def test_two_fits_in_one_worker_write_what_matfit_fit_writes(tmp_path):
     expected = without_timings(json.loads(reference.read_text()))
     for name in ("first", "second"):  # bit for bit: every figure and value as JSON writes it
         assert without_timings(json.loads((tmp_path / f"{name}.json").read_text())) == expected, name
+    # each stage's answer came as it landed, in order, before the final line
+    assert [(line["id"], line["stage"]) for line in heard] == [("two", "neural"), ("two", "verified"), ("two", "clean")]
+    neural, verified, clean = (line["document"] for line in heard)
+    written = json.loads((tmp_path / "second.json").read_text())
+    assert without_timings(clean) == without_timings(written)  # the last stage's is the params.json written
+    kept = written["verification"]["kept"]
+    assert without_timings(verified["verification"]) == without_timings(written["verification"])
+    assert verified["mitsuba_rmse"] == written["verification"]["mitsuba_rmse"][kept]
+    assert "mitsuba_rmse" not in neural and "verification" not in neural  # not yet checked in Mitsuba
+    assert neural["neural_rmse"] == written["start_rmse"]  # --method nn: the search's answer is its best start
+    assert neural["params"] != verified["params"] != clean["params"]  # each stage changed the answer here
 
 
 def test_bad_requests_are_answered_with_one_error_line_and_the_worker_goes_on(tmp_path):
@@ -90,7 +108,7 @@ def test_bad_requests_are_answered_with_one_error_line_and_the_worker_goes_on(tm
     assert answers["unknown field"] == {
         "id": 1,
         "exit": 2,
-        "output": "error: a request holds only id, arguments, not shell\n",
+        "output": "error: a request holds only id, arguments, stages, not shell\n",
     }
     assert answers["too long"]["id"] is None and str(worker.MAX_REQUEST) in answers["too long"]["output"]
     assert answers["not fit"]["output"] == "error: the worker runs fit, not 'render'\n"
@@ -120,6 +138,7 @@ def test_the_worker_ends_when_its_input_ends_during_a_fit(tmp_path):
         (b"\xff\xfe", "one JSON object a line"),
         (b'{"id": true, "arguments": ["fit"]}', "id is a number or a string"),
         (b'{"id": 1, "arguments": "fit x.png"}', "a list of strings"),
+        (b'{"id": 1, "arguments": ["fit", "x.png"], "stages": "yes"}', '"stages" is true'),
     ],
 )
 def test_parse_refuses_what_is_not_a_request(line, refusal):

@@ -293,7 +293,7 @@ def fit_command(
                 log("run the same command again to fit the pictures that failed; those fitted are kept")
                 raise typer.Exit(2)
             return
-        fitted = fitter.fit(str(targets[0]), **chosen, answers=report_answer)
+        fitted = fitter.fit(str(targets[0]), **chosen, answers=worker.answers(report_answer))
     echo_lines(fitted.notices)
     log(fitted.summary)
 
@@ -303,8 +303,9 @@ def worker_command() -> None:
     """Run `matfit fit` for each JSON request line on standard input, its model and Mitsuba kept warm between fits.
 
     A request is {"id": 1, "arguments": ["fit", "edited.png", "-o", "params.json", ...]}; each answer is one JSON
-    line on standard output, {"id": 1, "exit": 0, "output": "..."}. Ends when standard input ends. The Blender
-    extension's (docs/blender.md).
+    line on standard output, {"id": 1, "exit": 0, "output": "..."}. A request with "stages": true hears each stage's
+    answer first, as it lands: {"id": 1, "stage": "neural", "document": its params.json}. Ends when standard input
+    ends. The Blender extension's (docs/blender.md).
     """
     from matfit.app import worker
 

@@ -4,7 +4,12 @@ The Blender extension starts it once a session and sends it each fit (docs/blend
 It reads one JSON request a line on standard input, `{"id": 1, "arguments": ["fit", PICTURE, "-o", OUT,
 ...]}`, runs exactly what `matfit fit` with those arguments runs (the same Typer app, in this process),
 and answers one JSON line on standard output, `{"id": 1, "exit": code, "output": what matfit fit printed}`.
-Its first line, before any request, is `{"ready": "matfit worker", "protocol": 1}`. Between requests it
+A request with `"stages": true` (protocol 2) also hears each stage's answer as it lands, before that final line:
+`{"id": 1, "stage": "neural", "document": {...}}`, then "verified", "clean" ("refined"), as many as the fit runs
+(none for a `--scene` fit or several pictures), `document` the stage's params.json as if the fit ended there
+(`matfit.Fit.document`; the last stage's is the params.json written, but for its timings). A stage line has no
+"exit", and a request without "stages" hears the final line alone, as in protocol 1.
+Its first line, before any request, is `{"ready": "matfit worker", "protocol": 2}`. Between requests it
 keeps (`Warm`) the model loaded (by path, as long as its files are unchanged) and one `matfit.Fitter` (and
 so one render pool) per variant, so only the first fit pays for loading them; a fit that fails keeps the
 pool while every child runs (the picture was at fault) and closes it otherwise (the next fit starts another).
@@ -21,6 +26,7 @@ after the fit) otherwise.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import io
 import json
 import os
@@ -30,11 +36,19 @@ import traceback
 from collections.abc import Callable, Iterator
 from typing import IO, Any
 
-PROTOCOL = 1
+PROTOCOL = 2  # 2: a request may ask for the stages' answers ("stages": true)
 READY = {"ready": "matfit worker", "protocol": PROTOCOL}
 MAX_REQUEST = 1 << 20  # bytes of one request line: a fit's arguments are a few hundred
 COMMANDS = ("fit",)
-FIELDS = ("id", "arguments")
+FIELDS = ("id", "arguments", "stages")
+
+
+@dataclasses.dataclass(frozen=True)
+class Request:
+    """One request line read: the command line to run, and whether each stage's answer is written as it lands."""
+
+    arguments: list[str]
+    stages: bool = False
 
 
 class Warm:
@@ -53,6 +67,7 @@ class Warm:
 
 
 _warm: Warm | None = None  # set while `serve` runs
+_heard: Callable[[Any], None] | None = None  # writes a stage's answer line, while a request that asked for them runs
 
 
 @contextlib.contextmanager
@@ -106,12 +121,26 @@ def _stamp(path: str) -> tuple:
     return tuple(sorted(found))
 
 
+def answers(printed: Callable[[Any], None]) -> Callable[[Any], None]:
+    """Returns what `matfit fit` hears each stage's answer (a `matfit.Fit`) with: `printed`, which prints its line,
+    and in a worker whose request asked for the stages, the stage's line written to the worker's replies too."""
+    heard = _heard
+    if heard is None:
+        return printed
+
+    def both(fitted: Any) -> None:
+        printed(fitted)
+        heard(fitted)
+
+    return both
+
+
 def error_reply(identifier: Any, message: str) -> dict:
     return {"id": identifier, "exit": 2, "output": f"error: {message}\n"}
 
 
-def parse(line: bytes) -> tuple[Any, list[str] | None, str | None]:
-    """Returns (the request's id, its arguments, None), or (id or None, None, why it is refused) for a bad line."""
+def parse(line: bytes) -> tuple[Any, Request | None, str | None]:
+    """Returns (the request's id, the `Request`, None), or (id or None, None, why it is refused) for a bad line."""
     if len(line) > MAX_REQUEST:
         return None, None, f"a request line is longer than {MAX_REQUEST} bytes"
     try:
@@ -132,7 +161,10 @@ def parse(line: bytes) -> tuple[Any, list[str] | None, str | None]:
     if not arguments or arguments[0] not in COMMANDS:
         named = repr(arguments[0]) if arguments else "nothing"
         return identifier, None, f"the worker runs {' or '.join(COMMANDS)}, not {named}"
-    return identifier, arguments, None
+    stages = request.get("stages", False)
+    if not isinstance(stages, bool):
+        return identifier, None, "a request's \"stages\" is true (write each stage's answer as it lands) or false"
+    return identifier, Request(arguments, stages), None
 
 
 def run(app: Callable[..., Any], arguments: list[str]) -> tuple[int, str]:
@@ -173,7 +205,7 @@ def serve(
     A thread reads the requests, so their end is seen during a fit too: `on_close` is then called from that thread
     (the command line's ends the process at once; None: the fit in hand is finished first).
     """
-    global _warm
+    global _warm, _heard
     incoming: queue.Queue[bytes | None] = queue.Queue()
     busy = threading.Event()
 
@@ -192,11 +224,15 @@ def serve(
             if not line.strip():
                 continue
             busy.set()
-            identifier, arguments, refusal = parse(line)
-            if arguments is None:
+            identifier, request, refusal = parse(line)
+            if request is None:
                 reply = error_reply(identifier, refusal or "a bad request")
             else:
-                code, output = run(app, arguments)
+                _heard = stage_writer(replies, identifier) if request.stages else None
+                try:
+                    code, output = run(app, request.arguments)
+                finally:
+                    _heard = None
                 reply = {"id": identifier, "exit": code, "output": output}
             busy.clear()
             write(replies, reply)
@@ -204,6 +240,16 @@ def serve(
         _warm.close()
         _warm = None
     return 0
+
+
+def stage_writer(replies: IO[str], identifier: Any) -> Callable[[Any], None]:
+    """Returns what writes a stage's answer (a `matfit.Fit`) of the request `identifier` as one line on `replies`: the
+    stage's name and its params.json document, as the file would hold it (`Fit.to_json`)."""
+
+    def heard(fitted: Any) -> None:
+        write(replies, {"id": identifier, "stage": fitted.stage, "document": json.loads(fitted.to_json())})
+
+    return heard
 
 
 def write(replies: IO[str], reply: dict) -> None:
