@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 import threading
 import time
@@ -69,4 +70,49 @@ def test_a_worker_that_never_answers_is_given_up_after_what_the_fit_can_take_in_
         "and the next fit starts a new one"
     )
     assert worker.code() is not None and jobs._worker[0] is None  # ended; the next fit starts another
+    job.remove()
+
+
+# A `matfit worker` that says it is ready late (a request is sent before), keeps each request, sends two stages'
+# answers where asked, and its final answer once the file GO exists.
+STAGED = """#!{python}
+import json, os, sys, time
+time.sleep(0.5)
+print(json.dumps({{"ready": "matfit worker", "protocol": {protocol}}}), flush=True)
+for line in sys.stdin:
+    request = json.loads(line)
+    with open({kept!r}, "a") as file:
+        file.write(line)
+    for stage, roughness in (("neural", 0.25), ("verified", 0.5)) if request.get("stages") else ():
+        document = {{"params": {{"roughness": roughness}}}}
+        print(json.dumps({{"id": request["id"], "stage": stage, "document": document}}), flush=True)
+    while not os.path.exists({go!r}):
+        time.sleep(0.05)
+    print(json.dumps({{"id": request["id"], "exit": 0, "output": "done"}}), flush=True)
+"""
+
+
+@pytest.mark.parametrize("protocol", [1, 2])
+def test_a_worker_of_protocol_2_is_asked_for_the_stages_and_each_is_handed_on_as_it_lands(jobs, tmp_path, protocol):
+    kept, go = tmp_path / "requests", tmp_path / "go"
+    staged = tmp_path / "staged"
+    staged.write_text(STAGED.format(python=sys.executable, protocol=protocol, kept=str(kept), go=str(go)))
+    staged.chmod(0o755)
+    arguments = [*BASE, "-o", str(tmp_path / "p.json")]
+    job = jobs.WorkerJob(str(staged), arguments)
+    heard, deadline = [], time.monotonic() + 60
+    while (len(heard) < 2 if protocol == 2 else not kept.exists()) and time.monotonic() < deadline:
+        heard += job.stages()  # never waits
+        time.sleep(0.05)
+    assert job.poll() is None  # the fit runs on: its final answer waits for GO
+    (request,) = map(json.loads, kept.read_text().splitlines())  # sent once, after the worker said it is ready
+    if protocol == 1:  # a worker that knows no stages is not asked for them (it would refuse the field)
+        assert request == {"id": 1, "arguments": arguments} and heard == [] and job.stages() == []
+    else:
+        assert request == {"id": 1, "arguments": arguments, "stages": True}
+        assert heard == [("neural", {"params": {"roughness": 0.25}}), ("verified", {"params": {"roughness": 0.5}})]
+    go.touch()
+    job.wait()
+    job.check()  # exit 0
+    assert job.poll() == 0 and job.stages() == []
     job.remove()

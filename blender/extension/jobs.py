@@ -8,8 +8,11 @@ folder is removed when the job is done with (`Job.remove`).
 A fit runs in matfit's worker (`WorkerJob`): one `matfit worker` process a Blender session (`Worker`),
 started by the first fit and kept, so that the model, JAX's compiled programs and Mitsuba's scene
 stay loaded; it is sent each fit's command line as one JSON line and answers with its exit code and
-output. A worker that ends during a fit is started again once for that fit; ending again is the
-fit's one error line, its last words on standard error. A matfit command that has no worker (an
+output. A worker of protocol 2 is asked for the stages' answers too: it sends each as it lands (the
+neural search's first), before its exit code, and `WorkerJob.stages` hands them on without waiting.
+A request waits until the worker has said it is ready, so that its protocol is known (an older worker
+refuses a field it does not know). A worker that ends during a fit is started again once for that
+fit; ending again is the fit's one error line, its last words on standard error. A matfit command that has no worker (an
 older matfit: it ends without saying it is ready) runs each fit as a process of its own (`Job`),
 said once in a report line. `stop_workers` ends the worker when Blender quits or the extension is
 turned off; a worker whose Blender ended any other way sees its standard input end and ends too.
@@ -177,7 +180,8 @@ class Worker:
     """One `matfit worker` process of a matfit command: requests written to it as JSON lines, its answers read by a
     thread (so that nothing waits on it), the last lines of its standard error kept for an error line."""
 
-    LIMIT = 1 << 20  # bytes of one answer line read: a fit's output is a few lines
+    LIMIT = 1 << 20  # bytes of one answer line read: a fit's output is a few lines, a stage's params.json a few KB
+    STAGES = 2  # the worker protocol whose requests may ask for the stages' answers
     STOP_SECONDS = 2.0  # how long `stop` waits for the worker to end by itself before ending it
     QUICK_SECONDS = 0.2  # the same, when Blender is waiting (a worker replaced, a fit cancelled)
 
@@ -188,9 +192,13 @@ class Worker:
         self.command = command
         self.started = time.monotonic()
         self.ready = False  # it said it is a matfit worker
+        self.protocol = 1  # the protocol it said it speaks
         self.ended = False  # its standard output ended: it ended, or is ending
         self.errors = collections.deque(maxlen=20)
         self._answers = {}
+        self._stages = {}  # request id: [(stage, its params.json document)] not yet taken
+        self._waiting = []  # requests sent before it said it is ready
+        self._lock = threading.Lock()  # the requests written, and the stages kept, from two threads
         self._next = 0
         try:
             # A session of its own: a Ctrl-C in Blender's terminal reaches Blender, whose end ends the worker.
@@ -221,11 +229,23 @@ class Worker:
             if not isinstance(answer, dict):
                 continue
             if answer.get("ready") == "matfit worker":
-                self.ready = True
+                self._ready(answer.get("protocol"))
             elif isinstance(answer.get("exit"), int) and isinstance(answer.get("output"), str):
                 self._answers[answer.get("id")] = (answer["exit"], answer["output"])
+            elif isinstance(answer.get("stage"), str) and isinstance(answer.get("document"), dict):
+                with self._lock:
+                    self._stages.setdefault(answer.get("id"), []).append((answer["stage"], answer["document"]))
         stream.close()  # its end: nothing more comes
         self.ended = True
+
+    def _ready(self, protocol):
+        """Takes the worker's word that it is ready, speaking `protocol`, and writes the requests that waited for it."""
+        with self._lock:
+            self.protocol = protocol if isinstance(protocol, int) and not isinstance(protocol, bool) else 1
+            self.ready = True
+            for request in self._waiting:
+                self._write(request)
+            self._waiting.clear()
 
     def _read_errors(self):
         for line in self._process.stderr:
@@ -235,19 +255,41 @@ class Worker:
         self._process.stderr.close()
 
     def send(self, arguments):
-        """Sends the command line `arguments` (["fit", ...]); returns the request's id (no answer comes if it ended)."""
-        self._next += 1
-        line = json.dumps({"id": self._next, "arguments": list(arguments)}) + "\n"
+        """Sends the command line `arguments` (["fit", ...]), once the worker has said it is ready; returns the
+        request's id (no answer comes if it ended)."""
+        with self._lock:
+            self._next += 1
+            request = {"id": self._next, "arguments": list(arguments)}
+            if self.ready:
+                self._write(request)
+            else:
+                self._waiting.append(request)
+            return self._next
+
+    def _write(self, request):
+        """Writes `request`, asking for the stages' answers where the worker's protocol has them (the lock held)."""
+        if self.protocol >= self.STAGES:
+            request = {**request, "stages": True}
         try:
-            self._process.stdin.write(line.encode())
+            self._process.stdin.write((json.dumps(request) + "\n").encode())
             self._process.stdin.flush()
         except (OSError, ValueError):  # it ended: the job sees it end without an answer
             pass
-        return self._next
 
     def answer(self, identifier):
-        """Returns (exit code, output) of the request `identifier` once answered, else None."""
-        return self._answers.pop(identifier, None)
+        """Returns (exit code, output) of the request `identifier` once answered, else None; its stages' answers not
+        taken are dropped then."""
+        answer = self._answers.pop(identifier, None)
+        if answer is not None:
+            with self._lock:
+                self._stages.pop(identifier, None)
+        return answer
+
+    def stages(self, identifier):
+        """Returns the stages' answers of the request `identifier` that came since the last call, [(stage, params.json
+        document)], oldest first."""
+        with self._lock:
+            return self._stages.pop(identifier, [])
 
     def code(self):
         """Returns the worker's exit code, or None while it runs."""
@@ -400,6 +442,14 @@ class WorkerJob:
                 )
                 return
             time.sleep(0.05)
+
+    def stages(self):
+        """Returns the answers of the fit's stages that came since the last call, [(stage, its params.json document)],
+        oldest first: the neural search's, then Mitsuba's ("verified", "clean", "refined"); none from a worker that
+        has no stages (protocol 1), a fit run as a process of its own, or once the fit has ended."""
+        if self._job is not None or self._answer is not None or self._error is not None:
+            return []
+        return self._worker.stages(self._id)
 
     def status(self):
         """Returns the status bar's text: what runs, for how long."""
