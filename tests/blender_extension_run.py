@@ -6,10 +6,12 @@ job.json: {"zip", "command", "size", "spp", "fit_options", "imports": {name: exp
 "failures": [[command, edited]], "worker": whether to fit again in the worker and after killing it,
 "planted": {"edited", "silent", "writers": {kind: command}, "blocked", "redirect", "crashes", "mute",
 "mute_seconds": FIT_SECONDS there},
-"follow": {"edited", "saved"}, "cancel": edited picture}.
+"follow": {"edited", "saved"}, "stages": {"edited", "fails", "go"}, "cancel": edited picture}.
 The scene: "source" (active, selected, holds the material to picture), "bare" (selected, no slots),
 "shared_a" (selected) and "shared_b" (not selected) sharing a mesh with the material "keep", and a selected light.
-The report holds what each step gave back and the line each operator reported.
+The report holds what each step gave back and the line each operator reported. Where the panel's operators run in
+the background (a timer polls), this script ticks what their timer does: `Follower.step`, and Fit's `Fitting.show`
+while its job runs, then `Fitting.finish`.
 """
 
 import json
@@ -100,6 +102,32 @@ def slots():
     }
 
 
+def scene_state():
+    """Returns what a fit may change anywhere: every material's name, the fitted material's nodes, the slots."""
+    return {"materials": sorted(m.name for m in bpy.data.materials), "matfit": material_state(), "slots": slots()}
+
+
+def shown(fitting, extension, wanted=None):
+    """Ticks `fitting` as Fit's timer does until it has ended, or until the stage `wanted` is shown; returns
+    {stage: what it showed}, the first state of each stage shown."""
+    states, deadline = {}, time.monotonic() + 600
+    while fitting.poll() is None and time.monotonic() < deadline:
+        fitting.show()
+        if fitting.shown is not None and fitting.shown[0] not in states:
+            stage, document = fitting.shown
+            preview = material_state(extension.PREVIEW)
+            states[stage] = {
+                "document": document,
+                "preview": preview,
+                "state": scene_state(),
+                "status": fitting.status(),
+            }
+            if stage == wanted:
+                break
+        time.sleep(0.1)
+    return states
+
+
 def fit_again(edited, jobs):
     """Returns what Fit of `edited` gave twice more: in the first Fit's worker, and after that worker was killed."""
     first = jobs._worker[0].pid
@@ -164,12 +192,19 @@ def main(job_path, report_path):
 
     if "fit" in job:
         build_scene()
+        bpy.ops.ed.undo_push(message="before the fit")
+        before = scene_state()
         start = time.monotonic()
-        report["fit"] = operator(lambda: bpy.ops.matfit.fit(filepath=job["fit"]))
+        # undo=True: the undo step the panel's button gets, which a script's call does not push
+        report["fit"] = operator(lambda: bpy.ops.matfit.fit("EXEC_DEFAULT", True, filepath=job["fit"]))
         report["fit_seconds"] = time.monotonic() - start
         report["slots"] = slots()
         report["shared_mesh_materials"] = [m.name for m in bpy.data.objects["shared_a"].data.materials]
         report["fitted"] = material_state()
+        bpy.ops.ed.undo()
+        report["fit_undone"] = [scene_state(), before]
+        bpy.ops.ed.redo()
+        report["fit_redone"] = material_state()
         if job.get("worker"):  # the same fit again, in the session's worker; then with that worker killed
             report["worker"] = fit_again(job["fit"], extension.jobs)
     report["failures"] = []
@@ -226,15 +261,55 @@ def main(job_path, report_path):
         bpy.context.scene.matfit.edited = edited
         follower = extension.Follower(bpy.context)
         report["follow_idle"] = [follower.step(bpy.context), follower.status()]
+        bpy.ops.ed.undo_push(message="before the followed fit")
+        before = scene_state()
         shutil.copy(job["follow"]["saved"], edited)  # the 2D editor saves the picture
         seen = os.stat(edited).st_mtime_ns
         os.utime(edited, ns=(seen, max(seen, follower.seen) + 10**9))
-        line, deadline = None, time.monotonic() + 600
+        line, deadline, stages = None, time.monotonic() + 600, []
         while line is None and time.monotonic() < deadline:
             time.sleep(0.25)
             line = follower.step(bpy.context)
+            fitting = follower.fitting
+            if fitting is not None and fitting.shown is not None and fitting.shown[0] not in stages:
+                stages.append(fitting.shown[0])
         report["follow"] = line
+        report["follow_shown"] = stages
         report["follow_fitted"] = material_state()
+        bpy.ops.ed.undo()  # the followed fit is one undo step
+        report["follow_undone"] = [scene_state(), before]
+        bpy.ops.ed.redo()
+        report["follow_redone"] = material_state()
+
+    if "stages" in job:  # Fit from the panel, its timer ticked here: the answers shown as they land, then the final
+        stages = job["stages"]
+        build_scene()
+        run_script(job["picture"]["script"])  # an earlier material "matfit" on the selected meshes
+        before = scene_state()
+        fitting = extension.Fitting(bpy.context, stages["edited"])
+        states = shown(fitting, extension)
+        report["stages"] = {"before": before, "shown": states, "line": fitting.finish(), "after": scene_state()}
+        # cancelled (Esc) once the neural answer is on the meshes: each mesh's materials as they were
+        build_scene()
+        before = scene_state()
+        fitting = extension.Fitting(bpy.context, stages["edited"])
+        states = shown(fitting, extension, wanted="neural")
+        fitting.cancel()
+        report["stages"]["cancelled"] = {"before": before, "shown": states, "after": scene_state()}
+        # a fit that fails once its neural answer is on the meshes: the same
+        prefs.command = stages["fails"]
+        build_scene()
+        before = scene_state()
+        fitting = extension.Fitting(bpy.context, stages["edited"])
+        states = shown(fitting, extension, wanted="neural")
+        open(stages["go"], "w").close()  # its answer now: a failure
+        fitting.wait()
+        try:
+            line = fitting.finish()
+        except Exception as error:  # what the operator reports in one line
+            line = extension.one_line(error)
+        report["stages"]["failed"] = {"before": before, "shown": states, "line": line, "after": scene_state()}
+        prefs.command = job["command"]
 
     if "cancel" in job:  # what Esc does to a running fit
         running = extension.jobs.Job(prefs.command, ["fit", job["cancel"], "-o", job["cancel"] + ".json"])

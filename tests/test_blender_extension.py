@@ -38,6 +38,18 @@ WRITTEN = {
     "params": {"base_color_r": 0.2, "spec_trans": 0.9, "density": 2.0, "medium_color_g": 0.5},
     "neural_rmse": 1.5,
 }
+PREVIEW = "matfit (not final)"  # the material of a running fit's earlier answer
+# A "matfit worker" of protocol 2 whose fits send the neural answer WRITTEN, then fail once the file GO exists
+FAILS_LATE = """#!{python}
+import json, os, sys, time
+print(json.dumps({{"ready": "matfit worker", "protocol": 2}}), flush=True)
+for line in sys.stdin:
+    request = json.loads(line)
+    print(json.dumps({{"id": request["id"], "stage": "neural", "document": {written}}}), flush=True)
+    while not os.path.exists({go!r}):
+        time.sleep(0.05)
+    print(json.dumps({{"id": request["id"], "exit": 2, "output": "error: the fit failed after its neural answer"}}))
+"""
 # "matfit" commands that exit 0 having written, as the output, something that is not matfit's params.json
 WRITERS = {
     "not JSON": "printf 'not json' > \"$out\"",
@@ -124,6 +136,9 @@ def session(tmp_path_factory):
         'while read request; do echo \'{"id": "no such fit", "exit": 0}\'; echo "not an answer"; done\n'
     )
     mute.chmod(0o755)
+    fails = folder / "fails late"
+    fails.write_text(FAILS_LATE.format(python=sys.executable, written=json.dumps(WRITTEN), go=str(folder / "go")))
+    fails.chmod(0o755)
     writers = {}
     # and one that writes a params.json of matfit's form (names left out take their defaults), for a picture
     # beside which NAME.params.json cannot be saved (a folder is in the way)
@@ -143,6 +158,7 @@ def session(tmp_path_factory):
     (folder / "edited.png").write_bytes(open_bytes(EDITED))
     (folder / "not-a-picture.png").write_text("not a picture")
     (folder / "follow.png").write_bytes(open_bytes(EDITED))
+    (folder / "stages.png").write_bytes(open_bytes(EDITED))
     job = {
         "zip": built.stdout.strip(),
         "command": str(command),
@@ -171,6 +187,7 @@ def session(tmp_path_factory):
             "mute_seconds": MUTE_SECONDS,
         },
         "follow": {"edited": str(folder / "follow.png"), "saved": str(shipped.EXAMPLES / "desaturated.png")},
+        "stages": {"edited": str(folder / "stages.png"), "fails": str(fails), "go": str(folder / "go")},
         "cancel": str(folder / "edited.png"),
     }
     (folder / "job.json").write_text(json.dumps(job))
@@ -285,6 +302,69 @@ def test_fit_puts_the_values_matfit_fit_writes_on_the_selected_objects_only(sess
     )
 
 
+def test_fit_from_the_panel_is_one_undo_step(session):
+    report = session[0]
+    undone, before = report["fit_undone"]
+    assert before["matfit"] is None and report["fitted"] is not None
+    assert undone == before  # no material "matfit", every slot as it was
+    assert report["fit_redone"] == report["fitted"]
+
+
+def test_fit_shows_the_neural_answer_at_once_then_puts_the_final_one_in_its_place(session):
+    report, folder, _ = session
+    stages = report["stages"]
+    assert next(iter(stages["shown"])) == "neural"
+    neural = stages["shown"]["neural"]
+    # at once, while the fit runs: the neural answer's material on the selected meshes, said not yet checked
+    assert re.fullmatch(
+        r"matfit fit running for \d+ s: in matfit's worker; the neural answer shown, not yet checked in Mitsuba",
+        neural["status"],
+    )
+    shown = {"source": [["OBJECT", PREVIEW]], "bare": [["OBJECT", PREVIEW]], "shared_a": [["OBJECT", PREVIEW]]}
+    assert neural["state"]["slots"] == {**shown, "shared_b": [["DATA", "keep"]]}
+    assert neural["state"]["matfit"]["nodes"] == stages["before"]["matfit"]["nodes"]  # the earlier material untouched
+    answer = folder / "neural.json"
+    answer.write_text(json.dumps(neural["document"]))
+    assert_material_is(neural["preview"], answer)
+    # then the final answer, the params.json the job wrote, in its place; the neural answer's material gone
+    final = json.loads(open_bytes(folder / "stages.params.json"))
+    assert final["params"] != neural["document"]["params"]  # verification changed it: the two checks differ
+    assert_material_is(stages["after"]["matfit"], folder / "stages.params.json")
+    assert stages["after"]["slots"] == stages["before"]["slots"]  # "matfit" on the selected meshes, as before
+    assert stages["after"]["materials"] == stages["before"]["materials"] == ["keep", "matfit"]
+    assert stages["line"] == (
+        f"matfit: material 'matfit' on 3 selected mesh(es), neural RMSE {final['neural_rmse']:.2f}, "
+        f"Mitsuba RMSE {final['mitsuba_rmse']:.2f}"
+    )
+
+
+@pytest.mark.parametrize("end", ["cancelled", "failed"])
+def test_a_fit_that_ends_without_its_answer_after_the_neural_one_puts_back_the_materials_the_meshes_had(session, end):
+    report, folder, _ = session
+    ended = report["stages"][end]
+    shown = ended["shown"]["neural"]["state"]
+    assert shown["slots"] == {
+        "source": [["OBJECT", PREVIEW]],
+        "bare": [["OBJECT", PREVIEW]],  # a slot added to its mesh
+        "shared_a": [["OBJECT", PREVIEW]],
+        "shared_b": [["DATA", "keep"]],
+    }
+    assert ended["before"]["slots"] == {
+        "source": [],
+        "bare": [],
+        "shared_a": [["DATA", "keep"]],
+        "shared_b": [["DATA", "keep"]],
+    }
+    assert ended["after"] == ended["before"]  # the slots, the links and every material, PREVIEW gone
+    if end == "failed":
+        answer = folder / "fails-late.json"
+        answer.write_text(json.dumps(WRITTEN))
+        assert_material_is(ended["shown"]["neural"]["preview"], answer)
+        assert (
+            ended["line"] == f"matfit ({folder / 'fails late'}) failed: error: the fit failed after its neural answer"
+        )
+
+
 def test_follow_refits_when_the_picture_is_saved(session):
     report, folder, _ = session
     assert report["follow_idle"] == [None, "matfit follows follow.png: waiting for the picture to change (Esc stops)"]
@@ -298,6 +378,11 @@ def test_follow_refits_when_the_picture_is_saved(session):
     metallic = params.INDEX["metallic"]
     assert followed[metallic] > 0.5 > params.read_file(str(folder / "edited.params.json"))[metallic]
     assert_material_is(report["follow_fitted"], folder / "follow.params.json")
+    # its neural answer shown first, the whole fit one undo step
+    assert report["follow_shown"][0] == "neural"
+    undone, before = report["follow_undone"]
+    assert undone == before and before["matfit"] is None
+    assert report["follow_redone"] == report["follow_fitted"]
 
 
 def test_esc_stops_a_running_fit_at_once(session):

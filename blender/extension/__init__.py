@@ -8,7 +8,10 @@ runs the matfit command line (its path in the extension's preferences) in a subp
 - `matfit.fit`: fits the edited picture (`matfit fit ... -o params.json` into the job's own new
   folder, run by the session's `matfit worker`, which keeps the model and Mitsuba loaded) and builds
   the material from that params.json through blender_mapping.to_blender (`material.write`), as the
-  exported script would, on the selected meshes. No script is run: a
+  exported script would, on the meshes selected when it started (`Fitting`); while it runs, each
+  earlier answer the worker sends (the neural search's first, not yet checked in Mitsuba) is put on
+  them at once, and a fit that fails or is cancelled puts back the materials they had. The whole fit
+  is one undo step. No script is run: a
   params.json this job did not write, or none, is one report line and the material stays as it was.
 - `matfit.scene_picture` ("Picture of this object"): exports the current scene for Mitsuba (`scene_export`) and
   renders the active object's material in it (`matfit render --scene`), the scene kept beside the picture;
@@ -16,8 +19,9 @@ runs the matfit command line (its path in the extension's preferences) in a subp
   (`matfit fit --scene`, in the worker) and puts the material on the active object alone, one undo step.
 From the panel they run in the background (a timer polls the subprocess, its last line in the status
 bar, Esc cancels); called from Python (`bpy.ops.matfit.fit(filepath=...)`, as headless Blender and
-the tests do) they wait for it. `matfit.follow` refits each time the edited file changes (`Follower`, one
-step per timer tick).
+the tests do) they wait for it, and only the final answer is put on the meshes. `matfit.follow` refits each
+time the edited file changes (`Follower`, one step per timer tick), each fit as Fit's from the panel, one undo
+step each.
 Every failure is one line in Blender's report, never a traceback.
 """
 
@@ -37,6 +41,7 @@ with open(os.path.join(os.path.dirname(__file__), "medium.json")) as _file:
     MINIMUM_EXTINCTION = json.load(_file)["minimum_extinction"]  # params.MINIMUM_EXTINCTION
 BOUNDS = {p["name"]: (p["low"], p["high"]) for p in TABLE}
 NAME = "matfit"  # the fitted material, as the exported script names it
+PREVIEW = f"{NAME} (not final)"  # a running fit's earlier answer, on the meshes until its final one replaces it
 POLL_SECONDS = 0.25
 OUTPUT_OPTIONS = ("-o", "--output")
 
@@ -186,6 +191,9 @@ class _Background:
         context.window_manager.event_timer_remove(self._timer)
         context.workspace.status_text_set(None)
 
+    def running(self, context):
+        """Called at each timer tick while the job runs (Fit shows the answers that landed)."""
+
     def modal(self, context, event):
         if event.type == "ESC":
             self._job.cancel()
@@ -195,6 +203,7 @@ class _Background:
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
         if self._job.poll() is None:
+            self.running(context)
             context.workspace.status_text_set(f"{self._job.status()} (Esc cancels)")
             return {"PASS_THROUGH"}
         self._stop(context)
@@ -246,16 +255,21 @@ class MATFIT_OT_fit(_Background, bpy.types.Operator):  # noqa: N801 (Blender's n
 
     bl_idname = "matfit.fit"
     bl_label = "Fit edited picture"
+    # One undo step, pushed as the fit finishes: the earlier answers shown while it ran are no step of their own.
+    bl_options = {"REGISTER", "UNDO"}  # noqa: RUF012 (Blender's form)
 
     filepath: StringProperty(
         name="Edited picture", description="Default: the panel's Edited picture", subtype="FILE_PATH"
     )
 
     def start(self, context):
-        return start_fit(context, self.filepath or context.scene.matfit.edited)
+        return Fitting(context, self.filepath or context.scene.matfit.edited)
+
+    def running(self, context):
+        self._job.show()
 
     def finish(self, context, job):
-        self.report({"INFO"}, finish_fit(context, job))
+        self.report({"INFO"}, job.finish())
 
 
 def _edited(path):
@@ -298,19 +312,22 @@ def start_fit(context, path):
     return job
 
 
-def finish_fit(context, job):
-    """Builds the material from the params.json this job wrote and puts it on the selected meshes; returns the line.
+def build(name, values):
+    """Returns the material `name` built from a fit's named values through blender_mapping.to_blender, as the export:
+    the same inputs as the exported script's."""
+    sigma_t, albedo = fitted.medium_coefficients(values, MINIMUM_EXTINCTION)
+    principled, volume = blender_mapping.to_blender(values, sigma_t, albedo)
+    with_volume = blender_mapping.has_volume(principled, volume)
+    return material.write(bpy.data.materials, name, principled, volume, with_volume)
 
-    Through blender_mapping.to_blender, as the export: the same inputs as the exported script's.
-    """
+
+def finish_fit(job, objects):
+    """Builds the material from the params.json this job wrote and puts it on the meshes among `objects`; returns the
+    report line."""
     try:
         job.check()
         values, document, data = fitted.read(job.path("params.json"), TABLE, job.command)
-        sigma_t, albedo = fitted.medium_coefficients(values, MINIMUM_EXTINCTION)
-        principled, volume = blender_mapping.to_blender(values, sigma_t, albedo)
-        with_volume = blender_mapping.has_volume(principled, volume)
-        built = material.write(bpy.data.materials, NAME, principled, volume, with_volume)
-        meshes = material.assign(built, context.selected_objects)
+        meshes = material.assign(build(NAME, values), objects)
         unsaved = _save(job.outputs["params"], data)
     finally:
         job.remove()
@@ -320,6 +337,84 @@ def finish_fit(context, job):
     figures += [f"Mitsuba RMSE {mitsuba:.2f}"] if mitsuba is not None else []  # absent with --no-verify
     figures += [unsaved] if unsaved else []
     return f"matfit: material {NAME!r} on {len(meshes)} selected mesh(es){hint}" + "".join(f", {f}" for f in figures)
+
+
+class Fitting:
+    """A fit of the edited picture (`start_fit`) for the meshes selected as it starts, with `WorkerJob`'s poll, wait,
+    status, note and cancel: each earlier answer the worker sends (the neural search's first) is put on them as it
+    lands (`show`, at each timer tick) in the material PREVIEW, then the final one from its params.json (`finish`).
+    A fit that fails or is cancelled puts back the materials the meshes had before its first answer was shown.
+
+    Nothing here pushes an undo step: Fit's own (as the operator finishes) and Follow's (after `finish`) hold the
+    whole fit, the answers shown before it included.
+    """
+
+    def __init__(self, context, path):
+        self.job = start_fit(context, path)
+        self.meshes = [obj.name for obj in context.selected_objects if obj.type == "MESH"]  # names outlive an undo
+        self.saved = None  # what the meshes' slots held before the first answer was shown
+        self.shown = None  # (stage, params.json document) of the answer on the meshes
+
+    @property
+    def note(self):
+        return self.job.note
+
+    def poll(self):
+        return self.job.poll()
+
+    def wait(self):
+        self.job.wait()
+
+    def _objects(self):
+        return [bpy.data.objects[name] for name in self.meshes if name in bpy.data.objects]
+
+    def show(self):
+        """Puts the latest answer that came since the last call on the meshes, in PREVIEW. One that is not matfit's
+        params.json is not shown: the final answer's file is checked, and said wrong, as ever."""
+        for stage, document in reversed(self.job.stages()):
+            try:
+                values = fitted.values(document, TABLE)
+            except fitted.FitError:
+                continue
+            if self.saved is None:
+                self.saved = material.slots(self._objects())
+            material.assign(build(PREVIEW, values), self._objects())
+            self.shown = (stage, document)
+            return
+
+    def status(self):
+        """Returns the status bar's text: the job's, and the answer on the meshes while it runs."""
+        if self.shown is None:
+            return self.job.status()
+        stage, document = self.shown
+        mitsuba = fitted.figure(document, "mitsuba_rmse")
+        checked = f"Mitsuba RMSE {mitsuba:.2f}" if mitsuba is not None else "not yet checked in Mitsuba"
+        return f"{self.job.status()}; the {stage} answer shown, {checked}"
+
+    def finish(self):
+        """Returns the report line of the final answer put on the meshes (`finish_fit`); raises as it does, the meshes'
+        materials put back."""
+        try:
+            line = finish_fit(self.job, self._objects())
+        except BaseException:
+            self._take_back()
+            raise
+        self._remove_preview()
+        return line
+
+    def cancel(self):
+        self.job.cancel()
+        self._take_back()
+
+    def _take_back(self):
+        if self.saved is not None:
+            material.restore(self.saved)
+        self._remove_preview()
+
+    def _remove_preview(self):
+        if self.saved is not None and PREVIEW in bpy.data.materials:
+            bpy.data.materials.remove(bpy.data.materials[PREVIEW])
+        self.saved = self.shown = None
 
 
 def scene_picture_path(picture, shape):
@@ -455,12 +550,9 @@ class MATFIT_OT_scene_fit(_Background, bpy.types.Operator):  # noqa: N801 (Blend
         try:
             job.check()
             values, document, data = fitted.read(job.path("params.json"), TABLE, job.command)
-            sigma_t, albedo = fitted.medium_coefficients(values, MINIMUM_EXTINCTION)
-            # the medium per world unit: a scene's shape has matfit's medium at the scene's own scale (radius 1)
-            principled, volume = blender_mapping.to_blender(values, sigma_t, albedo)
-            with_volume = blender_mapping.has_volume(principled, volume)
             name = f"{NAME} {self._object}"
-            built = material.write(bpy.data.materials, name, principled, volume, with_volume)
+            # the medium per world unit: a scene's shape has matfit's medium at the scene's own scale (radius 1)
+            built = build(name, values)
             obj = bpy.data.objects.get(self._object)
             material.assign(built, [obj] if obj is not None else [])
             unsaved = _save(job.outputs["params"], data)
@@ -484,7 +576,8 @@ class MATFIT_OT_scene_fit(_Background, bpy.types.Operator):  # noqa: N801 (Blend
 
 
 class Follower:
-    """Refits the edited picture each time its file changes: `step` once per timer tick, headless too."""
+    """Refits the edited picture each time its file changes: `step` once per timer tick, headless too. Each fit is
+    Fit's (`Fitting`): its earlier answers shown as they land, the final one pushed as one undo step."""
 
     def __init__(self, context):
         settings = context.scene.matfit
@@ -492,29 +585,33 @@ class Follower:
         if not settings.edited or not os.path.isfile(self.path):
             raise jobs.JobError("matfit: fit an edited picture once first: Follow watches that file")
         self.seen = os.stat(self.path).st_mtime_ns
-        self.job = None
+        self.fitting = None
         self.note = None  # a fit run without matfit's worker says so, once
 
     def step(self, context):
-        """Finishes a fit that has ended and starts one if the file changed; returns the finished fit's line."""
+        """Shows the running fit's latest answer, or finishes it once it has ended (one undo step), and starts one if
+        the file changed; returns the finished fit's line."""
         line = None
-        if self.job is not None and self.job.poll() is not None:
-            job, self.job = self.job, None
-            self.note = job.note
-            line = finish_fit(context, job)
+        if self.fitting is not None and self.fitting.poll() is None:
+            self.fitting.show()
+        elif self.fitting is not None:
+            fitting, self.fitting = self.fitting, None
+            self.note = fitting.note
+            line = fitting.finish()
+            bpy.ops.ed.undo_push(message=f"matfit: fit of {os.path.basename(self.path)}")
         changed = os.stat(self.path).st_mtime_ns
-        if self.job is None and changed != self.seen:
+        if self.fitting is None and changed != self.seen:
             self.seen = changed
-            self.job = start_fit(context, self.path)
+            self.fitting = Fitting(context, self.path)
         return line
 
     def status(self):
-        activity = self.job.status() if self.job is not None else "waiting for the picture to change"
+        activity = self.fitting.status() if self.fitting is not None else "waiting for the picture to change"
         return f"matfit follows {os.path.basename(self.path)}: {activity} (Esc stops)"
 
     def stop(self):
-        if self.job is not None:
-            self.job.cancel()
+        if self.fitting is not None:
+            self.fitting.cancel()
 
 
 class MATFIT_OT_follow(bpy.types.Operator):  # noqa: N801 (Blender's naming of operators and panels)
@@ -537,6 +634,8 @@ class MATFIT_OT_follow(bpy.types.Operator):  # noqa: N801 (Blender's naming of o
             self.report({"ERROR"}, str(error))
             return {"CANCELLED"}
         settings.following = True
+        # a step of its own, so that undoing a followed fit goes back to a scene that is still followed
+        bpy.ops.ed.undo_push(message=f"matfit: {self.bl_label.lower()}")
         self._timer = context.window_manager.event_timer_add(POLL_SECONDS * 4, window=context.window)
         context.window_manager.modal_handler_add(self)
         return {"RUNNING_MODAL"}

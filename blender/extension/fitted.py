@@ -3,7 +3,8 @@
 The extension never runs a script: it builds the material from these values through
 blender_mapping.to_blender, the table the export writes with. A file that is missing, not a regular
 file, larger than a params.json can be, not JSON, or holding a value that is not one of matfit's
-parameters in its range is one line (`FitError`), and the material is left as it was.
+parameters in its range is one line (`FitError`), and the material is left as it was; a stage's answer
+from the worker (its params.json document) is checked the same way (`values`).
 """
 
 import errno
@@ -45,36 +46,42 @@ def _read_bytes(path, command):
     return data
 
 
+def _refuse(problem):
+    return FitError(f"matfit: the fit's params.json {problem}: the material is unchanged; {FIX}")
+
+
 def read(path, table, command):
     """Returns (named values, document, its bytes) of the params.json at `path`, which the job of `command` wrote.
 
     `table` is params.table() (parameters.json in the zip): names, bounds and defaults. Names left
     out take their defaults, as in matfit.
     """
-
-    def refuse(problem):
-        return FitError(f"matfit: the fit's params.json {problem}: the material is unchanged; {FIX}")
-
     data = _read_bytes(path, command)
     try:
         document = json.loads(data, parse_constant=_refuse_constant)
     except (ValueError, RecursionError) as error:  # not JSON, not UTF-8, NaN, nested too deeply
         reason = str(error).splitlines()[0] if str(error) else type(error).__name__
-        raise refuse(f"is not valid JSON ({reason})") from None
+        raise _refuse(f"is not valid JSON ({reason})") from None
+    return values(document, table), document, data
+
+
+def values(document, table):
+    """Returns the named values of a params.json document (read from the file, or a stage's answer from the worker),
+    or raises FitError: `table` as `read`'s, names left out at their defaults."""
     if not isinstance(document, dict) or not isinstance(document.get("params"), dict):
-        raise refuse('holds no "params" object')
+        raise _refuse('holds no "params" object')
     parameters = {entry["name"]: entry for entry in table}
-    values = {name: entry["default"] for name, entry in parameters.items()}
+    named = {name: entry["default"] for name, entry in parameters.items()}
     for name, value in document["params"].items():
         if name not in parameters:
-            raise refuse(f"names {name!r}, which is not one of matfit's parameters")
+            raise _refuse(f"names {name!r}, which is not one of matfit's parameters")
         low, high = parameters[name]["low"], parameters[name]["high"]
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise refuse(f"gives {name} = {value!r}, not a number")
+            raise _refuse(f"gives {name} = {value!r}, not a number")
         if not low <= value <= high:
-            raise refuse(f"gives {name} = {value!r}, outside [{low:g}, {high:g}]")
-        values[name] = float(value)
-    return values, document, data
+            raise _refuse(f"gives {name} = {value!r}, outside [{low:g}, {high:g}]")
+        named[name] = float(value)
+    return named
 
 
 def medium_coefficients(values, minimum_extinction):

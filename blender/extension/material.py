@@ -2,7 +2,8 @@
 
 `write` builds the fitted material from blender_mapping.to_blender's inputs with the node tree of the
 exported script (matfit/rendering/blender_material.py), and `assign` puts it on the selected meshes as
-that script does; the extension runs no script.
+that script does; the extension runs no script. `slots` saves what `assign` changes and `restore` puts
+it back (a fit that fails or is cancelled after its first answer was shown).
 
 What matfit's shader can hold: a Principled BSDF on the Material Output's Surface, and on its Volume
 Volume Absorption, Volume Scatter (alone or added) or a Principled Volume. Another shader on the
@@ -10,6 +11,8 @@ Surface (Glass, Emission, a Mix, a node group) is refused with one line that say
 input driven by a link (a texture, a node group) is read at the value it shows when unlinked, and
 said so; so is a volume that cannot be read.
 """
+
+import bpy
 
 PRINCIPLED = "ShaderNodeBsdfPrincipled"
 VOLUME_SHADERS = ("ShaderNodeVolumeAbsorption", "ShaderNodeVolumeScatter", "ShaderNodeVolumePrincipled")
@@ -165,3 +168,43 @@ def assign(material, objects):
             slot.link = "OBJECT"
             slot.material = material
     return meshes
+
+
+def slots(objects):
+    """Returns what `assign` changes on the meshes among `objects`, for `restore`: by object name, its active slot and,
+    slot by slot, the slot's link and the name of the object's own material there (or None)."""
+    saved = {}
+    for obj in objects:
+        if obj.type != "MESH":
+            continue
+        own = []
+        for slot in obj.material_slots:
+            link = slot.link
+            slot.link = "OBJECT"  # the object's own material, also where the slot shows the mesh's
+            own.append((link, slot.material.name if slot.material is not None else None))
+            slot.link = link
+        saved[obj.name] = (obj.active_material_index, own)
+    return saved
+
+
+def restore(saved):
+    """Puts back on the objects still there what `slots` saved: each slot's own material and link, and the slots
+    `assign` added removed (in Edit Mode, where Blender removes none, left empty)."""
+    for name, (active, own) in saved.items():
+        obj = bpy.data.objects.get(name)
+        if obj is None or obj.type != "MESH":
+            continue
+        for index, slot in enumerate(obj.material_slots):
+            link, material = own[index] if index < len(own) else ("DATA", None)  # an added slot: the mesh's holds None
+            slot.link = "OBJECT"
+            slot.material = bpy.data.materials.get(material) if material is not None else None
+            slot.link = link
+        # the mesh's slot and the object's both: removing the mesh's alone (materials.pop) keeps the object's
+        while len(obj.material_slots) > len(own):
+            obj.active_material_index = len(obj.material_slots) - 1
+            try:
+                with bpy.context.temp_override(object=obj):
+                    bpy.ops.object.material_slot_remove()
+            except RuntimeError:  # "Unable to remove material slot in edit mode"
+                break
+        obj.active_material_index = active
