@@ -62,9 +62,11 @@ def test_a_fit_from_a_start_far_off_comes_closer_and_says_what_the_view_decides(
     assert outcome.accepted and outcome.rmse < 0.8 * outcome.start_rmse
     np.testing.assert_array_equal(outcome.start_values, start)
     assert outcome.integrator == "prb" and outcome.target.shape == (48, 64, 3)
-    assert len(outcome.starts) == 5 and len(outcome.losses) == 2 + 8  # a quarter of the steps a start, then 8
+    # a quarter of the steps a start, then 8, then a quarter more if a parameter left at a trapping bound moved
+    moved = outcome.bounds["moved"] is not None
+    assert len(outcome.starts) == 5 and len(outcome.losses) == 2 + 8 + (2 if moved else 0)
     assert [a[0] for a in heard][:10] == ["starts"] * 10 and heard[-1][0] == "judge"
-    assert heard[-1][1] == heard[-1][2] == 5 * 2 + 8
+    assert heard[-1][1] == heard[-1][2] == 5 * 2 + 8 + 2
     assert set(outcome.ranges) == set(params.NAMES)
     assert outcome.ranges["base_color_r"]["verdict"] == "decided"
     assert outcome.ranges["density"]["verdict"].startswith("not decided")  # an opaque fit shows no medium
@@ -95,3 +97,23 @@ def test_a_mask_decides_where_the_fit_looks(knot, red_picture):
     with pytest.raises(SceneError, match="the mask is black"):
         scene_fit.fit(knot, red_picture, mask=np.zeros((48, 64), np.float32), steps=1)
     assert images.rmse(outcome.rendered, outcome.target, outcome.weights) == pytest.approx(outcome.rmse, rel=1e-5)
+
+
+def test_roughness_the_descent_left_at_0_is_tried_inward_and_a_closer_point_kept(knot, red_picture):
+    renderer = scene_file.Renderer(knot, knot.size(64), integrator=scene_file.OPAQUE_INTEGRATOR)
+    target = np.clip(images.srgb_encode(red_picture), 0.0, 1.0).astype(np.float32)
+    weights = scene_fit.region(renderer)[0].astype(np.float32)
+    problem = scene_fit.problem_of(renderer, target, weights, "prb")
+    stuck = params.to_unit(presets.preset("red-plastic"))  # the truth (roughness 0.3) but for its roughness at 0
+    stuck[params.INDEX["roughness"]] = 0.0
+    point, done, losses = scene_fit.off_bounds(renderer, problem, stuck, target, weights, 2, seed=0)
+    assert done["tried"] == 2 * len(scene_fit.INWARD) == 4  # roughness and sheen are at 0; clearcoat is not
+    assert done["moved"] == "roughness" and len(losses) == 2
+    assert point[params.INDEX["roughness"]] >= 0.1
+    stuck_rmse, moved_rmse = done["rmse_two_seeds"][0], min(done["rmse_two_seeds"][1:])  # two seeds' means
+    assert moved_rmse < stuck_rmse - 0.3  # the truth's roughness is closer than 0 (3.42 -> 2.89 at one seed)
+    free = params.to_unit(presets.preset("red-plastic"))
+    free[params.INDEX["sheen"]] = 0.3
+    kept, nothing, none = scene_fit.off_bounds(renderer, problem, free, target, weights, 2, seed=0)
+    assert nothing == {"rmse": nothing["rmse"], "tried": 0, "moved": None} and none == []
+    np.testing.assert_array_equal(kept, free)

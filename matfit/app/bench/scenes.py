@@ -137,6 +137,7 @@ def run_case(case: Case, folder: str, steps: int, *, size: int = TARGET_SIZE, ju
         "floor": round(floor, 3) if case.edit is None else None,
         "target_vs_judge": round(float(images.rmse(small, truth_pair[0], weights)), 3),
         "accepted": outcome.accepted,
+        "moved_off_bound": outcome.bounds.get("moved"),
         "integrator": outcome.integrator,
         "seconds": round(seconds, 1),
         "values": [round(float(v), 5) for v in outcome.values],
