@@ -153,3 +153,22 @@ def test_no_output_replaces_a_file_the_scene_names(tmp_path):
     fitted = run("fit", picture, "--scene", sky, "--object", "object", "-o", tmp_path / "p.json", "--report", image)
     assert_one_line_error(fitted, "--report", "is the scene's file")
     assert image.read_bytes() == before and not (tmp_path / "p.json").exists()
+
+
+def test_a_shape_whose_material_matfit_cannot_read_starts_from_the_test_scenes_guess(scene, edited, tmp_path):
+    text = scene.read_text().replace(
+        '<bsdf type="principled"><rgb name="base_color" value="0.5 0.5 0.5"/><float name="roughness" value="0.5"/></bsdf>',
+        '<bsdf type="roughplastic"/>',
+    )
+    assert 'type="roughplastic"' in text
+    other = tmp_path / "scene.xml"
+    other.write_text(text)
+    for name in os.listdir(scene.parent):
+        if name.endswith(".ply"):
+            (tmp_path / name).symlink_to(scene.parent / name)
+    fitted = matfit.fit(str(edited), scene=matfit.Scene(other, "object"), refine=1)
+    start = fitted.document["start"]
+    assert start["material"].startswith("the test scene's best-of-n of the shape's pixels (")
+    colour = [start["params"][f"base_color_{c}"] for c in "rgb"]
+    assert colour[0] > 2 * colour[2]  # the edit is orange-red: so is the guess
+    assert fitted.document["scene"]["own_material"] is not None  # why the shape's own was not read

@@ -188,7 +188,9 @@ class Fitter:
                     "leave answers out",
                     field="answers",
                 )
-            return scene_fits.fit_scene(picture, scene, mask, init, linear, refine, outputs, self.variant, progress)
+            return scene_fits.fit_scene(
+                picture, scene, mask, init, linear, refine, outputs, self.variant, progress, self
+            )
         from matfit.fitting import fitfile  # noqa: F401  # JAX imported before the fit's wall time starts
 
         started = time.perf_counter()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from matfit.api import scenes
 from matfit.api.arguments import Picture, path_text, shown
@@ -13,6 +14,9 @@ from matfit.api.material import Material
 from matfit.api.results import Fit, Outputs
 from matfit.api.scenes import Scene
 from matfit.errors import OutputError
+
+if TYPE_CHECKING:
+    from matfit.model.models import Loader
 
 
 def fit_scene(
@@ -25,8 +29,10 @@ def fit_scene(
     outputs: Outputs | None,
     variant: str | None,
     progress: Callable[[str, int, int, float], None] | None,
+    model: Loader | None = None,
 ) -> Fit:
-    """Returns the fit of the material of a shape in a scene of the user's own (`scenes.fit_in_scene`)."""
+    """Returns the fit of the material of a shape in a scene of the user's own (`scenes.fit_in_scene`); `model`
+    guesses the start where neither `init` nor the scene gives one (loaded then only)."""
     from matfit.fitting import scene_fit
 
     check_choices(None, init)
@@ -47,6 +53,7 @@ def fit_scene(
         variant=variant,
         outputs=None if outputs is None else outputs._request(),
         progress=progress,
+        model=model,
     )
     summary = (
         f"{outputs.params if outputs else document['target']}: scene {document['scene']['object']!r}, Mitsuba RMSE "

@@ -19,7 +19,8 @@ from matfit.errors import ImageError, RenderError, SceneError
 
 if TYPE_CHECKING:
     from matfit.fitting.request import Outputs as RequestOutputs
-    from matfit.fitting.scene_fit import SceneOutcome
+    from matfit.fitting.scene_fit import Guess, SceneOutcome
+    from matfit.model.models import Loader
     from matfit.rendering.scene_file import SceneFile
 
 MAX_STEPS = 10_000  # the descent's steps a fit may ask for (`matfit fit --refine`'s most)
@@ -136,10 +137,12 @@ def fit_in_scene(
     variant: str | None,
     outputs: RequestOutputs | None,
     progress: Callable[[str, int, int, float], None] | None,
+    model: Loader | None = None,
 ) -> tuple[SceneOutcome, dict[str, Any]]:
     """Returns (the fit of the scene's shape to `picture`, its params.json document), its outputs written together
     once it is done (every path checked first). `init`: physical values to start from (None: the shape's own
-    material, else matfit's default)."""
+    material, else the test scene's best-of-n of the shape's pixels with `model`'s networks, else matfit's
+    default)."""
     from matfit.fitting import scene_fit
 
     started = time.perf_counter()
@@ -160,8 +163,16 @@ def fit_in_scene(
     pixels, target_name, digest, notices = _picture(picture, linear)
     scene_fit.check_aspect(read, pixels.shape[0], pixels.shape[1], f"the picture {target_name}")
     weights, mask_name = _mask(mask, (pixels.shape[0], pixels.shape[1]))
-    outcome = scene_fit.fit(read, pixels, start=init, mask=weights, steps=steps, variant=variant, progress=progress)
-    source = init_name or ("the shape's own material" if read.own is not None and init is None else "matfit's default")
+    guess = None if model is None else _guess(model)
+    outcome = scene_fit.fit(
+        read, pixels, start=init, mask=weights, steps=steps, variant=variant, progress=progress, guess=guess
+    )
+    if init_name is not None:
+        source = init_name
+    elif outcome.guessed is not None:
+        source = outcome.guessed
+    else:
+        source = "the shape's own material" if read.own is not None and init is None else "matfit's default"
     document = params.params_document(
         outcome.values,
         method="scene",
@@ -200,6 +211,18 @@ def fit_in_scene(
     else:
         document["wall_time_s"] = round(time.perf_counter() - started, 3)
     return outcome, document
+
+
+def _guess(model: Loader) -> Guess:
+    """Returns the start's guess by the test scene's best-of-n with `model`'s networks (`scene_start.guess`)."""
+
+    def guess(target: np.ndarray, shape: np.ndarray) -> tuple[np.ndarray, str]:
+        from matfit.fitting import fitfile, scene_start
+
+        values, chosen = scene_start.guess(fitfile.loaded(model), target, shape)
+        return values, f"the test scene's best-of-n of the shape's pixels ({chosen})"
+
+    return guess
 
 
 def report_picture(outcome: SceneOutcome) -> np.ndarray:

@@ -58,6 +58,7 @@ JUDGE_SEED = 4_000_037  # their common seed: no step uses it (steps use refine.S
 SECOND_SEED = 5_000_011  # the off-the-bounds stage's second opinion: a move chosen at one seed must hold at another
 REGION_SPP = 64  # the renders that find the region
 REGION_THRESHOLD = 6.0 / 255.0  # sRGB change (3x3 mean) that counts as the shape's doing
+SILHOUETTE_CHANGE = 0.15  # sRGB change between the shape white and black: its own surface, not its shadow
 NOT_THIS_SCENE_RMSE = 20.0  # 0-255 outside the region: a picture further than this from the scene is another's
 # 0-255 over the region: a picture this close to the scene without the shape has nothing of the shape in it (the
 # region's pixels are those the shape changes by 6 or more; two renders' noise alone stays under it)
@@ -89,6 +90,7 @@ class SceneOutcome:
     weights: np.ndarray  # (h, w) the region (or the mask), as used
     rendered: np.ndarray  # sRGB judged render of the answer
     start_rendered: np.ndarray
+    guessed: str | None  # how `guess` found the start (None: the start was given, the shape's own or the default)
     starts: list[dict[str, object]]  # each start: name, judged RMSE after its short run
     bounds: dict[str, object]  # the off-the-bounds stage: what it tried, what it moved, the judged RMSEs
     losses: list[float]  # the chosen start's step losses, short run and continuation
@@ -107,6 +109,23 @@ def check_aspect(scene: scene_file.SceneFile, height: int, width: int, name: str
             "`matfit render --scene` renders it",
             "target",
         )
+
+
+# (the picture at the fit's size, sRGB (h, w, 3); the shape's own pixels (h, w)) -> (physical values, how found)
+Guess = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, str]]
+
+
+def _renderer(scene: scene_file.SceneFile, size: tuple[int, int], variant: str | None, first: np.ndarray) -> scene_file.Renderer:
+    """Returns the judging renderer of a fit from `first`: `volpathmis` where its medium shows, else `path`."""
+    judging = None if shows_medium(first) else scene_file.OPAQUE_INTEGRATOR
+    renderer = scene_file.Renderer(scene, size, variant, judging)
+    if renderer.variant == engine.SCALAR_VARIANT:
+        raise SceneError(
+            f"a fit in a scene differentiates with {engine.LLVM_VARIANT}, which needs libLLVM >= "
+            f"{engine.MINIMUM_LLVM}: install Debian's libllvm19 or set DRJIT_LIBLLVM_PATH",
+            "variant",
+        )
+    return renderer
 
 
 def _blurred(image: np.ndarray) -> np.ndarray:
@@ -130,12 +149,31 @@ def _probe(values: np.ndarray, **changes: float) -> np.ndarray:
     return probed
 
 
+def shape_values(white: bool) -> np.ndarray:
+    """Returns the material of the shape's two renders that tell its surface and what it changes: white or black
+    (no metal, transmission, medium; the black one without specular, sheen or coat either)."""
+    changes = {"metallic": 0.0, "spec_trans": 0.0, "density": 0.0}
+    if not white:
+        changes |= {"specular": 0.0, "sheen": 0.0, "clearcoat": 0.0}
+    grey = 1.0 if white else 0.0
+    return _probe(params.DEFAULTS, base_color_r=grey, base_color_g=grey, base_color_b=grey, **changes)
+
+
+def silhouette(renderer: scene_file.Renderer) -> np.ndarray:
+    """Returns the boolean (h, w) mask of the shape's own surface: where its render white and black differ by more
+    than SILHOUETTE_CHANGE (its shadow and reflections change less)."""
+    white, black = (
+        images.srgb_encode(renderer.render(shape_values(w), seed=JUDGE_SEED, spp=REGION_SPP)) for w in (True, False)
+    )
+    return np.abs(white - black).max(axis=2) > SILHOUETTE_CHANGE
+
+
 def region(renderer: scene_file.Renderer) -> tuple[np.ndarray, np.ndarray]:
     """Returns (the pixels the shape changes as a boolean (h, w) mask, the sRGB render without the shape)."""
-    white = _probe(params.DEFAULTS, base_color_r=1.0, base_color_g=1.0, base_color_b=1.0, metallic=0.0, spec_trans=0.0,
-                   density=0.0)  # fmt: skip
-    black = _probe(white, base_color_r=0.0, base_color_g=0.0, base_color_b=0.0, specular=0.0, sheen=0.0, clearcoat=0.0)
-    renders = [images.srgb_encode(renderer.render(v, seed=JUDGE_SEED, spp=REGION_SPP)) for v in (white, black)]
+    renders = [
+        images.srgb_encode(renderer.render(shape_values(white), seed=JUDGE_SEED, spp=REGION_SPP))
+        for white in (True, False)
+    ]
     without = images.srgb_encode(renderer.render_without(seed=JUDGE_SEED, spp=REGION_SPP))
     changed = np.zeros(without.shape[:2], bool)
     for a, b in ((renders[0], renders[1]), (renders[0], without), (renders[1], without)):
@@ -201,28 +239,24 @@ def fit(
     steps: int = STEPS,
     variant: str | None = None,
     progress: Callable[[str, int, int, float], None] | None = None,
+    guess: Guess | None = None,
 ) -> SceneOutcome:
     """Returns the fit of the shape's material to `picture` (linear RGB (H, W, 3), the camera's aspect).
 
-    `start`: the material to start from (19 physical values; None: the shape's own, else matfit's default). `mask`:
-    weights (H, W) in [0, 1] where the fit looks, instead of the region the shape changes. `progress(stage, step,
-    steps, loss)` hears of each step ("starts", then "descent") and of the judging ("judge").
+    `start`: the material to start from (19 physical values; None: the shape's own, else `guess`'s, else matfit's
+    default). `mask`: weights (H, W) in [0, 1] where the fit looks, instead of the region the shape changes.
+    `progress(stage, step, steps, loss)` hears of each step ("starts", then "descent") and of the judging ("judge").
+    `guess(target, silhouette)`: (physical values, how they were found) of the picture at the fit's size (sRGB) and
+    the shape's pixels in it (`scene_start.guess` with a model).
     """
     started = time.perf_counter()
     check_aspect(scene, picture.shape[0], picture.shape[1], "the picture")
     size = scene.size(FIT_SIZE)
     target = np.clip(images.srgb_encode(images.resample(picture, *size)), 0.0, 1.0).astype(np.float32)
-    first = scene.own if start is None and scene.own is not None else params.DEFAULTS if start is None else start
-    first = np.clip(np.asarray(first, np.float64), params.LOW, params.HIGH)
-    integrator = "prbvolpath" if shows_medium(first) else "prb"
-    judging = None if integrator == "prbvolpath" else scene_file.OPAQUE_INTEGRATOR
-    renderer = scene_file.Renderer(scene, size, variant, judging)
-    if renderer.variant == engine.SCALAR_VARIANT:
-        raise SceneError(
-            f"a fit in a scene differentiates with {engine.LLVM_VARIANT}, which needs libLLVM >= "
-            f"{engine.MINIMUM_LLVM}: install Debian's libllvm19 or set DRJIT_LIBLLVM_PATH",
-            "variant",
-        )
+    first = start if start is not None else scene.own
+    guessing = first is None and guess is not None
+    first = np.clip(np.asarray(params.DEFAULTS if first is None else first, np.float64), params.LOW, params.HIGH)
+    renderer = _renderer(scene, size, variant, first)
     notices = []
     shape_region, without = region(renderer)
     outside = ~shape_region
@@ -247,6 +281,13 @@ def fit(
             "without it): give a picture with the shape in it",
             "target",
         )
+    source = None
+    if guessing and guess is not None:
+        guessed, source = guess(target, silhouette(renderer))
+        first = np.clip(np.asarray(guessed, np.float64), params.LOW, params.HIGH)
+        if shows_medium(first) != (renderer.integrator != scene_file.OPAQUE_INTEGRATOR):  # judged another way
+            renderer = _renderer(scene, size, variant, first)
+    integrator = "prbvolpath" if shows_medium(first) else "prb"
     if mask is not None:
         weights = np.asarray(images.resample(mask[..., None].astype(np.float32), *size)[..., 0], np.float32)
         if weights.sum() <= 0:
@@ -306,6 +347,7 @@ def fit(
         weights,
         rendered,
         start_rendered,
+        source,
         [{"name": t["name"], "rmse": t["rmse"]} for t in tried],
         bounds,
         [*list(best["losses"]), *more, *again],
