@@ -504,15 +504,16 @@ def test_the_page_benchmark_reports_every_figure():
     rows = table.splitlines()[2:]
     assert [row.split(" | ")[0] for row in rows] == [
         "| warm fit through the library, `matfit.Fitter.fit` (median of 2)",
+        "| watched file saved -> first answer (the neural search's) read by the page's client (median of 2)",
         "| watched file saved -> result read by the page's client (median of 2)",
         "| slider -> neural preview round trip (median of 5)",
         "| resident memory after 2 fits / after 2",
     ]
-    warm, latency = (float(row.split(" | ")[1].split()[0]) for row in rows[:2])
-    # Both are measured and positive; which is larger is a benchmark's finding, not the test's (on a loaded
-    # machine the medians of 3 fits crossed: 4.75 s against 4.57 s).
-    assert warm > 0 and latency > 0
-    assert rows[3].endswith("(+0.0%) |")  # the same reading twice
+    warm, first, latency = (float(row.split(" | ")[1].split()[0]) for row in rows[:3])
+    # All are measured and positive; which of the fits is larger is a benchmark's finding, not the test's (on a
+    # loaded machine the medians of 3 fits crossed: 4.75 s against 4.57 s). The first answer is read on the way.
+    assert warm > 0 and 0 < first <= latency
+    assert rows[4].endswith("(+0.0%) |")  # the same reading twice
 
 
 def test_a_mask_painted_in_the_page_weights_the_fit(browser, url):

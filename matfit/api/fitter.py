@@ -344,9 +344,10 @@ def fit(
 
     `scene`: a `Scene` of your own (a Mitsuba XML file and a shape's id): the picture is a render of that scene,
     edited, and the shape's material is fitted there by Mitsuba's differentiable renderer (docs/scenes.md); `init`
-    is the material to start from (None: the shape's own where matfit reads it), `mask` where to look (None: the
-    pixels the shape changes), `progress(stage, step, steps, loss)` hears of each step; `settings`, `verify`,
-    `corrections`, `answer`, `refine` and `seed` are the test scene's and are not used. `Fit.neural_rmse` is NaN.
+    is the material to start from (None: the shape's own where matfit reads it, else the test scene's guess of the
+    shape's pixels), `mask` where to look (None: the pixels the shape changes), `progress(stage, step, steps, loss)`
+    hears of each step; `settings`, `verify`, `corrections`, `answer`, `refine` and `seed` are the test scene's and
+    are not used. `Fit.neural_rmse` is NaN.
     """
     _, verify, _, refine, _ = check_options(linear, verify, corrections, answer, refine, seed)  # before any start
     with Fitter(model, verify=verify and not refine and scene is None, variant=variant) as fitter:

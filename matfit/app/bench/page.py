@@ -50,7 +50,7 @@ def serve_speed(
         threading.Thread(target=listen, args=(url, events), daemon=True).start()
         time.sleep(0.5)
         round_trips = preview_round_trips(url, previews)
-        latency = saved_latency(url, watched, contents, events, samples)
+        latency, first = saved_latency(url, watched, contents, events, samples)
         memory = {samples: resident_mib()}
         log(f"{fits} fits through the page")
         memory[fits] = resident_mib_after(url, watched, contents, events, samples, fits)
@@ -60,6 +60,8 @@ def serve_speed(
             "| figure | value |",
             "|---|---|",
             f"| warm fit through the library, `matfit.Fitter.fit` (median of {samples}) | {np.median(warm):.3f} s |",
+            f"| watched file saved -> first answer (the neural search's) read by the page's client (median of "
+            f"{samples}) | {np.median(first):.3f} s |",
             f"| watched file saved -> result read by the page's client (median of {samples}) "
             f"| {np.median(latency):.3f} s |",
             f"| slider -> neural preview round trip (median of {previews}) | {1e3 * np.median(round_trips):.1f} ms |",
@@ -91,21 +93,27 @@ def listen(url: str, events: list[tuple[float, dict]]) -> None:
                 events.append((time.perf_counter(), json.loads(line[6:])))
 
 
-def job_done(url: str, job: str) -> dict:
-    """Returns a job's answer once it is no longer queued or running, polled as the page polls."""
+def job_done(url: str, job: str, first: list[float] | None = None) -> dict:
+    """Returns a job's answer once it is no longer queued or running, polled as the page polls; appends to `first`
+    the moment (perf_counter) a result, the first stage's answer, was first read."""
     import urllib.request
 
     while True:
         with urllib.request.urlopen(f"{url}api/jobs/{job}", timeout=60) as reply:
             answer = json.loads(reply.read())
+        if first is not None and not first and answer.get("result") is not None:
+            first.append(time.perf_counter())
         if answer["state"] not in ("queued", "running"):
             return answer
         time.sleep(0.02)
 
 
-def saved_latency(url: str, watched: str, contents: list[bytes], events: list, samples: int) -> list[float]:
-    """Returns the seconds from each of `samples` saves of the watched file to its result read by the client."""
-    latency = []
+def saved_latency(
+    url: str, watched: str, contents: list[bytes], events: list, samples: int
+) -> tuple[list[float], list[float]]:
+    """Returns the seconds from each of `samples` saves of the watched file to its result read by the client, and to
+    its first answer (the neural search's, shown at once) read by the client."""
+    latency, firsts = [], []
     for k in range(samples):
         seen = len(events)
         started = time.perf_counter()
@@ -113,9 +121,11 @@ def saved_latency(url: str, watched: str, contents: list[bytes], events: list, s
             file.write(contents[(k + 1) % len(contents)])
         while len(events) == seen:
             time.sleep(0.005)
-        job_done(url, events[-1][1]["job"])
+        first: list[float] = []
+        job_done(url, events[-1][1]["job"], first)
         latency.append(time.perf_counter() - started)
-    return latency
+        firsts.append((first[0] if first else time.perf_counter()) - started)
+    return latency, firsts
 
 
 def preview_round_trips(url: str, previews: int) -> list[float]:
