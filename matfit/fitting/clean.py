@@ -196,7 +196,7 @@ def judge(
     weights: np.ndarray | None,
     *,
     rendered: list[np.ndarray] | tuple = (),
-    spp: int = verify.SPP,
+    spp: int = verify.BATCH_SPP,
 ) -> dict[str, Any]:
     """Returns {"chosen": the name kept ("best" or one of `pool`), "figures", "noise", "margins", "batches",
     "rendered"}: `best` and the candidates of `pool` (by name, simplest last) rendered in batches with verification's
@@ -252,7 +252,7 @@ def clean(
     renderer: Renders | None = None,
     *,
     rendered: list[np.ndarray] | tuple = (),
-    spp: int = verify.SPP,
+    spp: int = verify.BATCH_SPP,
 ) -> Cleaned:
     """Returns the clean answer of `answer` (unit cube), judged in Mitsuba against it with `renderer` (an
     `engine.Renderer`, `Background` or `Process` at the target's resolution; None: not judged, the simplest
