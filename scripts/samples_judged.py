@@ -103,8 +103,14 @@ def main() -> None:
         "--spp", default="64,32,16", help="batch sizes to compare, comma-separated (32/64: residuals at 64)"
     )
     parser.add_argument("--count", type=int, default=None, help="only the first COUNT cases")
+    parser.add_argument(
+        "--label", default=None, help="record the one size of --spp under this name (a rule of another revision)"
+    )
     arguments = parser.parse_args()
     sizes = arguments.spp.split(",")
+    if arguments.label and len(sizes) != 1:
+        parser.error("--label names one size: give --spp one")
+    keys = dict(zip(sizes, [arguments.label] if arguments.label else sizes, strict=True))
     model = fitfile.load_model(str(shipped.MODEL))
     results: dict = {}
     if os.path.isfile(arguments.results):
@@ -113,23 +119,23 @@ def main() -> None:
     with Pool() as renderer:
         renderer.load(model.resolution, verify.SPP)
         for k, (name, values, seed) in enumerate(cases()[: arguments.count]):
-            if name in results and all(size in results[name] for size in sizes):
+            if name in results and all(keys[size] in results[name] for size in sizes):
                 continue
             target = images.srgb_encode(renderer.render(values, seed=int(seed), spp=TARGET_SPP))
             result = search.neural_search(model, target, settings=search.Settings())
             row = results.get(name, {})
             judged: dict[bytes, float] = {}
             for size in sizes:
-                if size in row:
+                if keys[size] in row:
                     continue
                 out = stages(model, renderer, result, target, size)
                 key = np.asarray(out["unit"], np.float64).tobytes()
                 if key not in judged:
                     judged[key] = noise_free(renderer, np.asarray(out["unit"]), target, k)
                 out["judged"] = judged[key]
-                row[size] = out
+                row[keys[size]] = out
                 print(
-                    f"{name} {size} spp: {out['judged']:.3f} kept {out['kept']}, {out['renders']} renders, "
+                    f"{name} {keys[size]}: {out['judged']:.3f} kept {out['kept']}, {out['renders']} renders, "
                     f"{out['seconds']:.1f} s",
                     flush=True,
                 )
@@ -140,10 +146,10 @@ def main() -> None:
     for label in ("presets", "reachable"):
         rows = [row for name, row in results.items() if name.startswith("reachable-") == (label == "reachable")]
         for size in sizes:
-            done = [row[size] for row in rows if size in row]
+            done = [row[keys[size]] for row in rows if keys[size] in row]
             if done:
                 print(
-                    f"mean {label} ({len(done)}) {size} spp: judged {np.mean([r['judged'] for r in done]):.3f}, "
+                    f"mean {label} ({len(done)}) {keys[size]}: judged {np.mean([r['judged'] for r in done]):.3f}, "
                     f"renders {np.mean([r['renders'] for r in done]):.1f}, "
                     f"seconds {np.mean([r['seconds'] for r in done]):.2f}"
                 )

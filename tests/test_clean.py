@@ -72,8 +72,8 @@ def test_mitsuba_keeps_the_simplest_candidate_it_cannot_tell_from_the_answer(ren
     assert judged["chosen"] == "clean-1" and judged["margins"]["clean-1"] < verify.LEAD
     assert judged["margins"]["clean-2"] >= verify.LEAD and judged["figures"]["clean-2"] > judged["figures"]["best"] + 5
     assert judged["figures"]["clean-1"] == pytest.approx(judged["figures"]["best"], abs=0.5)
-    assert judged["batches"]["clean-2"] == verify.BATCHES  # decided at once; the kept one measured again if behind
-    assert verify.BATCHES <= judged["batches"]["clean-1"] == judged["batches"]["best"] <= verify.MAX_BATCHES
+    # one look each: verification's first batches decide
+    assert judged["batches"] == {"best": verify.BATCHES, "clean-2": verify.BATCHES, "clean-1": verify.BATCHES}
     # a candidate identical to the answer ties with it: no deficit, and the candidate is kept
     tie = clean.judge(renderer, best, {"clean-1": best.copy()}, target, None)
     assert tie["chosen"] == "clean-1" and tie["margins"]["clean-1"] == 0.0
@@ -86,6 +86,27 @@ def test_mitsuba_keeps_the_simplest_candidate_it_cannot_tell_from_the_answer(ren
     # the simplest alone is measurably worse: the fit's own answer is kept
     alone = clean.judge(renderer, best, {"clean-1": seen}, target, None)
     assert alone["chosen"] == "best" and alone["margins"]["clean-1"] >= verify.LEAD
+
+
+def test_one_look_a_plain_refusal_goes_on_and_an_undecided_candidate_ends_with_the_answer(renderer):
+    from matfit.fitting import verify
+    from matfit.rendering import presets
+
+    best = params.to_unit(presets.preset("red-plastic"))
+    target = images.srgb_encode(renderer.render(params.from_unit(best), seed=7, spp=64))
+    far = best.copy()  # a base colour the picture plainly decides: refused at the first look
+    far[params.INDEX["base_color_g"]] = 0.8
+    close = best.copy()  # a roughness a hundredth off: behind the answer, though not by LEAD standard errors
+    close[params.INDEX["roughness"]] += 0.01
+    unseen = best.copy()  # sheen_tint without sheen: it would be kept, were it judged
+    unseen[params.INDEX["sheen_tint"]] = 0.9
+    judged = clean.judge(renderer, best, {"clean-1": unseen, "clean-2": close, "clean-3": far}, target, None)
+    assert judged["margins"]["clean-3"] >= verify.LEAD and judged["batches"]["clean-3"] == verify.BATCHES
+    # the close one is undecided after its batches: no more are rendered, the answer stays, and the less simple
+    # candidate after it is not rendered at all
+    assert 0 < judged["margins"]["clean-2"] < verify.LEAD and judged["batches"]["clean-2"] == verify.BATCHES
+    assert judged["chosen"] == "best" and "clean-1" not in judged["batches"]
+    assert judged["batches"]["best"] == verify.BATCHES
 
 
 def red_and_density(unit, variables):

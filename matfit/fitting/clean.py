@@ -20,14 +20,23 @@ reaches the medium inside the object and the renderer does not show it: the medi
 off first, without a re-fit, and the answer's picture is decoded without it.
 
 Judgement (`judge`), like every answer: the answer and the candidates are rendered with
-verification's seeds (common random numbers) and compared by its estimates (`verify.decide` of
-each candidate against the answer). The simplest candidate that the answer does not beat by more
-than LEAD standard errors is returned: verification's rule, so the clean answer is never
-measurably worse. While that candidate trails the answer within LEAD standard errors, it and the
-answer get one more batch each, up to MAX_BATCHES; a candidate the answer beats by more is passed
-over for the next less simple one, which is rendered only then (the simplest first). The answer's
-first batches are verification's own, not rendered again: at most len(FEATURES) * MAX_BATCHES +
-MAX_BATCHES - BATCHES renders, BATCHES where the simplest is plainly kept.
+verification's seeds and samples (common random numbers) and compared by its estimates
+(`verify.decide` of each candidate against the answer), over verify.BATCHES batches each, the
+simplest first. A candidate that the answer does not beat is returned: verification's rule, so
+the clean answer is never measurably worse. A candidate the answer beats by verify.LEAD standard
+errors or more is refused, and the next less simple one is rendered only then. A candidate behind
+the answer, though not by LEAD standard errors, is undecided: the judgement ends there with the
+answer itself, and no less simple candidate is rendered.
+
+Why one look, and why undecided keeps the answer. The candidates re-fit the answer's own decoded
+picture within CLOSE, so the difference Mitsuba sees between them and the answer is small: an
+undecided candidate used to get batches up to verify.MAX_BATCHES, and the renders of
+desaturated.png's judgement were two thirds of its fit, to tell differences of a few hundredths
+of RMSE. Ending with the answer costs no quality: it is verification's choice, and on the judged
+sets the answers that changed were judged no worse (docs/fitting.md#the-clean-answer-judged); the
+less simple candidates lie between the undecided one and the answer, so they would be less
+decidable still. The answer's batches are verification's own, not rendered again: at most
+len(FEATURES) * verify.BATCHES renders, verify.BATCHES where the simplest is plainly kept.
 """
 
 from __future__ import annotations
@@ -196,13 +205,13 @@ def judge(
     weights: np.ndarray | None,
     *,
     rendered: list[np.ndarray] | tuple = (),
-    spp: int = verify.SPP,
+    spp: int = verify.BATCH_SPP,
 ) -> dict[str, Any]:
     """Returns {"chosen": the name kept ("best" or one of `pool`), "figures", "noise", "margins", "batches",
     "rendered"}: `best` and the candidates of `pool` (by name, simplest last) rendered in batches with verification's
     seeds and compared by its estimates, by the rule of the module docstring. `margins`: each judged candidate's
     deficit behind the best over their common batches, in standard errors (negative: ahead of it); those after the
-    one kept are not rendered, so neither in `margins` nor in `figures`; `noise`: the render noise
+    one kept or undecided are not rendered, so neither in `margins` nor in `figures`; `noise`: the render noise
     of the best's mean render (`render_noise`), recorded beside the figures. `rendered`: the batches of `best` that
     verification rendered already (`verify.Verified.renders`), which are not rendered again; `spp`: samples of a
     batch, as verification's."""
@@ -212,15 +221,12 @@ def judge(
     margins: dict[str, float] = {}
     chosen = "best"
     for name in reversed(pool):  # the simplest first; a less simple one is rendered only when it is refused
-        count = verify.BATCHES
-        while True:
-            verify.render_batches(renderer, everyone, batches, ["best", name], count=count, spp=spp)
-            margins[name] = deficit(batches["best"], batches[name], target, weights)
-            if not 0 < margins[name] < verify.LEAD or len(batches[name]) >= verify.MAX_BATCHES:
-                break
-            count = len(batches[name]) + 1
-        if margins[name] < verify.LEAD:
+        verify.render_batches(renderer, everyone, batches, ["best", name], count=verify.BATCHES, spp=spp)
+        margins[name] = deficit(batches["best"], batches[name], target, weights)
+        if margins[name] <= 0:
             chosen = name
+            break
+        if margins[name] < verify.LEAD:  # undecided: the answer stays, and so would a less simple candidate
             break
     estimates = {name: verify.squared_error(renders, target, weights)[0] for name, renders in batches.items()}
     return {
@@ -252,7 +258,7 @@ def clean(
     renderer: Renders | None = None,
     *,
     rendered: list[np.ndarray] | tuple = (),
-    spp: int = verify.SPP,
+    spp: int = verify.BATCH_SPP,
 ) -> Cleaned:
     """Returns the clean answer of `answer` (unit cube), judged in Mitsuba against it with `renderer` (an
     `engine.Renderer`, `Background` or `Process` at the target's resolution; None: not judged, the simplest

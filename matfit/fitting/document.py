@@ -74,7 +74,7 @@ def build(outcome: Outcome, request: Request, model_path: str) -> dict:
                 },
                 "batches": checked.batches,
                 "corrections": checked.corrections,
-                "spp": verify.SPP,
+                "spp": verify.BATCH_SPP,
                 "seconds": round(checked.seconds, 3),
             },
         }

@@ -6,7 +6,7 @@ renders a few candidates at the model's resolution: the best-of-n start, and the
 best neural RMSE first (with `corrections`: the start, the best end and the last round of
 correction, `correct.py`). The start is always among them.
 
-The rule. Each candidate is rendered in batches of SPP samples; batch j of every candidate uses
+The rule. Each candidate is rendered in batches of BATCH_SPP samples; batch j of every candidate uses
 the seed BATCH_SEED + j (common random numbers: the candidates' noise is alike, so their
 difference is mostly the material's). From m batches R_1..R_m of a candidate, the mean over pairs
 i != j of the weighted mean of (R_i - t)(R_j - t) estimates, without bias, the squared error of
@@ -55,7 +55,8 @@ if TYPE_CHECKING:
 CANDIDATES = 5  # without correction: the start and up to four end points, every end of the default 4-start fit
 # With correction the start and the best end choose where the rounds start, and the last round joins them.
 CORRECTED_CANDIDATES = 2
-SPP = 64  # samples of one batch, and of a round's residual render
+SPP = 64  # samples of a round's residual render, and of a render process's renders unless asked otherwise
+BATCH_SPP = 64  # samples of one batch
 SEED = 1_000_003  # round k's residual render: SEED + k - 1; not a seed of the training set's images
 BATCH_SEED = 1_000_033  # batch j of every candidate: BATCH_SEED + j; neither a residual's nor a training image's seed
 BATCHES = 3  # batches of every candidate: the fewest with which the jackknife says how far to trust a difference
@@ -101,7 +102,7 @@ def verify_candidates(
     *,
     weights: Float[np.ndarray, "R R"] | None = None,
     count: int = CANDIDATES,
-    spp: int = SPP,
+    spp: int = BATCH_SPP,
 ) -> Verified:
     """Returns the candidate whose noise-free Mitsuba render is estimated closest to the sRGB `target` (weighted like
     the fit, if a mask is given), by the rule of the module docstring: the verification stage without correction.
@@ -123,15 +124,14 @@ def correct_then_verify(
     corrections: int,
     weights: np.ndarray | None = None,
     count: int = CORRECTED_CANDIDATES,
-    spp: int = SPP,
-    residual_spp: int | None = None,
+    spp: int = BATCH_SPP,
+    residual_spp: int = SPP,
 ) -> Verified:
     """Returns, as `verify_candidates`, the candidate kept among the fit's `count` candidates and the last of
     `corrections` rounds of `correct.correction_round` ("corrected-1", ...) from the better of them
     (`where_rounds_start`): the correction stage, then the verification stage.
 
-    `model`: the fit's, whose decoder the rounds fit with. `residual_spp`: samples of the rounds' residual renders
-    (None: `spp`, as a batch's).
+    `model`: the fit's, whose decoder the rounds fit with. `residual_spp`: samples of the rounds' residual renders.
     """
     check_corrections(corrections)
     if not corrections:
@@ -151,7 +151,7 @@ def correct_then_verify(
         weights,
         corrections=corrections,
         spp=spp,
-        residual_spp=residual_spp or spp,
+        residual_spp=residual_spp,
     )
     verified = judge(renderer, pool, [*contenders, last], batches, target, weights, spp=spp, started=started)
     return dataclasses.replace(verified, decoded=corrected, corrections=corrections)
@@ -292,7 +292,7 @@ def where_rounds_start(
     target: Float[np.ndarray, "R R 3"],
     weights: Float[np.ndarray, "R R"],
     *,
-    spp: int = SPP,
+    spp: int = BATCH_SPP,
     residual_spp: int | None = None,
     spare: Spare | None = None,
 ) -> tuple[str, np.ndarray]:
@@ -380,7 +380,9 @@ def decide(
     return leader, estimates, margins
 
 
-def prefetch_start(renderer: Renders, start: Float[np.ndarray, " 19"], *, corrections: int = 0, spp: int = SPP) -> None:
+def prefetch_start(
+    renderer: Renders, start: Float[np.ndarray, " 19"], *, corrections: int = 0, spp: int = BATCH_SPP
+) -> None:
     """Starts, on a `process.Background` or `process.Process`, the renders verification will make of the fit's start
     (unit cube): its first BATCHES batches (`corrections` changes nothing: the start is judged by the same batches)."""
     values = params.from_unit(np.asarray(start, np.float64))  # as `candidates` and `render_candidate` make them
