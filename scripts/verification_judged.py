@@ -79,7 +79,10 @@ def run_case(model, renderer, old, target: np.ndarray, judge_seed: int) -> dict:
     answers = {}
     for rule, module in (("old", old), ("new", verify)):
         started = time.perf_counter()
-        checked = module.verify(renderer, result, target, corrections=methods.CORRECTIONS, model=model)
+        if module is verify:  # today's verification: the rounds of correction, then the judgement
+            checked = verify.correct_then_verify(renderer, result, target, model=model, corrections=methods.CORRECTIONS)
+        else:  # the old revision's, whose `verify` ran both
+            checked = module.verify(renderer, result, target, corrections=methods.CORRECTIONS, model=model)
         row[f"{rule}_seconds"] = fitted + time.perf_counter() - started
         row[f"{rule}_kept"] = checked.chosen
         answers[rule] = checked.unit
