@@ -6,8 +6,9 @@ own surface (`scene_fit.silhouette`) are cut out, scaled onto the test scene's s
 scene's best-of-n (the nine encoders' guesses, the one whose decoded image is closest over those pixels)
 guesses the material. The networks know the test scene's lights, not the user's, so the guess is a start, not an
 answer. Measured on the bench's twelve truths (three scenes, four materials), the guess's noise-free error from the
-truth was under matfit's default material's on eleven (8-29 against 21-68 of 255) and over it on the glass box under
-the sky (24.5 against 21.8): docs/scenes.md#the-start.
+truth was under matfit's default material's on eleven (7.9-31.5 against 21.3-68.0 of 255) and over it on the glass
+box under the sky (23.8 against 21.8); fits from it came closer than from the default on three of four cases and
+alike on the fourth: docs/scenes.md#the-start.
 """
 
 from __future__ import annotations
