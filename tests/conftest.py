@@ -75,3 +75,13 @@ def tiny_dataset(tmp_path_factory, renderer) -> str:
     basis = np.stack([[cheap.render(material) for material in row] for row in scene.glass_basis_materials()])
     np.save(os.path.join(path, dataset.GLASS_FILE.format(specular=basis.shape[0], roughness=basis.shape[1])), basis)
     return path
+
+
+@pytest.fixture(scope="session")
+def knot(tmp_path_factory):
+    """Returns the bench's torus knot under the studio light as a read scene file, its camera 32x24 (tests of a scene
+    of the user's own; tests/test_scene_file.py has a `knot` of its own, the file's path)."""
+    from matfit.rendering import scene_file, scene_library
+
+    path = scene_library.write(str(tmp_path_factory.mktemp("scenes")), "knot", "studio", width=32, height=24)
+    return scene_file.read(path, "object")

@@ -7,13 +7,7 @@ import pytest
 import matfit
 from matfit import images, params
 from matfit.fitting import scene_fit, scene_start
-from matfit.rendering import blender, presets, scene_file, scene_library
-
-
-@pytest.fixture(scope="module")
-def knot(tmp_path_factory) -> scene_file.SceneFile:
-    path = scene_library.write(str(tmp_path_factory.mktemp("scenes")), "knot", "studio", width=32, height=24)
-    return scene_file.read(path, "object")
+from matfit.rendering import blender, presets, scene_file
 
 
 @pytest.fixture(scope="module")

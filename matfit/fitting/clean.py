@@ -33,7 +33,7 @@ picture within CLOSE, so the difference Mitsuba sees between them and the answer
 undecided candidate used to get batches up to verify.MAX_BATCHES, and the renders of
 desaturated.png's judgement were two thirds of its fit, to tell differences of a few hundredths
 of RMSE. Ending with the answer costs no quality: it is verification's choice, and on the judged
-sets the answers that changed were judged no worse (docs/fitting.md#the-clean-answer-judged); the
+sets the answers that changed were judged no worse (docs/fitting.md#the-judged-sets-and-the-samples-a-fit-renders); the
 less simple candidates lie between the undecided one and the answer, so they would be less
 decidable still. The answer's batches are verification's own, not rendered again: at most
 len(FEATURES) * verify.BATCHES renders, verify.BATCHES where the simplest is plainly kept.
