@@ -115,7 +115,9 @@ def check_aspect(scene: scene_file.SceneFile, height: int, width: int, name: str
 Guess = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, str]]
 
 
-def _renderer(scene: scene_file.SceneFile, size: tuple[int, int], variant: str | None, first: np.ndarray) -> scene_file.Renderer:
+def _renderer(
+    scene: scene_file.SceneFile, size: tuple[int, int], variant: str | None, first: np.ndarray
+) -> scene_file.Renderer:
     """Returns the judging renderer of a fit from `first`: `volpathmis` where its medium shows, else `path`."""
     judging = None if shows_medium(first) else scene_file.OPAQUE_INTEGRATOR
     renderer = scene_file.Renderer(scene, size, variant, judging)
@@ -283,7 +285,8 @@ def fit(
         )
     source = None
     if guessing and guess is not None:
-        guessed, source = guess(target, silhouette(renderer))
+        shape = silhouette(renderer)  # a shape lit too dimly to differ by SILHOUETTE_CHANGE: the region instead
+        guessed, source = guess(target, shape if shape.any() else shape_region)
         first = np.clip(np.asarray(guessed, np.float64), params.LOW, params.HIGH)
         if shows_medium(first) != (renderer.integrator != scene_file.OPAQUE_INTEGRATOR):  # judged another way
             renderer = _renderer(scene, size, variant, first)
