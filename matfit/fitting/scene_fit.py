@@ -161,21 +161,28 @@ def shape_values(white: bool) -> np.ndarray:
     return _probe(params.DEFAULTS, base_color_r=grey, base_color_g=grey, base_color_b=grey, **changes)
 
 
-def silhouette(renderer: scene_file.Renderer) -> np.ndarray:
-    """Returns the boolean (h, w) mask of the shape's own surface: where its render white and black differ by more
-    than SILHOUETTE_CHANGE (its shadow and reflections change less)."""
+def shape_renders(renderer: scene_file.Renderer) -> tuple[np.ndarray, np.ndarray]:
+    """Returns the sRGB renders of the scene with the shape white and black (`shape_values`): what `region` and
+    `silhouette` read."""
     white, black = (
         images.srgb_encode(renderer.render(shape_values(w), seed=JUDGE_SEED, spp=REGION_SPP)) for w in (True, False)
     )
+    return white, black
+
+
+def silhouette(renderer: scene_file.Renderer, renders: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Returns the boolean (h, w) mask of the shape's own surface: where its render white and black (`renders`, else
+    rendered) differ by more than SILHOUETTE_CHANGE (its shadow and reflections change less)."""
+    white, black = renders if renders is not None else shape_renders(renderer)
     return np.abs(white - black).max(axis=2) > SILHOUETTE_CHANGE
 
 
-def region(renderer: scene_file.Renderer) -> tuple[np.ndarray, np.ndarray]:
-    """Returns (the pixels the shape changes as a boolean (h, w) mask, the sRGB render without the shape)."""
-    renders = [
-        images.srgb_encode(renderer.render(shape_values(white), seed=JUDGE_SEED, spp=REGION_SPP))
-        for white in (True, False)
-    ]
+def region(
+    renderer: scene_file.Renderer, renders: tuple[np.ndarray, np.ndarray] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (the pixels the shape changes as a boolean (h, w) mask, the sRGB render without the shape); `renders`:
+    the shape white and black (`shape_renders`), else rendered."""
+    renders = renders if renders is not None else shape_renders(renderer)
     without = images.srgb_encode(renderer.render_without(seed=JUDGE_SEED, spp=REGION_SPP))
     changed = np.zeros(without.shape[:2], bool)
     for a, b in ((renders[0], renders[1]), (renders[0], without), (renders[1], without)):
@@ -260,7 +267,8 @@ def fit(
     first = np.clip(np.asarray(params.DEFAULTS if first is None else first, np.float64), params.LOW, params.HIGH)
     renderer = _renderer(scene, size, variant, first)
     notices = []
-    shape_region, without = region(renderer)
+    white_black = shape_renders(renderer)
+    shape_region, without = region(renderer, white_black)
     outside = ~shape_region
     if shape_region.mean() < 0.002:
         raise SceneError(
@@ -285,7 +293,9 @@ def fit(
         )
     source = None
     if guessing and guess is not None:
-        shape = silhouette(renderer)  # a shape lit too dimly to differ by SILHOUETTE_CHANGE: the region instead
+        shape = silhouette(
+            renderer, white_black
+        )  # a shape lit too dimly to differ by SILHOUETTE_CHANGE: the region instead
         guessed, source = guess(target, shape if shape.any() else shape_region)
         first = np.clip(np.asarray(guessed, np.float64), params.LOW, params.HIGH)
         if shows_medium(first) != (renderer.integrator != scene_file.OPAQUE_INTEGRATOR):  # judged another way
