@@ -1,13 +1,15 @@
+import logging
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import R, decode, random_model, true_point
 
-from matfit import images, params
-from matfit.fitting import gradient, search
+from matfit import images, params, programs
+from matfit.fitting import correct, gradient, ranges, search
 from matfit.fitting.search import FitError, Settings
-from matfit.model import architectures
+from matfit.model import architectures, models
 
 
 @pytest.fixture(scope="module")
@@ -272,3 +274,40 @@ def test_the_ranges_written_are_those_of_the_answer_written_and_no_render_has_no
         reported = document["ranges"]["parameters"][name]
         assert reported["low"] <= value <= reported["high"], (name, value, reported)
     assert document["answer"]["render_noise"] is None and document["answer"]["mitsuba_rmse"] == {}
+
+
+def test_a_new_process_with_the_stored_programs_traces_and_compiles_nothing_in_the_stages_after_the_search(
+    model, tmp_path, caplog
+):
+    # A JAX operation outside a stored program (an index, jnp.arange, eval_shape) is traced and compiled in every new
+    # process: 0.4-0.6 s of a cold `matfit fit` before these stages ran NumPy instead (docs/fitting.md#measured).
+    previous = programs._directory, programs._key
+    programs.enable(str(tmp_path / "programs"))
+    try:
+        target = decode(model, true_point(5))
+        unit = true_point(6)
+        weights = np.ones((R, R), np.float32)
+
+        drawn = decode(model, unit)
+
+        def stages():
+            correct.correction_round(model, target, weights, unit, drawn, drawn, iterations=3)
+            ranges.measure(ranges.Decoding(model.decoder.module), model.decoder.variables, unit, None, 2.0)
+
+        stages()  # compiles the programs and stores them
+        jax.clear_caches()  # what a new process holds: nothing traced, nothing compiled
+        for function in (
+            gradient.step,
+            models.apply,
+            ranges.decoded,
+            ranges._linearise,
+            ranges._linear_ends,
+            ranges._check,
+        ):
+            function.loaded.clear()
+        with jax.log_compiles(), caplog.at_level(logging.DEBUG, logger="jax"):
+            stages()
+        logged = [record.getMessage() for record in caplog.records]
+        assert not [message for message in logged if "Compiling" in message or "tracing" in message]
+    finally:
+        programs._directory, programs._key = previous

@@ -60,4 +60,4 @@ def correction_round(
     )
     point = np.clip(np.asarray(ends[0], np.float64), 0.0, 1.0)
     decoded = models.apply(model.decoder.module, model.decoder.variables, point[None].astype(np.float32))
-    return point, np.asarray(decoded[0], np.float32)
+    return point, np.asarray(decoded, np.float32)[0]  # indexed in NumPy: a JAX index is a program of its own

@@ -220,9 +220,10 @@ def _linear_end(
     return jnp.where(cost_full <= threshold**2, z_full, z_bisected)
 
 
-def _directions(count: int, dtype: np.dtype) -> tuple[jax.Array, jax.Array]:
-    """Returns (parameter, sign) of every end: each parameter's low end (-1), then its high end (+1)."""
-    return jnp.repeat(jnp.arange(count), 2), jnp.tile(jnp.array([-1.0, 1.0], dtype), count)
+def _directions(count: int, dtype: np.dtype) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (parameter, sign) of every end: each parameter's low end (-1), then its high end (+1). NumPy, not
+    JAX: outside a compiled program a JAX operation is compiled on its own in every new process."""
+    return np.repeat(np.arange(count, dtype=np.int32), 2), np.tile(np.array([-1.0, 1.0], dtype), count)
 
 
 @programs.jit(static_argnames=("decode",))
@@ -333,7 +334,7 @@ def _checked(
     between those two, so they could change the range by less than SETTLED.
     """
     count = answer.shape[0]
-    indices, signs = (np.asarray(a) for a in _directions(count, answer.dtype))
+    indices, signs = _directions(count, answer.dtype)
     bounds = np.where(signs > 0, 1.0 - answer[indices], answer[indices]).astype(answer.dtype)
     ends = np.asarray(linear["ends"], answer.dtype)
     at_face = np.abs(ends[np.arange(2 * count), indices]) >= bounds - FACE
@@ -397,8 +398,8 @@ def measure(
     if not threshold > 0:
         raise ValueError(f"the threshold {threshold} must be > 0")
     if weights is None:
-        # the picture's shape, traced rather than decoded: an eager decode compiles each of its operations
-        side = jax.eval_shape(decode, jax.ShapeDtypeStruct((1, params.COUNT), np.float32), variables).shape[1]
+        # the picture's side, decoded by a stored program: an eager decode, or tracing it, costs every new process
+        side = np.shape(decoded(decode, answer[None], variables))[1]
         weights = np.ones((side, side), np.float32)
     weights, tau = np.asarray(weights, np.float32), np.float32(threshold)
     linear = _linearise(decode, variables, answer, weights)
