@@ -22,7 +22,7 @@ import pytest
 from helpers import random_model
 
 from matfit import files, images, params, shipped
-from matfit.app.serve import uploads
+from matfit.app.serve import uploads, watch
 from matfit.app.serve.routes import create_app
 from matfit.app.serve.server import check_listen, running
 from matfit.app.serve.studio import Studio
@@ -357,6 +357,37 @@ def test_a_half_written_watched_file_is_waited_for_not_reported(tmp_path):
 
     threading.Thread(target=finish).start()
     assert run_to_end(settled(path)) is None
+
+
+@pytest.mark.parametrize("extension", [".png", ".jpg", ".tif", ".exr"])
+def test_a_whole_picture_is_read_at_once_and_one_cut_short_is_waited_for(tmp_path, monkeypatch, extension):
+    # `settled` takes a picture that decodes without waiting for its size to hold: safe because a picture cut short
+    # either fails to decode or, cut only in what follows its pixels (a TIFF's last tags), decodes to the same pixels
+    whole = str(tmp_path / f"whole{extension}")
+    images.write(whole, images.load(EXAMPLE).pixels[:48, :64])
+    pixels = images.load(whole).pixels
+    with open(whole, "rb") as file:
+        data = file.read()
+    failed = []
+    for fraction in (0.99, 0.9, 0.6, 0.3):
+        cut = str(tmp_path / f"cut-{fraction}{extension}")
+        with open(cut, "wb") as file:
+            file.write(data[: int(len(data) * fraction)])
+        try:
+            np.testing.assert_array_equal(images.load(cut).pixels, pixels)
+        except ImageError as error:
+            assert "damaged or truncated" in str(error) or "not an image OpenImageIO can read" in str(error)
+            failed.append(cut)
+    assert len(failed) >= 3
+    waits = []
+
+    async def no_wait(seconds):
+        waits.append(seconds)
+
+    monkeypatch.setattr(asyncio, "sleep", no_wait)
+    monkeypatch.setattr(watch, "RETRY_SECONDS", 0.2)
+    assert run_to_end(settled(whole)) is None and waits == []  # no SETTLE_SECONDS for a whole picture
+    assert run_to_end(settled(failed[-1])) is not None and waits  # a cut one is waited for, then refused
 
 
 def test_a_port_in_use_is_refused_with_the_fix(url):

@@ -20,7 +20,7 @@ from matfit.app.serve.uploads import IMAGE_EXTENSIONS
 from matfit.errors import ImageError
 
 GONE = "gone"  # the `field` of a watched file deleted before or while it was fitted: answered 410
-SETTLE_SECONDS = 0.15  # a watched file must keep its size this long before it is read
+SETTLE_SECONDS = 0.15  # a watched file that does not decode yet must keep its size this long before it is retried
 RETRY_SECONDS = 3.0  # an unreadable watched file (still being written) is retried this long before it is an error
 
 
@@ -30,24 +30,34 @@ def gone(path: str, when: str) -> ImageError:
 
 
 async def settled(path: str) -> tuple[str, int] | None:
-    """Returns None once `path` is a complete picture (size steady, readable), or (the error, its HTTP status) after
-    RETRY_SECONDS: 410 for a file that is gone, 422 for one that stays unreadable."""
+    """Returns None once `path` is a complete picture, or (the error, its HTTP status) after RETRY_SECONDS: 410 for a
+    file that is gone, 422 for one that stays unreadable.
+
+    A picture that decodes, and kept its size while it was decoded, is taken at once: a PNG, JPEG, TIFF or EXR cut
+    short fails to decode, or (a TIFF cut in the tags after its pixels) decodes to the whole picture's pixels
+    (tests/test_serve.py). Only one that does not decode (still being written) waits for its size to hold
+    SETTLE_SECONDS before it is tried again.
+    """
     deadline = time.monotonic() + RETRY_SECONDS
     error = None
+    first = True
     while time.monotonic() < deadline:
         try:
             before = os.path.getsize(path)
-            await asyncio.sleep(SETTLE_SECONDS)
-            if os.path.getsize(path) != before:
-                continue
+            if not first:
+                await asyncio.sleep(SETTLE_SECONDS)
+                if os.path.getsize(path) != before:
+                    continue
+            first = False
             images.load(path, uploads.MAX_UPLOAD_PIXELS)
-            return None
+            if os.path.getsize(path) == before:
+                return None
         except FileNotFoundError:
+            first = False
             await asyncio.sleep(SETTLE_SECONDS)  # an editor may save by deleting and renaming
             error = f"the watched file {path} was deleted: save it again from your editor", 410
         except ImageError as problem:
             error = str(problem), 422
-            await asyncio.sleep(SETTLE_SECONDS)
     return error
 
 
