@@ -70,17 +70,6 @@ def test_script_refuses_a_name_that_would_break_it():
         export.blender_script(presets.preset("gold"), name='a"b')
 
 
-def test_sphere_mask_covers_the_silhouette():
-    mask = blender.sphere_mask(64, margin=0.0)
-    assert mask[32, 32] and not mask[0, 0] and not mask[63, 63]
-    # the unit sphere seen from 5.57 units subtends asin(1 / d); its image is close to a disc of
-    # radius tan(asin(1 / d)) on an image plane 2 tan(15 degrees) wide
-    distance = np.sqrt(0.9**2 + 5.5**2)
-    disc = np.pi * np.tan(np.arcsin(1 / distance)) ** 2 / (2 * np.tan(np.radians(15.0))) ** 2 * 64 * 64
-    assert mask.sum() == pytest.approx(disc, rel=0.03)
-    assert blender.sphere_mask(64).sum() > mask.sum()
-
-
 def fake_comparison(count=2, resolution=16):
     rng = np.random.default_rng(0)
     mitsuba = rng.uniform(0, 1, (count, resolution, resolution, 3)).astype(np.float32)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from matfit import images, params
-from matfit.rendering import engine, presets, process
+from matfit.rendering import engine, presets, process, scene
 from matfit.rendering.engine import RenderError
 
 
@@ -510,3 +510,14 @@ def test_a_renderer_with_a_thread_count_renders_on_it_whatever_another_renderer_
         np.testing.assert_array_equal(deciding.render(jade, seed=3), first)
     finally:
         drjit.set_thread_count(original)
+
+
+def test_sphere_mask_covers_the_silhouette():
+    mask = scene.sphere_mask(64, margin=0.0)
+    assert mask[32, 32] and not mask[0, 0] and not mask[63, 63]
+    # the unit sphere seen from 5.57 units subtends asin(1 / d); its image is close to a disc of
+    # radius tan(asin(1 / d)) on an image plane 2 tan(15 degrees) wide
+    distance = np.sqrt(0.9**2 + 5.5**2)
+    disc = np.pi * np.tan(np.arcsin(1 / distance)) ** 2 / (2 * np.tan(np.radians(15.0))) ** 2 * 64 * 64
+    assert mask.sum() == pytest.approx(disc, rel=0.03)
+    assert scene.sphere_mask(64).sum() > mask.sum()

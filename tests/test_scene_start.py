@@ -7,7 +7,7 @@ import pytest
 import matfit
 from matfit import images, params
 from matfit.fitting import scene_fit, scene_start
-from matfit.rendering import blender, presets, scene_file
+from matfit.rendering import presets, scene, scene_file
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +30,7 @@ def test_the_composite_puts_the_shapes_pixels_on_the_sphere_and_weighs_only_them
     target[shape] = [0.8, 0.1, 0.1]
     background = np.full((64, 64, 3), 0.5, np.float32)
     picture, weights = scene_start.composite(target, shape, background)
-    disk = blender.sphere_mask(64, margin=scene_start.SPHERE_MARGIN)
+    disk = scene.sphere_mask(64, margin=scene_start.SPHERE_MARGIN)
     assert weights.sum() == pytest.approx(disk.sum(), rel=0.02)  # a full box: the whole sphere is the shape's
     assert not (weights.astype(bool) & ~disk).any()
     np.testing.assert_allclose(picture[weights > 0].mean(axis=0), [0.8, 0.1, 0.1], atol=0.01)

@@ -19,7 +19,7 @@ from matfit import images, params
 from matfit.fitting import search
 from matfit.fitting.methods import Method, Settings
 from matfit.model import models
-from matfit.rendering import blender
+from matfit.rendering import scene
 
 SPHERE_MARGIN = -1.0  # pixels: the sphere's silhouette shrunk by one, so that no weighed pixel is the floor's
 
@@ -34,7 +34,7 @@ def composite(target: np.ndarray, shape: np.ndarray, background: np.ndarray) -> 
     resolution = background.shape[0]
     ys, xs = np.nonzero(shape)
     box = (slice(ys.min(), ys.max() + 1), slice(xs.min(), xs.max() + 1))
-    disk = blender.sphere_mask(resolution, margin=SPHERE_MARGIN)
+    disk = scene.sphere_mask(resolution, margin=SPHERE_MARGIN)
     dy, dx = np.nonzero(disk)
     onto = (slice(dy.min(), dy.max() + 1), slice(dx.min(), dx.max() + 1))
     height, width = dy.max() - dy.min() + 1, dx.max() - dx.min() + 1

@@ -109,31 +109,6 @@ def render_scripts(
         return np.stack([np.load(os.path.join(folder, f"{index}.npy")) for index in range(len(scripts))])
 
 
-def sphere_mask(resolution: int, margin: float = 1.5) -> np.ndarray:
-    """Returns a boolean (H, W) mask of the pixels within `margin` pixels of the sphere's silhouette.
-
-    Rays through pixel centres of the test scene's camera, tested against the unit sphere; the
-    margin covers the reconstruction filter's reach.
-    """
-    camera = scene.scene(resolution, 1)["sensor"]
-    (_, origin, target, up) = camera["to_world"].operations[0]
-    origin, target, up = (np.asarray(v, dtype=np.float64) for v in (origin, target, up))
-    forward = (target - origin) / np.linalg.norm(target - origin)
-    right = np.cross(forward, up)
-    right /= np.linalg.norm(right)
-    true_up = np.cross(right, forward)
-    half = np.tan(np.radians(camera["fov"]) / 2.0)
-    coordinates = ((np.arange(resolution) + 0.5) / resolution * 2.0 - 1.0) * half
-    x, y = np.meshgrid(coordinates, -coordinates)
-    directions = forward + x[..., None] * right + y[..., None] * true_up
-    directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
-    # distance from the sphere's centre to each ray, against the radius grown by the margin in angle
-    along = directions @ -origin
-    closest = np.linalg.norm(-origin - along[..., None] * directions, axis=-1)
-    pixel_angle = 2.0 * half / resolution
-    return closest <= 1.0 + margin * pixel_angle * np.linalg.norm(origin)
-
-
 @dataclass
 class Comparison:
     """Mitsuba and Cycles renders of the same materials, and how far apart they are."""
@@ -174,7 +149,7 @@ def compare(
         if progress is not None:
             progress(f"matfit-mitsuba: rendered {index + 1}/{len(materials)} (twice, seeds 0 and 1)")
     mitsuba, again = np.stack(first), np.stack(second)
-    mask = sphere_mask(resolution)
+    mask = scene.sphere_mask(resolution)
     exposure = float(mitsuba[:, ~mask].mean() / max(cycles[:, ~mask].mean(), 1e-12))
     cycles = cycles * exposure
     encoded_m, encoded_c = images.srgb_encode(mitsuba), images.srgb_encode(cycles)

@@ -254,3 +254,28 @@ def scene(resolution: int, spp: int, values: np.ndarray | None = None, sphere: b
     if not sphere:
         del whole["object"]
     return whole
+
+
+def sphere_mask(resolution: int, margin: float = 1.5) -> np.ndarray:
+    """Returns a boolean (H, W) mask of the pixels within `margin` pixels of the sphere's silhouette.
+
+    Rays through pixel centres of the test scene's camera, tested against the unit sphere; the
+    margin covers the reconstruction filter's reach.
+    """
+    camera = scene(resolution, 1)["sensor"]
+    (_, origin, target, up) = camera["to_world"].operations[0]
+    origin, target, up = (np.asarray(v, dtype=np.float64) for v in (origin, target, up))
+    forward = (target - origin) / np.linalg.norm(target - origin)
+    right = np.cross(forward, up)
+    right /= np.linalg.norm(right)
+    true_up = np.cross(right, forward)
+    half = np.tan(np.radians(camera["fov"]) / 2.0)
+    coordinates = ((np.arange(resolution) + 0.5) / resolution * 2.0 - 1.0) * half
+    x, y = np.meshgrid(coordinates, -coordinates)
+    directions = forward + x[..., None] * right + y[..., None] * true_up
+    directions /= np.linalg.norm(directions, axis=-1, keepdims=True)
+    # distance from the sphere's centre to each ray, against the radius grown by the margin in angle
+    along = directions @ -origin
+    closest = np.linalg.norm(-origin - along[..., None] * directions, axis=-1)
+    pixel_angle = 2.0 * half / resolution
+    return closest <= 1.0 + margin * pixel_angle * np.linalg.norm(origin)
