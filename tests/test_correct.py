@@ -200,3 +200,45 @@ def test_the_best_ends_batches_are_asked_for_beside_each_render_the_rounds_wait_
     assert sorted(seed for name, seed in renders if name == "end-1") == sorted(
         [verify.SEED, *(verify.BATCH_SEED + j for j in range(verify.BATCHES))]
     )
+
+
+class Ordered(Renderer):
+    """Mitsuba, and what was asked of it in order: ("prefetch" or "render", seed), with the caller's own marks."""
+
+    events: list
+
+    def prefetch(self, values, seed=0, spp=None):
+        self.events.append(("prefetch", seed))
+        return super().prefetch(values, seed, spp)
+
+    def render(self, values, seed=0, spp=None):
+        self.events.append(("render", seed))
+        return super().render(values, seed, spp)
+
+
+def test_meanwhile_runs_with_the_last_round_s_point_once_the_judge_asked_for_its_batches_and_changes_nothing(model):
+    # the fit works out the ranges of the point the judge most often keeps while the render processes make its
+    # batches (`stages.Ahead`): it must be that point, called once, after every first batch is asked for and
+    # before any is waited for, and the judge's choice must be the same without it
+    renderer = Ordered(R, 8)
+    renderer.events = []
+    target = images.srgb_encode(renderer.render(presets.preset("red-plastic"), seed=5))
+    result = search.neural_search(model, target, settings=search.Settings(method="lbfgsb", starts=2, iterations=10))
+    renderer.events = []
+    seen = []
+
+    def meanwhile(unit):
+        seen.append(unit)
+        renderer.events.append(("meanwhile", None))
+
+    checked = verify.correct_then_verify(renderer, result, target, model=model, corrections=2, meanwhile=meanwhile)
+    assert len(seen) == 1 and seen[0] is checked.points["corrected-2"]
+    at = renderer.events.index(("meanwhile", None))
+    batch_seeds = {verify.BATCH_SEED + j for j in range(verify.BATCHES)}
+    judged = [event for event in renderer.events[at + 1 :] if event[0] == "render"]
+    assert judged and all(seed in batch_seeds for _, seed in judged)  # after it: the judge's batches only
+    asked_before = [seed for kind, seed in renderer.events[:at] if kind == "prefetch"]
+    assert len(asked_before) >= verify.BATCHES and renderer.events[at - 1][0] == "prefetch"
+    without = verify.correct_then_verify(renderer, result, target, model=model, corrections=2)
+    assert without.chosen == checked.chosen and without.figures == checked.figures
+    np.testing.assert_array_equal(without.unit, checked.unit)
