@@ -3,7 +3,7 @@ import pytest
 from helpers import decode, random_model, true_point
 
 from matfit import images
-from matfit.app.bench import fits, optimisers, reachable, suite_report
+from matfit.app.bench import fits, optimisers, reachable, scenes, suite_report
 from matfit.app.bench.sequence import black_level, sequence_table
 from matfit.fitting import search
 
@@ -160,3 +160,16 @@ def test_bench_ranges_goes_on_from_its_results_file_and_tabulates_each_tau(tmp_p
     assert "| base_color_g | 100% (1) | - (0) | - (0) | 0.4 reflectance | - |" in text[second:]
     assert "| all | 100% (18) | 100% (1) | - (0) | | |" in text[second:]
     assert "| decided | 1 | 1.00 | 1.50 | 100% |" in text  # Mitsuba 1.5 within the default tau, 1.8
+
+
+def test_a_scene_bench_row_holds_the_judges_own_floor_and_the_fits_cpu_seconds(tmp_path):
+    case = scenes.cases(quick=True)[0]
+    row = scenes.run_case(case, str(tmp_path), 1, size=32, judge_size=16)
+    assert row["case"] == "knot-studio-opaque" and row["start"] > 5.0  # the start is 0.2 off in every coordinate
+    assert 0.0 <= row["judge_floor"] < 1.0 < row["start"]  # the truth against itself reads near 0, the start does not
+    assert row["cpu_seconds"] > 0.0 and row["floor"] > 0.0
+    text = scenes.table([row, {k: v for k, v in row.items() if k not in ("judge_floor", "cpu_seconds")}])
+    lines = text.splitlines()
+    assert "judge's floor" in lines[0] and "CPU seconds" in lines[0]
+    assert lines[2].count("|") == lines[3].count("|") == 11
+    assert lines[2].split("|")[6].strip() == f"{row['judge_floor']:.2f}" and lines[3].split("|")[6].strip() == ""

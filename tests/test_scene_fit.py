@@ -5,7 +5,7 @@ import pytest
 
 from matfit import images, params
 from matfit.errors import SceneError
-from matfit.fitting import scene_fit
+from matfit.fitting import refine, scene_fit
 from matfit.rendering import presets, scene_file
 
 
@@ -111,3 +111,35 @@ def test_roughness_the_descent_left_at_0_is_tried_inward_and_a_closer_point_kept
     kept, nothing, none = scene_fit.off_bounds(renderer, problem, free, target, weights, 2, seed=0)
     assert nothing == {"rmse": nothing["rmse"], "tried": 0, "moved": None} and none == []
     np.testing.assert_array_equal(kept, free)
+
+
+def test_the_path_holds_every_visited_point_and_descend_keeps_its_lowest_loss(knot, red_picture):
+    renderer = scene_file.Renderer(knot, knot.size(64), integrator=scene_file.OPAQUE_INTEGRATOR)
+    target = np.clip(images.srgb_encode(red_picture), 0.0, 1.0).astype(np.float32)
+    weights = scene_fit.region(renderer)[0].astype(np.float32)
+    problem = scene_fit.problem_of(renderer, target, weights, "prb")
+    start = params.to_unit(presets.preset("red-plastic"))
+    start[params.INDEX["base_color_g"]] = 0.6  # a greener red: the steps bring it back down
+    points, losses = refine.path(problem, start, 3, seed=7)
+    assert len(points) == 4 and len(losses) == 3
+    np.testing.assert_array_equal(points[0], start)
+    assert points[-1][params.INDEX["base_color_g"]] < 0.6 - 0.02  # Adam's three steps of 0.02 each, downhill
+    point, again = refine.descend(problem, start, 3, seed=7)
+    assert again == pytest.approx(losses, rel=1e-3)  # the same seeds: the same losses, but for the threads' order
+    np.testing.assert_allclose(point, points[int(np.argmin(again))], atol=1e-4)  # its gradients' sums likewise
+
+
+def test_the_answer_is_the_candidate_whose_render_is_closest_not_the_lowest_step_loss(knot, red_picture):
+    renderer = scene_file.Renderer(knot, knot.size(64), integrator=scene_file.OPAQUE_INTEGRATOR)
+    target = np.clip(images.srgb_encode(red_picture), 0.0, 1.0).astype(np.float32)
+    weights = scene_fit.region(renderer)[0].astype(np.float32)
+    truth = params.to_unit(presets.preset("red-plastic"))
+    green = truth.copy()
+    green[params.INDEX["base_color_g"]] = 0.8
+    # a lucky step's loss at a green point (winner's curse) and the truth last: the judge's render decides
+    point, judged = scene_fit.closest(renderer, [green, green, truth, truth], [1.0, 9.0, 9.0], target, weights)
+    np.testing.assert_array_equal(point, truth)
+    assert [j["name"] for j in judged] == ["lowest step loss", "last", "mean of the last quarter"]
+    assert judged[0]["rmse"] > judged[1]["rmse"] + 10  # the green point is far from the picture
+    assert judged[2]["rmse"] == pytest.approx(judged[1]["rmse"], abs=0.01)  # four points: the last quarter is the last
+    assert scene_fit.closest(renderer, [truth], [], target, weights) == (truth, [])

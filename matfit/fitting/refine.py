@@ -12,7 +12,8 @@ residual drives the gradient takes `PRIMAL` times the gradient's samples: sRGB e
 clipping are concave, so a noisy image's typical pixel reads darker than its mean, and at 16
 samples the steps brightened jade (more sheen, scattering) until its render was 14 RMSE away
 instead of 5; Mitsuba decorrelates the primal and adjoint passes itself (`seed_grad`). The point
-returned is the visited point of lowest step loss (the start included), since late steps drift.
+returned is the visited point of lowest step loss (the start included), since late steps drift; `path`
+returns every visited point, for a caller that chooses among them otherwise (`fitting/scene_fit`).
 
 What moves: all 19 parameters; none is held fixed by choice. Mitsuba 3.9 marks every scene value
 they set as differentiable (principled `specular` too: it sets eta; `roughness`, `specular` and the
@@ -299,13 +300,32 @@ def descend(
     progress: Callable[[int, float], None] | None = None,
 ) -> tuple[np.ndarray, list[float]]:
     """Returns the point of lowest loss among those that `steps` projected Adam steps from `start` visited, and the
-    losses (step k's loss is that of the point before its update, so the start is a candidate too).
+    losses (step k's loss is that of the point before its update, so the start is a candidate too): `path`'s.
+    """
+    points, losses = path(problem, start, steps, spp=spp, seed=seed, rate=rate, progress=progress)
+    if steps == 0:
+        return start, []
+    return points[int(np.argmin(losses))], losses
+
+
+def path(
+    problem: Problem,
+    start: np.ndarray,
+    steps: int,
+    *,
+    spp: int = SPP,
+    seed: int = SEED,
+    rate: float = RATE,
+    progress: Callable[[int, float], None] | None = None,
+) -> tuple[list[np.ndarray], list[float]]:
+    """Returns the points that `steps` projected Adam steps from `start` visit (the start first, the point after
+    the last update last: `steps` + 1 of them) and the losses (step k's loss is that of point k, before its update).
 
     Step k renders with seed `seed + k`: its image takes PRIMAL x `spp` samples, its gradient `spp`.
     `progress(step, loss)` hears of each step.
     """
     if steps == 0:
-        return start, []
+        return [start], []
     import drjit as dr
 
     mi = problem.mitsuba
@@ -329,4 +349,5 @@ def descend(
         second = BETAS[1] * second + (1 - BETAS[1]) * gradient**2
         corrected = moment / (1 - BETAS[0] ** (step + 1)), second / (1 - BETAS[1] ** (step + 1))
         x = np.clip(x - rate * corrected[0] / (np.sqrt(corrected[1]) + EPSILON), 0.0, 1.0)
-    return points[int(np.argmin(losses))], losses
+    points.append(x)
+    return points, losses

@@ -18,7 +18,9 @@ own camera, lights and shapes. In order:
    can stick, a glossy plastic fitted to a rough gold stays at roughness 0.001 (measured in the prototype); a
    transmissive start also starts as clear glass without coat or sheen (the bench's glass box under a sky).
    Each runs a quarter of the steps (at most `SHORT_STEPS`); the one whose render (`JUDGE_SPP`, one common
-   seed) is closest goes on for `steps` more.
+   seed) is closest goes on for `steps` more. Of that descent's visited point of lowest step loss, its last point
+   and the mean of its last quarter's points, the one whose renders at two seeds are closest goes on (`closest`):
+   a step's loss is one seed's, and where the loss lies flat at its noise its lowest point is partly luck.
 4. Off the bounds: at some bounds the gradient is zero (sheen and clearcoat at 0 are not evaluated) or wrong
    (roughness at 0, a near-mirror lobe's: `refine`'s docstring), so the descent cannot leave them (`TRAPS`). Each
    such parameter the descent left there is moved inward by `INWARD` and judged (`JUDGE_SPP`, one common seed); if
@@ -330,7 +332,7 @@ def fit(
         judged, _ = _judge(renderer, params.from_unit(point), target, weights)
         tried.append({"name": name, "rmse": round(judged, 3), "point": point, "losses": losses})
     best = min(tried, key=lambda t: t["rmse"])
-    point, more = refine.descend(
+    points, more = refine.path(
         problem,
         np.asarray(best["point"]),
         steps,
@@ -338,6 +340,7 @@ def fit(
         seed=refine.SEED + short,
         progress=heard("descent"),
     )
+    point, _ = closest(renderer, points, more, target, weights)
     point, bounds, again = off_bounds(
         renderer, problem, point, target, weights, short, seed=short + steps, progress=heard("bounds")
     )
@@ -369,6 +372,36 @@ def fit(
         time.perf_counter() - started,
         notices,
     )
+
+
+def closest(
+    renderer: scene_file.Renderer,
+    points: list[np.ndarray],
+    losses: list[float],
+    target: np.ndarray,
+    weights: np.ndarray,
+) -> tuple[np.ndarray, list[dict[str, object]]]:
+    """Returns (the descent's answer, each candidate's name and judged RMSE): of the visited point of lowest step loss,
+    the last point and the mean of the last quarter's points (unit cube, `refine.path`'s), the one whose renders
+    (`JUDGE_SPP`, `JUDGE_SEED` and `SECOND_SEED`) are closest on average."""
+    if not losses:
+        return points[0], []
+    quarter = max(1, len(points) // 4)
+    candidates = [
+        ("lowest step loss", points[int(np.argmin(losses))]),
+        ("last", points[-1]),
+        ("mean of the last quarter", np.mean(points[-quarter:], axis=0)),
+    ]
+    judged = [
+        (
+            np.mean([_judge(renderer, params.from_unit(p), target, weights, s)[0] for s in (JUDGE_SEED, SECOND_SEED)]),
+            n,
+            p,
+        )
+        for n, p in candidates
+    ]
+    kept = min(range(len(judged)), key=lambda k: judged[k][0])
+    return judged[kept][2], [{"name": name, "rmse": round(float(rmse), 3)} for rmse, name, _ in judged]
 
 
 def off_bounds(

@@ -9,7 +9,8 @@ turned, the colour taken out), judged against the edit.
 The judge is noise-free: at JUDGE_SIZE pixels, two independent renders of each side (the answer and the truth, or
 the edit twice), and the mean over the region the shape changes of the product of the two residuals, whose
 expectation is the squared error without the renders' noise; its square root, 0-255 sRGB. The floor is the
-target's own noise (two independent targets' RMSE / sqrt 2): what the fit's loss cannot go below.
+target's own noise (two independent targets' RMSE / sqrt 2): what the fit's loss cannot go below. The judge's
+floor is the truth judged so against two further truth renders: what the judge reads where the error is 0.
 Each finished case is appended to `results.jsonl` in the output folder at once, so the same command again goes on
 where a stopped one left off.
 """
@@ -114,32 +115,37 @@ def run_case(case: Case, folder: str, steps: int, *, size: int = TARGET_SIZE, ju
     big_region = images.resample(region[..., None].astype(np.float32), *read.size(size))[..., 0] > 0.5
     if case.edit is not None:
         target_srgb = edited(target_srgb, big_region, case.edit)
-    started = time.perf_counter()
+    started, cpu = time.perf_counter(), time.process_time()
     outcome = scene_fit.fit(read, images.srgb_decode(target_srgb), start=case.start, steps=steps)
-    seconds = time.perf_counter() - started
+    seconds, cpu = time.perf_counter() - started, time.process_time() - cpu
 
-    def pair(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def pair(values: np.ndarray, seeds: tuple[int, int] = (101, 102)) -> tuple[np.ndarray, np.ndarray]:
         return tuple(  # type: ignore[return-value]
-            images.srgb_encode(judge.render(values, seed=seed, spp=JUDGE_SPP)) for seed in (101, 102)
+            images.srgb_encode(judge.render(values, seed=seed, spp=JUDGE_SPP)) for seed in seeds
         )
 
-    if case.edit is not None:  # the edit applied to two independent truth renders: the edit without its noise
-        truth_pair = tuple(edited(side, region, case.edit) for side in pair(case.truth))
-    else:
-        truth_pair = pair(case.truth)
+    def truth(seeds: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        if case.edit is not None:  # the edit applied to two independent truth renders: the edit without its noise
+            return tuple(edited(side, region, case.edit) for side in pair(case.truth, seeds))  # type: ignore[return-value]
+        return pair(case.truth, seeds)
+
+    truth_pair = truth((101, 102))
     small = images.resample(target_srgb, *read.size(judge_size))
     floor = float(images.rmse(target_srgb, second if case.edit is None else target_srgb, big_region)) / np.sqrt(2)
     return {
         "case": case.name,
         "kind": case.kind,
-        "fit": round(noise_free_error(pair(outcome.values), truth_pair, weights), 3),  # type: ignore[arg-type]
-        "start": round(noise_free_error(pair(case.start), truth_pair, weights), 3),  # type: ignore[arg-type]
+        "fit": round(noise_free_error(pair(outcome.values), truth_pair, weights), 3),
+        "start": round(noise_free_error(pair(case.start), truth_pair, weights), 3),
         "floor": round(floor, 3) if case.edit is None else None,
+        # the truth judged against two further truth renders: what the judge reads where the error is 0
+        "judge_floor": round(noise_free_error(truth((103, 104)), truth_pair, weights), 3),
         "target_vs_judge": round(float(images.rmse(small, truth_pair[0], weights)), 3),
         "accepted": outcome.accepted,
         "moved_off_bound": outcome.bounds.get("moved"),
         "integrator": outcome.integrator,
         "seconds": round(seconds, 1),
+        "cpu_seconds": round(cpu, 1),  # the fit's, all threads together: what a load beside it changes less
         "values": [round(float(v), 5) for v in outcome.values],
     }
 
@@ -173,15 +179,19 @@ def run(folder: str, *, quick: bool = False, steps: int = scene_fit.STEPS, log: 
 
 
 def table(rows: list[dict]) -> str:
-    """Returns the bench's markdown table."""
+    """Returns the bench's markdown table (rows of an older run, without the judge's floor or CPU seconds, leave
+    those cells empty)."""
     lines = [
-        "| case | kind | noise-free error: fit | start | target noise | integrator | kept | seconds |",
-        "|---|---|---|---|---|---|---|---|",
+        "| case | kind | noise-free error: fit | start | target noise | judge's floor | integrator | kept | seconds "
+        "| CPU seconds |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
         floor = "" if row["floor"] is None else f"{row['floor']:.2f}"
+        judge_floor = "" if row.get("judge_floor") is None else f"{row['judge_floor']:.2f}"
+        cpu = "" if row.get("cpu_seconds") is None else f"{row['cpu_seconds']:.0f}"
         lines.append(
-            f"| {row['case']} | {row['kind']} | {row['fit']:.2f} | {row['start']:.2f} | {floor} | {row['integrator']} "
-            f"| {'yes' if row['accepted'] else 'no'} | {row['seconds']:.0f} |"
+            f"| {row['case']} | {row['kind']} | {row['fit']:.2f} | {row['start']:.2f} | {floor} | {judge_floor} "
+            f"| {row['integrator']} | {'yes' if row['accepted'] else 'no'} | {row['seconds']:.0f} | {cpu} |"
         )
     return "\n".join(lines)
