@@ -41,7 +41,6 @@ len(FEATURES) * verify.BATCHES renders, verify.BATCHES where the simplest is pla
 
 from __future__ import annotations
 
-import functools
 import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
@@ -54,8 +53,6 @@ from matfit import images, params, programs
 from matfit.fitting import ranges, verify
 
 if TYPE_CHECKING:
-    from collections.abc import Callable
-
     from jaxtyping import PyTree
 
     from matfit.fitting.ranges import Decode
@@ -209,7 +206,6 @@ def judge(
     *,
     rendered: list[np.ndarray] | tuple = (),
     spp: int = verify.BATCH_SPP,
-    meanwhile: Callable[[np.ndarray], None] | None = None,
 ) -> dict[str, Any]:
     """Returns {"chosen": the name kept ("best" or one of `pool`), "figures", "noise", "margins", "batches",
     "rendered"}: `best` and the candidates of `pool` (by name, simplest last) rendered in batches with verification's
@@ -218,18 +214,14 @@ def judge(
     one kept or undecided are not rendered, so neither in `margins` nor in `figures`; `noise`: the render noise
     of the best's mean render (`render_noise`), recorded beside the figures. `rendered`: the batches of `best` that
     verification rendered already (`verify.Verified.renders`), which are not rendered again; `spp`: samples of a
-    batch, as verification's. `meanwhile(unit)` is called with the simplest candidate, the first judged, once its
-    batches are asked for and before they are waited for (`verify.render_batches`)."""
+    batch, as verification's."""
     weights = verify.as_weights(target, weights)
     everyone = {"best": best, **pool}
     batches: dict[str, list[np.ndarray]] = {"best": list(rendered)}
     margins: dict[str, float] = {}
     chosen = "best"
     for name in reversed(pool):  # the simplest first; a less simple one is rendered only when it is refused
-        ahead = None if meanwhile is None or margins else functools.partial(meanwhile, pool[name])
-        verify.render_batches(
-            renderer, everyone, batches, ["best", name], count=verify.BATCHES, spp=spp, meanwhile=ahead
-        )
+        verify.render_batches(renderer, everyone, batches, ["best", name], count=verify.BATCHES, spp=spp)
         margins[name] = deficit(batches["best"], batches[name], target, weights)
         if margins[name] <= 0:
             chosen = name
@@ -267,18 +259,13 @@ def clean(
     *,
     rendered: list[np.ndarray] | tuple = (),
     spp: int = verify.BATCH_SPP,
-    found_candidates: list[tuple[tuple[str, ...], np.ndarray, float]] | None = None,
-    meanwhile: Callable[[np.ndarray], None] | None = None,
 ) -> Cleaned:
     """Returns the clean answer of `answer` (unit cube), judged in Mitsuba against it with `renderer` (an
     `engine.Renderer`, `Background` or `Process` at the target's resolution; None: not judged, the simplest
-    candidate returned). `rendered`, `spp`, `meanwhile`: verification's batches of `answer`, their samples, and what
-    runs while the first candidate renders, as for `judge`. `found_candidates`: `candidates(decode, variables,
-    answer, weights, found)` if the caller computed it already."""
+    candidate returned). `rendered`, `spp`: verification's batches of `answer` and their samples, as for `judge`."""
     started = time.perf_counter()
     answer = np.asarray(answer, np.float64)
-    if found_candidates is None:
-        found_candidates = candidates(decode, variables, answer, weights, found)
+    found_candidates = candidates(decode, variables, answer, weights, found)
     pool = {f"clean-{k + 1}": unit for k, (_, unit, _) in enumerate(found_candidates)}
     described = {
         f"clean-{k + 1}": {"off": list(names), "distance": distance}
@@ -288,7 +275,7 @@ def clean(
     judged: dict = {}
     figures: dict[str, float] = {}
     if pool and renderer is not None:
-        judged = judge(renderer, answer, pool, target, weights, rendered=rendered, spp=spp, meanwhile=meanwhile)
+        judged = judge(renderer, answer, pool, target, weights, rendered=rendered, spp=spp)
         chosen = judged["chosen"]
         shown = chosen if chosen != "best" else f"clean-{len(pool)}"
         figures = {"clean": judged["figures"][shown], "best": judged["figures"]["best"]}

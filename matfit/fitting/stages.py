@@ -8,7 +8,6 @@ as it exists (`NEURAL`, `VERIFIED`, `CLEAN`, `REFINED`: those the request runs, 
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 from collections.abc import Callable, Iterable
@@ -65,10 +64,9 @@ def fit_stages(
     variant = renderer.variant if renderer is not None else None
     verifier: Renders | None = background or renderer
     verified = None
-    ahead = Ahead(model, model_path, weights, clean=request.answer == "clean")
     if request.verified:
         assert verifier is not None, "start_renderer gives verification a renderer"
-        verified = verification_stage(request, model, result, target, weights, verifier, meanwhile=ahead.answer)
+        verified = verification_stage(request, model, result, target, weights, verifier)
     answer = verified_answer(result, verified, model, target, weights)
     if verified is None and renderer is not None and not request.refine_steps:
         answer = dataclasses.replace(
@@ -76,11 +74,11 @@ def fit_stages(
         )
     if verified is not None:
         landed(Outcome(result, target, answer, verified, variant=variant, notices=tuple(notices), stage=VERIFIED))
-    answer = dataclasses.replace(answer, ranges=ahead.ranges_of(answer.unit))
+    answer = dataclasses.replace(answer, ranges=ranges_stage(model, model_path, answer.unit, weights))
     cleaned = None
     if request.answer == "clean":
-        cleaned = clean_stage(model, answer, target, weights, verifier if request.verified else None, verified, ahead)
-        answer = clean_answer(answer, cleaned, model, target, weights, ahead)
+        cleaned = clean_stage(model, answer, target, weights, verifier if request.verified else None, verified)
+        answer = clean_answer(answer, cleaned, model, model_path, target, weights)
         landed(Outcome(result, target, answer, verified, cleaned, None, variant, tuple(notices), stage=CLEAN))
     refined = None
     if request.refine_steps:
@@ -176,14 +174,11 @@ def verification_stage(
     target: np.ndarray,
     weights: Weights,
     renderer: Renders,
-    *,
-    meanwhile: Callable[[np.ndarray], None] | None = None,
 ) -> verify.Verified:
-    """Returns the candidate Mitsuba keeps: among the fit's, or after the request's rounds of correction (with
-    `meanwhile` for `verify.correct_then_verify`)."""
+    """Returns the candidate Mitsuba keeps: among the fit's, or after the request's rounds of correction."""
     if request.rounds:
         return verify.correct_then_verify(
-            renderer, result, target, model=model, corrections=request.rounds, weights=weights, meanwhile=meanwhile
+            renderer, result, target, model=model, corrections=request.rounds, weights=weights
         )
     return verify.verify_candidates(renderer, result, target, weights=weights)
 
@@ -223,54 +218,6 @@ def ranges_stage(model: models.Model, model_path: str, unit: np.ndarray, weights
     return ranges.measure(decoding, model.decoder.variables, unit, weights, tau, source)
 
 
-class Ahead:
-    """The ranges (and the clean answer's candidates) of the point a later stage will most likely need, worked out
-    while the render processes make the renders a stage waits for, and used only for that very point: what a fit
-    returns is the same, sooner.
-
-    `answer(unit)` is verification's `meanwhile` (the last round of correction's point, which it most often keeps):
-    that point's ranges and, for a clean answer, its candidates. `clean_answer(unit)` is the clean answer's
-    (`clean.judge`: the simplest candidate, judged first): its ranges, which the answer needs if it is kept. Work
-    that fails here is left to its stage, which does it again and raises there.
-    """
-
-    def __init__(self, model: models.Model, model_path: str, weights: Weights, *, clean: bool) -> None:
-        self.model, self.model_path, self.weights, self.clean = model, model_path, weights, clean
-        self.found: dict[bytes, ranges.Ranges] = {}
-        self.candidates: dict[bytes, list[tuple[tuple[str, ...], np.ndarray, float]]] = {}
-
-    @staticmethod
-    def key(unit: np.ndarray) -> bytes:
-        return np.asarray(unit, np.float64).tobytes()
-
-    def ranges_of(self, unit: np.ndarray) -> ranges.Ranges:
-        """Returns `ranges_stage` of `unit`, worked out now unless it was already."""
-        key = self.key(unit)
-        if key not in self.found:
-            self.found[key] = ranges_stage(self.model, self.model_path, unit, self.weights)
-        return self.found[key]
-
-    def candidates_of(
-        self, unit: np.ndarray, found: ranges.Ranges
-    ) -> list[tuple[tuple[str, ...], np.ndarray, float]] | None:
-        """Returns the clean answer's candidates of `unit` with the ranges `found` if worked out, else None."""
-        key = self.key(unit)
-        return self.candidates.get(key) if self.found.get(key) is found else None
-
-    def answer(self, unit: np.ndarray) -> None:
-        with contextlib.suppress(Exception):
-            found = self.ranges_of(unit)
-            if self.clean:
-                decoding = ranges.Decoding(self.model.decoder.module)
-                self.candidates[self.key(unit)] = clean.candidates(
-                    decoding, self.model.decoder.variables, np.asarray(unit, np.float64), self.weights, found
-                )
-
-    def clean_answer(self, unit: np.ndarray) -> None:
-        with contextlib.suppress(Exception):
-            self.ranges_of(unit)
-
-
 def clean_stage(
     model: models.Model,
     answer: Answer,
@@ -278,30 +225,19 @@ def clean_stage(
     weights: Weights,
     renderer: Renders | None,
     verified: verify.Verified | None,
-    ahead: Ahead,
 ) -> clean.Cleaned:
     """Returns the clean answer of `answer` (`clean.py`), judged against it in Mitsuba by `renderer` (None: not
-    judged), verification's batches of it reused; its candidates as `ahead` found them, if it did, and the ranges of
-    the first one judged worked out by `ahead` while it renders."""
+    judged), verification's batches of it reused."""
     assert answer.ranges is not None, "the clean answer starts from the answer's ranges"
     rendered = verified.renders if verified is not None else ()  # the answer's batches
     decoding = ranges.Decoding(model.decoder.module)
     return clean.clean(
-        decoding,
-        model.decoder.variables,
-        answer.unit,
-        target,
-        weights,
-        answer.ranges,
-        renderer,
-        rendered=rendered,
-        found_candidates=ahead.candidates_of(answer.unit, answer.ranges),
-        meanwhile=ahead.clean_answer,
+        decoding, model.decoder.variables, answer.unit, target, weights, answer.ranges, renderer, rendered=rendered
     )
 
 
 def clean_answer(
-    answer: Answer, cleaned: clean.Cleaned, model: models.Model, target: np.ndarray, weights: Weights, ahead: Ahead
+    answer: Answer, cleaned: clean.Cleaned, model: models.Model, model_path: str, target: np.ndarray, weights: Weights
 ) -> Answer:
     """Returns the answer after the clean answer's judgement: the clean one, if kept, with its own picture, render and
     ranges (the re-fitted others may lie outside the best's ranges); else `answer`."""
@@ -314,7 +250,7 @@ def clean_answer(
         image,
         float(images.rmse(image, target, weights)),
         rendered,
-        ahead.ranges_of(cleaned.unit),
+        ranges_stage(model, model_path, cleaned.unit, weights),
     )
 
 

@@ -34,7 +34,6 @@ was corrected on.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -47,7 +46,7 @@ from matfit.fitting.methods import check_corrections
 from matfit.model import models
 
 if TYPE_CHECKING:
-    from collections.abc import Callable, Sequence
+    from collections.abc import Sequence
 
     from jaxtyping import Float
 
@@ -127,16 +126,12 @@ def correct_then_verify(
     count: int = CORRECTED_CANDIDATES,
     spp: int = BATCH_SPP,
     residual_spp: int = SPP,
-    meanwhile: Callable[[np.ndarray], None] | None = None,
 ) -> Verified:
     """Returns, as `verify_candidates`, the candidate kept among the fit's `count` candidates and the last of
     `corrections` rounds of `correct.correction_round` ("corrected-1", ...) from the better of them
     (`where_rounds_start`): the correction stage, then the verification stage.
 
     `model`: the fit's, whose decoder the rounds fit with. `residual_spp`: samples of the rounds' residual renders.
-    `meanwhile(unit)` is called with the last round's point, the one the judge most often keeps (23 of the 25 fits
-    of the judged set), once the judge's first batches are asked for and before they are waited for: the caller's
-    work for that point then runs while the render processes make them.
     """
     check_corrections(corrections)
     if not corrections:
@@ -158,10 +153,7 @@ def correct_then_verify(
         spp=spp,
         residual_spp=residual_spp,
     )
-    ahead = None if meanwhile is None else functools.partial(meanwhile, pool[last])
-    verified = judge(
-        renderer, pool, [*contenders, last], batches, target, weights, spp=spp, started=started, meanwhile=ahead
-    )
+    verified = judge(renderer, pool, [*contenders, last], batches, target, weights, spp=spp, started=started)
     return dataclasses.replace(verified, decoded=corrected, corrections=corrections)
 
 
@@ -183,15 +175,12 @@ def render_batches(
     *,
     count: int,
     spp: int,
-    meanwhile: Callable[[], None] | None = None,
 ) -> None:
     """Adds to `batches` the batches (batch j with BATCH_SEED + j) that the candidates `names` of `pool` lack of
-    `count` each; `meanwhile()` runs once they are asked for, before they are waited for."""
+    `count` each."""
     for name in names:  # every request first, so that a render process works through them while this one waits
         for j in range(len(batches.get(name, ())), count):
             renderer.prefetch(params.from_unit(pool[name]), BATCH_SEED + j, spp)
-    if meanwhile is not None:
-        meanwhile()
     for name in names:
         done = batches.setdefault(name, [])
         done.extend(
@@ -267,15 +256,13 @@ def judge(
     *,
     spp: int,
     started: float,
-    meanwhile: Callable[[], None] | None = None,
 ) -> Verified:
     """Returns the contender kept by the noise-aware rule of the module docstring: BATCHES batches of each, then one
     more of the leader and of every contender within LEAD standard errors of it, up to MAX_BATCHES.
 
-    `batches`: what was rendered already, by name (added to); `started`: when verification began (for `seconds`);
-    `meanwhile()` runs while the first batches render (`render_batches`).
+    `batches`: what was rendered already, by name (added to); `started`: when verification began (for `seconds`).
     """
-    render_batches(renderer, pool, batches, contenders, count=BATCHES, spp=spp, meanwhile=meanwhile)
+    render_batches(renderer, pool, batches, contenders, count=BATCHES, spp=spp)
     while True:
         chosen, estimates, margins = decide({name: batches[name] for name in contenders}, target, weights)
         undecided = [name for name, margin in margins.items() if margin < LEAD]
