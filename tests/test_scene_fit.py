@@ -100,7 +100,7 @@ def test_roughness_the_descent_left_at_0_is_tried_inward_and_a_closer_point_kept
     problem = scene_fit.problem_of(renderer, target, weights, "prb")
     stuck = params.to_unit(presets.preset("red-plastic"))  # the truth (roughness 0.3) but for its roughness at 0
     stuck[params.INDEX["roughness"]] = 0.0
-    point, done, losses = scene_fit.off_bounds(renderer, problem, stuck, target, weights, 2, seed=0)
+    point, done, losses = scene_fit.off_bounds(scene_fit.Judge(renderer, target, weights), problem, stuck, 2, seed=0)
     assert done["tried"] == 2 * len(scene_fit.INWARD) == 4  # roughness and sheen are at 0; clearcoat is not
     assert done["moved"] == "roughness" and len(losses) == 2
     assert point[params.INDEX["roughness"]] >= 0.1
@@ -108,7 +108,7 @@ def test_roughness_the_descent_left_at_0_is_tried_inward_and_a_closer_point_kept
     assert moved_rmse < stuck_rmse - 0.3  # the truth's roughness is closer than 0 (3.42 -> 2.89 at one seed)
     free = params.to_unit(presets.preset("red-plastic"))
     free[params.INDEX["sheen"]] = 0.3
-    kept, nothing, none = scene_fit.off_bounds(renderer, problem, free, target, weights, 2, seed=0)
+    kept, nothing, none = scene_fit.off_bounds(scene_fit.Judge(renderer, target, weights), problem, free, 2, seed=0)
     assert nothing == {"rmse": nothing["rmse"], "tried": 0, "moved": None} and none == []
     np.testing.assert_array_equal(kept, free)
 
@@ -137,9 +137,28 @@ def test_the_answer_is_the_candidate_whose_render_is_closest_not_the_lowest_step
     green = truth.copy()
     green[params.INDEX["base_color_g"]] = 0.8
     # a lucky step's loss at a green point (winner's curse) and the truth last: the judge's render decides
-    point, judged = scene_fit.closest(renderer, [green, green, truth, truth], [1.0, 9.0, 9.0], target, weights)
+    judge = scene_fit.Judge(renderer, target, weights)
+    point, judged = scene_fit.closest(judge, [green, green, truth, truth], [1.0, 9.0, 9.0])
     np.testing.assert_array_equal(point, truth)
     assert [j["name"] for j in judged] == ["lowest step loss", "last", "mean of the last quarter"]
     assert judged[0]["rmse"] > judged[1]["rmse"] + 10  # the green point is far from the picture
     assert judged[2]["rmse"] == pytest.approx(judged[1]["rmse"], abs=0.01)  # four points: the last quarter is the last
-    assert scene_fit.closest(renderer, [truth], [], target, weights) == (truth, [])
+    assert scene_fit.closest(judge, [truth], []) == (truth, [])
+
+
+def test_the_judge_renders_a_material_once_at_each_seed(knot, red_picture, monkeypatch):
+    # the descent's answer is judged by `closest`, `off_bounds` and the acceptance at the same seeds: one render each
+    renderer = scene_file.Renderer(knot, knot.size(64), integrator=scene_file.OPAQUE_INTEGRATOR)
+    target = np.clip(images.srgb_encode(red_picture), 0.0, 1.0).astype(np.float32)
+    weights = scene_fit.region(renderer)[0].astype(np.float32)
+    asked = []
+    render = renderer.render
+    monkeypatch.setattr(renderer, "render", lambda values, **kw: asked.append(kw["seed"]) or render(values, **kw))
+    judge = scene_fit.Judge(renderer, target, weights)
+    red = presets.preset("red-plastic")
+    first = judge(red)
+    again = judge(red.copy())
+    assert again[0] == first[0] and again[1] is first[1] and asked == [scene_fit.JUDGE_SEED]
+    second = judge(red, scene_fit.SECOND_SEED)
+    assert asked == [scene_fit.JUDGE_SEED, scene_fit.SECOND_SEED] and second[0] != first[0]
+    assert first[0] == pytest.approx(float(images.rmse(first[1], target, weights)))

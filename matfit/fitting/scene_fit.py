@@ -42,6 +42,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -212,11 +213,22 @@ def problem_of(
     )
 
 
-def _judge(
-    renderer: scene_file.Renderer, values: np.ndarray, target: np.ndarray, weights: np.ndarray, seed: int = JUDGE_SEED
-) -> tuple:
-    rendered = images.srgb_encode(renderer.render(values, seed=seed, spp=JUDGE_SPP))
-    return float(images.rmse(rendered, target, weights)), rendered
+class Judge:
+    """The judge of one fit: a material's sRGB render (`JUDGE_SPP`, a seed) and its RMSE to the target over the
+    weights, each made once however many stages ask for it (the descent's answer is judged by `closest`, by
+    `off_bounds` and by the acceptance, at the same seeds)."""
+
+    def __init__(self, renderer: scene_file.Renderer, target: np.ndarray, weights: np.ndarray) -> None:
+        self.renderer, self.target, self.weights = renderer, target, weights
+        self.made: dict[tuple[bytes, int], tuple[float, np.ndarray]] = {}
+
+    def __call__(self, values: np.ndarray, seed: int = JUDGE_SEED) -> tuple[float, np.ndarray]:
+        """Returns (the RMSE, the render) of physical `values` at `seed`."""
+        key = (np.asarray(values, np.float64).tobytes(), seed)
+        if key not in self.made:
+            rendered = images.srgb_encode(self.renderer.render(values, seed=seed, spp=JUDGE_SPP))
+            self.made[key] = (float(images.rmse(rendered, self.target, self.weights)), rendered)
+        return self.made[key]
 
 
 def shows_medium(values: np.ndarray) -> bool:
@@ -324,12 +336,13 @@ def fit(
 
         return step
 
-    tried = []
+    judge = Judge(renderer, target, weights)
+    tried: list[dict[str, Any]] = []
     for name, values in candidates:
         point, losses = refine.descend(
             problem, params.to_unit(values), short, spp=STEP_SPP, seed=refine.SEED, progress=heard("starts")
         )
-        judged, _ = _judge(renderer, params.from_unit(point), target, weights)
+        judged, _ = judge(params.from_unit(point))
         tried.append({"name": name, "rmse": round(judged, 3), "point": point, "losses": losses})
     best = min(tried, key=lambda t: t["rmse"])
     points, more = refine.path(
@@ -340,13 +353,11 @@ def fit(
         seed=refine.SEED + short,
         progress=heard("descent"),
     )
-    point, _ = closest(renderer, points, more, target, weights)
-    point, bounds, again = off_bounds(
-        renderer, problem, point, target, weights, short, seed=short + steps, progress=heard("bounds")
-    )
+    point, _ = closest(judge, points, more)
+    point, bounds, again = off_bounds(judge, problem, point, short, seed=short + steps, progress=heard("bounds"))
     answer = params.from_unit(point)
-    start_rmse, start_rendered = _judge(renderer, first, target, weights)
-    rmse, rendered = _judge(renderer, answer, target, weights)
+    start_rmse, start_rendered = judge(first)
+    rmse, rendered = judge(answer)
     accepted = rmse < start_rmse
     if not accepted:
         notices.append(f"the descent found nothing closer than the start (RMSE {rmse:.2f} >= {start_rmse:.2f}): kept")
@@ -374,13 +385,7 @@ def fit(
     )
 
 
-def closest(
-    renderer: scene_file.Renderer,
-    points: list[np.ndarray],
-    losses: list[float],
-    target: np.ndarray,
-    weights: np.ndarray,
-) -> tuple[np.ndarray, list[dict[str, object]]]:
+def closest(judge: Judge, points: list[np.ndarray], losses: list[float]) -> tuple[np.ndarray, list[dict[str, object]]]:
     """Returns (the descent's answer, each candidate's name and judged RMSE): of the visited point of lowest step loss,
     the last point and the mean of the last quarter's points (unit cube, `refine.path`'s), the one whose renders
     (`JUDGE_SPP`, `JUDGE_SEED` and `SECOND_SEED`) are closest on average."""
@@ -394,7 +399,7 @@ def closest(
     ]
     judged = [
         (
-            np.mean([_judge(renderer, params.from_unit(p), target, weights, s)[0] for s in (JUDGE_SEED, SECOND_SEED)]),
+            np.mean([judge(params.from_unit(p), s)[0] for s in (JUDGE_SEED, SECOND_SEED)]),
             n,
             p,
         )
@@ -405,11 +410,9 @@ def closest(
 
 
 def off_bounds(
-    renderer: scene_file.Renderer,
+    judge: Judge,
     problem: refine.Problem,
     point: np.ndarray,
-    target: np.ndarray,
-    weights: np.ndarray,
     steps: int,
     *,
     seed: int,
@@ -420,7 +423,7 @@ def off_bounds(
     for `steps` steps (seeds from refine.SEED + `seed`), and of the three points the one closest by the mean of two
     judged renders (`JUDGE_SEED` and `SECOND_SEED`) is returned: a move that one seed's noise favours is not kept."""
     point = np.asarray(point, np.float64)
-    base, _ = _judge(renderer, params.from_unit(point), target, weights)
+    base, _ = judge(params.from_unit(point))
     tries = []
     for name in TRAPS:
         i = params.INDEX[name]
@@ -429,16 +432,16 @@ def off_bounds(
         for distance in INWARD:
             moved = point.copy()
             moved[i] = distance
-            judged, _ = _judge(renderer, params.from_unit(moved), target, weights)
+            judged, _ = judge(params.from_unit(moved))
             tries.append((judged, name, float(moved[i]), moved))
     done: dict[str, object] = {"rmse": round(base, 3), "tried": len(tries), "moved": None}
     if not tries or min(t[0] for t in tries) >= base:
         return point, done, []
     judged, name, value, moved = min(tries, key=lambda t: t[0])
     further, losses = refine.descend(problem, moved, steps, spp=STEP_SPP, seed=refine.SEED + seed, progress=progress)
-    after, _ = _judge(renderer, params.from_unit(further), target, weights)
+    after, _ = judge(params.from_unit(further))
     both = [
-        (first + _judge(renderer, params.from_unit(p), target, weights, SECOND_SEED)[0]) / 2
+        (first + judge(params.from_unit(p), SECOND_SEED)[0]) / 2
         for first, p in ((base, point), (judged, moved), (after, further))
     ]
     kept = int(np.argmin(both))
