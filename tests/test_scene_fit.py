@@ -28,9 +28,26 @@ def test_the_starts_keep_the_colour_over_metallic_and_roughness_or_roughness_for
     colour = slice(params.INDEX["base_color_r"], params.INDEX["base_color_b"] + 1)
     assert all(np.array_equal(values[colour], plastic[colour]) for _, values in found)
     assert found[3][1][params.INDEX["metallic"]] == 1.0 and found[3][1][params.INDEX["roughness"]] == 0.15
+    # glass: all of it transmitted already, and clear glass is its roughness 0.02 start: one descent each
     glass = scene_fit.starts(presets.preset("glass"))
-    assert [name for name, _ in glass] == ["given", "roughness 0.02", "roughness 0.35", "clear glass"]
-    assert glass[3][1][params.INDEX["spec_trans"]] == 1.0 and glass[3][1][params.INDEX["clearcoat"]] == 0.0
+    assert [name for name, _ in glass] == ["given", "roughness 0.02", "roughness 0.35"]
+    partly = scene_fit._probe(presets.preset("jade"), spec_trans=0.8, roughness=0.2, clearcoat=0.3)
+    found = scene_fit.starts(partly)
+    assert [name for name, _ in found] == [
+        "given",
+        "roughness 0.02",
+        "roughness 0.35",
+        "all transmitted",
+        "clear glass",
+    ]
+    np.testing.assert_array_equal(found[3][1], scene_fit._probe(partly, spec_trans=1.0))
+    assert found[4][1][params.INDEX["spec_trans"]] == 1.0 and found[4][1][params.INDEX["clearcoat"]] == 0.0
+    assert [name for name, _ in scene_fit.starts(scene_fit._probe(partly, roughness=0.35))] == [
+        "given",
+        "roughness 0.02",
+        "all transmitted",
+        "clear glass",
+    ]
 
 
 def test_a_picture_of_another_aspect_is_refused_before_any_render(knot):
@@ -64,6 +81,18 @@ def test_a_fit_from_a_start_far_off_comes_closer_and_says_what_the_view_decides(
     assert set(outcome.ranges) == set(params.NAMES)
     assert outcome.ranges["base_color_r"]["verdict"] == "decided"
     assert outcome.ranges["density"]["verdict"].startswith("not decided")  # an opaque fit shows no medium
+
+
+def test_a_transmissive_fit_descends_from_every_start_and_keeps_the_one_that_ends_closest(knot):
+    glass = presets.preset("glass")
+    picture = scene_file.Renderer(knot, knot.size(64)).render(glass, seed=11, spp=64)
+    start = scene_fit._probe(glass, spec_trans=0.8, roughness=0.2)
+    outcome = scene_fit.fit(knot, picture, start=start, steps=2)
+    names = ["given", "roughness 0.02", "roughness 0.35", "all transmitted", "clear glass"]
+    assert [s["name"] for s in outcome.starts] == names
+    assert all(s["descended"] > 0 for s in outcome.starts)  # each went on the 2 steps, judged where it ended
+    assert outcome.integrator == "prb" and outcome.rmse <= outcome.start_rmse  # glass shows no medium
+    assert len(outcome.losses) in (1 + 2, 1 + 2 + 1)  # the chosen start's short run, its descent, a move off a bound
 
 
 def test_a_fit_never_returns_something_worse_than_its_start(knot, red_picture):
@@ -124,6 +153,10 @@ def test_the_path_holds_every_visited_point_and_descend_keeps_its_lowest_loss(kn
     assert len(points) == 4 and len(losses) == 3
     np.testing.assert_array_equal(points[0], start)
     assert points[-1][params.INDEX["base_color_g"]] < 0.6 - 0.02  # Adam's three steps of 0.02 each, downhill
+    held, _ = refine.path(problem, start, 3, seed=7, hold=(params.INDEX["base_color_g"],), held=2)
+    assert [p[params.INDEX["base_color_g"]] for p in held[:3]] == [0.6, 0.6, 0.6]  # held for two steps, then free
+    assert held[3][params.INDEX["base_color_g"]] < 0.6 - 0.01
+    assert held[1][params.INDEX["base_color_r"]] != start[params.INDEX["base_color_r"]]  # the others move meanwhile
     point, again = refine.descend(problem, start, 3, seed=7)
     assert again == pytest.approx(losses, rel=1e-3)  # the same seeds: the same losses, but for the threads' order
     np.testing.assert_allclose(point, points[int(np.argmin(again))], atol=1e-4)  # its gradients' sums likewise

@@ -303,11 +303,13 @@ def descend(
     seed: int = SEED,
     rate: float = RATE,
     progress: Callable[[int, float], None] | None = None,
+    hold: tuple[int, ...] = (),
+    held: int = 0,
 ) -> tuple[np.ndarray, list[float]]:
     """Returns the point of lowest loss among those that `steps` projected Adam steps from `start` visited, and the
     losses (step k's loss is that of the point before its update, so the start is a candidate too): `path`'s.
     """
-    points, losses = path(problem, start, steps, spp=spp, seed=seed, rate=rate, progress=progress)
+    points, losses = path(problem, start, steps, spp=spp, seed=seed, rate=rate, progress=progress, hold=hold, held=held)
     if steps == 0:
         return start, []
     return points[int(np.argmin(losses))], losses
@@ -322,6 +324,8 @@ def path(
     seed: int = SEED,
     rate: float = RATE,
     progress: Callable[[int, float], None] | None = None,
+    hold: tuple[int, ...] = (),
+    held: int = 0,
 ) -> tuple[list[np.ndarray], list[float]]:
     """Returns the points that `steps` projected Adam steps from `start` visit (the start first, the point after
     the last update last: `steps` + 1 of them) and the losses (step k's loss is that of point k, before its update).
@@ -347,6 +351,8 @@ def path(
         loss = srgb_rmse(image, problem.target, problem.weights)
         dr.backward(loss)
         gradient = np.array(dr.grad(unit), np.float64)
+        if step < held:
+            gradient[list(hold)] = 0.0
         losses.append(float(loss.array[0]))
         if progress is not None:
             progress(step, losses[-1])

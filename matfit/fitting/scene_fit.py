@@ -14,13 +14,18 @@ own camera, lights and shapes. In order:
    (else it is not a picture of this scene), and inside it like something other than the scene without the
    shape.
 3. Starts: the material given (or the shape's own, or matfit's default) and four that keep its colour over
-   metallic x roughness (a start with spec_trans < 0.5) or two over roughness (a transmissive one): one start
-   can stick, a glossy plastic fitted to a rough gold stays at roughness 0.001 (measured in the prototype); a
-   transmissive start also starts as clear glass without coat or sheen (the bench's glass box under a sky).
-   Each runs a quarter of the steps (at most `SHORT_STEPS`); the one whose render (`JUDGE_SPP`, one common
-   seed) is closest goes on for `steps` more. Of that descent's visited point of lowest step loss, its last point
-   and the mean of its last quarter's points, the one whose renders at two seeds are closest goes on (`closest`):
-   a step's loss is one seed's, and where the loss lies flat at its noise its lowest point is partly luck.
+   metallic x roughness (a start with spec_trans < 0.5) or, for a transmissive one, two over roughness, one with
+   all of it transmitted and one as clear glass without coat or sheen (the bench's jade box and glass box under
+   a sky); a start that repeats another's values is one start. One start can stick: a glossy plastic fitted to a
+   rough gold stays at roughness 0.001 (measured in the prototype). Each runs a quarter of the steps (at most
+   `SHORT_STEPS`). An opaque fit's start whose render (`JUDGE_SPP`, one common seed) is then closest goes on for
+   `steps` more; a transmissive fit's starts all go on, with spec_trans held where it started for the short run
+   and the descent's first `short` steps (`refine.path`'s `hold`): the descent could otherwise trade the
+   transmission for a diffuse lobe before the medium is fitted and stay in that valley (the jade box: 8.0 in
+   every run, the short runs' ranking no guide to where a descent ends). Of a descent's visited point of lowest
+   step loss, its last point and the mean of its last quarter's points, the one whose renders at two seeds are
+   closest is its answer (`closest`): a step's loss is one seed's, and where the loss lies flat at its noise its
+   lowest point is partly luck; of the starts' answers, the closest at two seeds goes on.
 4. Off the bounds: at some bounds the gradient is zero (sheen and clearcoat at 0 are not evaluated) or wrong
    (roughness at 0, a near-mirror lobe's: `refine`'s docstring), so the descent cannot leave them (`TRAPS`). Each
    such parameter the descent left there is moved inward by `INWARD` and judged (`JUDGE_SPP`, one common seed); if
@@ -238,11 +243,19 @@ def shows_medium(values: np.ndarray) -> bool:
     return bool(values[params.INDEX["spec_trans"]] > 0.01 and values[params.INDEX["density"]] > 0)
 
 
+def transmissive(values: np.ndarray) -> bool:
+    """Returns whether a material (physical) is fitted as a transmissive one: spec_trans 0.5 or more."""
+    return bool(values[params.INDEX["spec_trans"]] >= 0.5)
+
+
 def starts(start: np.ndarray) -> list[tuple[str, np.ndarray]]:
     """Returns the named starts of a fit from the material `start` (physical): it, and others that keep its colour."""
     found = [("given", start)]
-    if start[params.INDEX["spec_trans"]] >= 0.5:
+    if transmissive(start):
         found += [(f"roughness {r}", _probe(start, roughness=r)) for r in (0.02, 0.35)]
+        # all of it transmitted: from a partly diffuse start the descent can match a dense medium's glow with the
+        # diffuse lobe and stay there (the bench's jade box under the sky)
+        found.append(("all transmitted", _probe(start, spec_trans=1.0)))
         # clear glass with no coat or sheen: against a smooth environment a coated, half-transmissive material
         # can look alike to the gradient, and the descent stays there (the bench's box under the sky)
         found.append(("clear glass", _probe(start, spec_trans=1.0, roughness=0.02, clearcoat=0.0, sheen=0.0)))
@@ -252,7 +265,12 @@ def starts(start: np.ndarray) -> list[tuple[str, np.ndarray]]:
             for m in (0.0, 1.0)
             for r in (0.15, 0.55)
         ]
-    return found
+    # a start that is another's values (the given roughness is 0.35, or all of it is transmitted) is one descent
+    return [
+        (name, values)
+        for k, (name, values) in enumerate(found)
+        if not any(np.array_equal(values, v) for _, v in found[:k])
+    ]
 
 
 def fit(
@@ -326,7 +344,8 @@ def fit(
     problem = problem_of(renderer, target, weights, integrator)
     candidates = starts(first)
     short = min(SHORT_STEPS, max(1, steps // 4))
-    total = short * len(candidates) + steps + short
+    total = short * len(candidates) + steps * (len(candidates) if transmissive(first) else 1) + short
+    hold = (params.INDEX["spec_trans"],) if transmissive(first) else ()
     done = 0
 
     def heard(stage: str) -> Callable[[int, float], None]:
@@ -342,20 +361,34 @@ def fit(
     tried: list[dict[str, Any]] = []
     for name, values in candidates:
         point, losses = refine.descend(
-            problem, params.to_unit(values), short, spp=STEP_SPP, seed=refine.SEED, progress=heard("starts")
+            problem,
+            params.to_unit(values),
+            short,
+            spp=STEP_SPP,
+            seed=refine.SEED,
+            progress=heard("starts"),
+            hold=hold,
+            held=short,
         )
         judged, _ = judge(params.from_unit(point))
         tried.append({"name": name, "rmse": round(judged, 3), "point": point, "losses": losses})
-    best = min(tried, key=lambda t: t["rmse"])
-    points, more = refine.path(
-        problem,
-        np.asarray(best["point"]),
-        steps,
-        spp=STEP_SPP,
-        seed=refine.SEED + short,
-        progress=heard("descent"),
-    )
-    point, _ = closest(judge, points, more)
+    ranked = sorted(tried, key=lambda t: t["rmse"])
+    for t in ranked[: len(ranked) if transmissive(first) else 1]:
+        points, more = refine.path(
+            problem,
+            np.asarray(t["point"]),
+            steps,
+            spp=STEP_SPP,
+            seed=refine.SEED + short,
+            progress=heard("descent"),
+            hold=hold,
+            held=short,
+        )
+        t["answer"], ended = closest(judge, points, more)
+        t["more"] = more
+        t["answer_rmse"] = min(cast(float, e["rmse"]) for e in ended) if ended else t["rmse"]
+    best = min((t for t in tried if "answer" in t), key=lambda t: t["answer_rmse"])
+    point, more = best["answer"], best["more"]
     point, bounds, again = off_bounds(judge, problem, point, short, seed=short + steps, progress=heard("bounds"))
     answer = params.from_unit(point)
     start_rmse, start_rendered = judge(first)
@@ -377,7 +410,11 @@ def fit(
         rendered,
         start_rendered,
         source,
-        [{"name": t["name"], "rmse": t["rmse"]} for t in tried],
+        [
+            {"name": t["name"], "rmse": t["rmse"]}
+            | ({"descended": round(t["answer_rmse"], 3)} if "answer" in t else {})
+            for t in tried
+        ],
         bounds,
         [*list(best["losses"]), *more, *again],
         decided(renderer, answer, weights, integrator),
