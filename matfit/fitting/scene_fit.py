@@ -344,8 +344,9 @@ def fit(
     problem = problem_of(renderer, target, weights, integrator)
     candidates = starts(first)
     short = min(SHORT_STEPS, max(1, steps // 4))
-    total = short * len(candidates) + steps * (len(candidates) if transmissive(first) else 1) + short
-    hold = (params.INDEX["spec_trans"],) if transmissive(first) else ()
+    every = transmissive(first)  # every start descends, spec_trans held at first; else the closest start alone
+    total = short * len(candidates) + steps * (len(candidates) if every else 1) + short
+    hold = (params.INDEX["spec_trans"],) if every else ()
     done = 0
 
     def heard(stage: str) -> Callable[[int, float], None]:
@@ -372,8 +373,7 @@ def fit(
         )
         judged, _ = judge(params.from_unit(point))
         tried.append({"name": name, "rmse": round(judged, 3), "point": point, "losses": losses})
-    ranked = sorted(tried, key=lambda t: t["rmse"])
-    for t in ranked[: len(ranked) if transmissive(first) else 1]:
+    for t in tried if every else [min(tried, key=lambda t: t["rmse"])]:
         points, more = refine.path(
             problem,
             np.asarray(t["point"]),
