@@ -27,6 +27,27 @@ def test_rmse_is_on_the_0_255_scale():
         images.rmse(a, np.zeros((2, 2, 3)))
 
 
+
+def test_the_noise_free_estimate_leaves_out_the_renders_noise_which_rmse_counts():
+    # A material off by 0.05 everywhere, rendered twice with noise of spread 0.2: either render's squared error is
+    # about 0.05^2 + 0.2^2, the two renders' cross term 0.05^2 (its standard error 0.2^2 / sqrt(3 64^2) = 3.6e-4)
+    rng = np.random.default_rng(4)
+    target = np.full((64, 64, 3), 0.5)
+    renders = target + 0.05 + rng.normal(0, 0.2, (2, *target.shape))
+    weights = np.ones((64, 64))
+    assert images.noise_free_mse(renders, target, weights) == pytest.approx(0.05**2, abs=3 * 3.6e-4)
+    assert (images.rmse(renders[0], target) / 255) ** 2 == pytest.approx(0.05**2 + 0.2**2, rel=0.05)
+    # the two render alike where the noise is alike: the noisier material is not the one the estimate favours
+    calm = target + 0.08 + rng.normal(0, 0.05, (2, *target.shape))
+    assert images.noise_free_mse(calm, target, weights) > images.noise_free_mse(renders, target, weights)
+    assert images.rmse(calm[0], target) < images.rmse(renders[0], target)
+    half = np.zeros((64, 64))
+    half[:32] = 1.0  # weighted like `rmse`: the other half's error has no part
+    renders[:, 32:] += 0.5
+    assert images.noise_free_mse(renders, target, half) == pytest.approx(0.05**2, abs=3 * 5.1e-4)
+    with pytest.raises(ValueError, match="1 render: the estimate needs at least 2 independent renders"):
+        images.noise_free_mse(renders[:1], target, weights)
+
 def test_rmse_per_image_weighted_and_in_jax():
     rng = np.random.default_rng(0)
     batch, target = rng.uniform(size=(2, 4, 4, 3)), rng.uniform(size=(4, 4, 3))

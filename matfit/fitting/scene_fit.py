@@ -18,21 +18,21 @@ own camera, lights and shapes. In order:
    all of it transmitted and one as clear glass without coat or sheen (the bench's jade box and glass box under
    a sky); a start that repeats another's values is one start. One start can stick: a glossy plastic fitted to a
    rough gold stays at roughness 0.001 (measured in the prototype). Each runs a quarter of the steps (at most
-   `SHORT_STEPS`). An opaque fit's start whose render (`JUDGE_SPP`, one common seed) is then closest goes on for
+   `SHORT_STEPS`). An opaque fit's start of lowest noise-free error (`Judge.squared`) then goes on for
    `steps` more; a transmissive fit's starts all go on, with spec_trans held where it started for the short run
    and the descent's first `short` steps (`refine.path`'s `hold`): the descent could otherwise trade the
    transmission for a diffuse lobe before the medium is fitted and stay in that valley (the jade box: 8.0 in
    every run, the short runs' ranking no guide to where a descent ends). Of a descent's visited point of lowest
-   step loss, its last point and the mean of its last quarter's points, the one whose renders at two seeds are
-   closest is its answer (`closest`): a step's loss is one seed's, and where the loss lies flat at its noise its
-   lowest point is partly luck; of the starts' answers, the closest at two seeds goes on.
+   step loss, its last point and the mean of its last quarter's points, the one of lowest noise-free error is its
+   answer (`closest`): a step's loss is one seed's, and where the loss lies flat at its noise its lowest point is
+   partly luck; of the starts' answers, the one of lowest noise-free error goes on.
 4. Off the bounds: at some bounds the gradient is zero (sheen and clearcoat at 0 are not evaluated) or wrong
    (roughness at 0, a near-mirror lobe's: `refine`'s docstring), so the descent cannot leave them (`TRAPS`). Each
-   such parameter the descent left there is moved inward by `INWARD` and judged (`JUDGE_SPP`, one common seed); if
-   one is closer, `short` more steps go on from it, and the point of the three closest at two seeds is the answer
-   (the bench's box under a sky: roughness stuck at 0 against a truth of 0.3, 1.77 -> 0.69).
-5. The answer is judged against the start by one render each at `JUDGE_SPP` with a common seed no step used, and
-   kept only if closer: never worse than the start, as that render sees it.
+   such parameter the descent left there is moved inward by `INWARD` and judged; if one is closer, `short` more
+   steps go on from it, and the point of the three of lowest noise-free error is the answer (the bench's box under
+   a sky: roughness stuck at 0 against a truth of 0.3, 1.77 -> 0.69).
+5. The answer is judged against the start, and kept only if its noise-free error is lower: never worse than the
+   start, as the two renders see it.
 6. What one view decides: each parameter moved by `PROBE` in the unit cube both ways from the answer, the two
    renders (one common seed) compared over the region: a change under `UNDECIDED_RMSE` is not decided by this
    picture (`ranges` in params.json).
@@ -40,6 +40,11 @@ own camera, lights and shapes. In order:
 A start whose medium shows (some transmission, some density) differentiates with `prbvolpath` and is judged with
 `volpathmis`; any other differentiates with `prb` (the measured faster integrator; the medium then has no effect
 and is reported undecided) and is judged with `path`, which renders it alike in a third of the time.
+
+The judge (`Judge`): a material's renders at `JUDGE_SPP` with the seeds `JUDGE_SEED` and `SECOND_SEED`, which no
+step uses, and the unbiased estimate of its noise-free error from the two (`images.noise_free_mse`, as the test
+scene's verification judges): a render's own RMSE counts its noise, and the material that renders with less noise
+would read closer.
 """
 
 from __future__ import annotations
@@ -222,8 +227,13 @@ def problem_of(
 
 class Judge:
     """The judge of one fit: a material's sRGB render (`JUDGE_SPP`, a seed) and its RMSE to the target over the
-    weights, each made once however many stages ask for it (the descent's answer is judged by `closest`, by
-    `off_bounds` and by the acceptance, at the same seeds)."""
+    weights, and its noise-free error from two such renders (`squared`), each made once however many stages ask
+    for it (the descent's answer is judged by `closest`, by `off_bounds` and by the acceptance, at the same seeds).
+
+    Every choice is made on `squared`, not on a render's RMSE: a render's RMSE counts its own noise, and a material
+    that renders with less noise reads closer. Under the sun the bench's jade knot ended at roughness 0.02 against
+    the truth's 0.15 (noise-free error 9.5), whose sharper highlight renders with less noise: at two seeds the RMSE
+    read 23.5 for it against 31.1 with the truth's roughness, the noise-free estimate 476 against 297 (squared)."""
 
     def __init__(self, renderer: scene_file.Renderer, target: np.ndarray, weights: np.ndarray) -> None:
         self.renderer, self.target, self.weights = renderer, target, weights
@@ -236,6 +246,22 @@ class Judge:
             rendered = images.srgb_encode(self.renderer.render(values, seed=seed, spp=JUDGE_SPP))
             self.made[key] = (float(images.rmse(rendered, self.target, self.weights)), rendered)
         return self.made[key]
+
+    def squared(self, values: np.ndarray) -> float:
+        """Returns the estimate of the squared noise-free error (0-255 squared, negative where under what two
+        renders resolve) of physical `values` from its renders at `JUDGE_SEED` and `SECOND_SEED`
+        (`images.noise_free_mse`)."""
+        renders = [self(values, seed)[1] for seed in (JUDGE_SEED, SECOND_SEED)]
+        return 255.0**2 * images.noise_free_mse(np.asarray(renders), self.target, self.weights)
+
+    def error(self, values: np.ndarray) -> float:
+        """Returns the noise-free error (0-255) of physical `values`: `squared`'s root, 0 where it is below 0."""
+        return root(self.squared(values))
+
+
+def root(squared: float) -> float:
+    """Returns a squared error estimate's root, 0-255: 0 where the estimate is below 0."""
+    return float(np.sqrt(max(0.0, squared)))
 
 
 def shows_medium(values: np.ndarray) -> bool:
@@ -371,9 +397,9 @@ def fit(
             hold=hold,
             held=short,
         )
-        judged, _ = judge(params.from_unit(point))
-        tried.append({"name": name, "rmse": round(judged, 3), "point": point, "losses": losses})
-    for t in tried if every else [min(tried, key=lambda t: t["rmse"])]:
+        judged = judge.squared(params.from_unit(point))
+        tried.append({"name": name, "squared": judged, "point": point, "losses": losses})
+    for t in tried if every else [min(tried, key=lambda t: t["squared"])]:
         points, more = refine.path(
             problem,
             np.asarray(t["point"]),
@@ -384,18 +410,20 @@ def fit(
             hold=hold,
             held=short,
         )
-        t["answer"], ended = closest(judge, points, more)
+        t["answer"], t["answer_squared"] = closest(judge, points, more)
         t["more"] = more
-        t["answer_rmse"] = min(cast(float, e["rmse"]) for e in ended) if ended else t["rmse"]
-    best = min((t for t in tried if "answer" in t), key=lambda t: t["answer_rmse"])
+    best = min((t for t in tried if "answer" in t), key=lambda t: t["answer_squared"])
     point, more = best["answer"], best["more"]
     point, bounds, again = off_bounds(judge, problem, point, short, seed=short + steps, progress=heard("bounds"))
     answer = params.from_unit(point)
-    start_rmse, start_rendered = judge(first)
-    rmse, rendered = judge(answer)
-    accepted = rmse < start_rmse
+    start_squared, answer_squared = judge.squared(first), judge.squared(answer)
+    start_rmse, rmse = root(start_squared), root(answer_squared)
+    start_rendered, rendered = judge(first)[1], judge(answer)[1]
+    accepted = answer_squared < start_squared
     if not accepted:
-        notices.append(f"the descent found nothing closer than the start (RMSE {rmse:.2f} >= {start_rmse:.2f}): kept")
+        notices.append(
+            f"the descent found nothing closer than the start (noise-free error {rmse:.2f} >= {start_rmse:.2f}): kept"
+        )
         answer, rmse, rendered = first, start_rmse, start_rendered
     if progress is not None:
         progress("judge", total, total, rmse)
@@ -411,8 +439,8 @@ def fit(
         start_rendered,
         source,
         [
-            {"name": t["name"], "rmse": t["rmse"]}
-            | ({"descended": round(t["answer_rmse"], 3)} if "answer" in t else {})
+            {"name": t["name"], "error": round(root(t["squared"]), 3)}
+            | ({"descended": round(root(t["answer_squared"]), 3)} if "answer" in t else {})
             for t in tried
         ],
         bounds,
@@ -424,28 +452,17 @@ def fit(
     )
 
 
-def closest(judge: Judge, points: list[np.ndarray], losses: list[float]) -> tuple[np.ndarray, list[dict[str, object]]]:
-    """Returns (the descent's answer, each candidate's name and judged RMSE): of the visited point of lowest step loss,
-    the last point and the mean of the last quarter's points (unit cube, `refine.path`'s), the one whose renders
-    (`JUDGE_SPP`, `JUDGE_SEED` and `SECOND_SEED`) are closest on average."""
+def closest(judge: Judge, points: list[np.ndarray], losses: list[float]) -> tuple[np.ndarray, float]:
+    """Returns (the descent's answer, its `Judge.squared`): of the visited point of lowest step loss, the last point
+    and the mean of the last quarter's points (unit cube, `refine.path`'s), the one whose noise-free error at two
+    seeds is lowest."""
     if not losses:
-        return points[0], []
+        return points[0], judge.squared(params.from_unit(points[0]))
     quarter = max(1, len(points) // 4)
-    candidates = [
-        ("lowest step loss", points[int(np.argmin(losses))]),
-        ("last", points[-1]),
-        ("mean of the last quarter", np.mean(points[-quarter:], axis=0)),
-    ]
-    judged = [
-        (
-            np.mean([judge(params.from_unit(p), s)[0] for s in (JUDGE_SEED, SECOND_SEED)]),
-            n,
-            p,
-        )
-        for n, p in candidates
-    ]
-    kept = min(range(len(judged)), key=lambda k: judged[k][0])
-    return judged[kept][2], [{"name": name, "rmse": round(float(rmse), 3)} for rmse, name, _ in judged]
+    candidates = [points[int(np.argmin(losses))], points[-1], np.mean(points[-quarter:], axis=0)]
+    judged = [judge.squared(params.from_unit(p)) for p in candidates]
+    kept = int(np.argmin(judged))
+    return candidates[kept], judged[kept]
 
 
 def off_bounds(
@@ -458,11 +475,11 @@ def off_bounds(
     progress: Callable[[int, float], None] | None = None,
 ) -> tuple[np.ndarray, dict[str, object], list[float]]:
     """Returns (the point, what the stage did, the losses of its steps) after trying each of `TRAPS` that `point`
-    (unit cube) leaves at 0 moved inward by `INWARD`: the closest judged try, if closer than `point`, goes on
-    for `steps` steps (seeds from refine.SEED + `seed`), and of the three points the one closest by the mean of two
-    judged renders (`JUDGE_SEED` and `SECOND_SEED`) is returned: a move that one seed's noise favours is not kept."""
+    (unit cube) leaves at 0 moved inward by `INWARD`: the try of lowest noise-free error (`Judge.squared`), if
+    lower than `point`'s, goes on for `steps` steps (seeds from refine.SEED + `seed`), and of the three points the
+    one of lowest noise-free error is returned."""
     point = np.asarray(point, np.float64)
-    base, _ = judge(params.from_unit(point))
+    base = judge.squared(params.from_unit(point))
     tries = []
     for name in TRAPS:
         i = params.INDEX[name]
@@ -471,20 +488,15 @@ def off_bounds(
         for distance in INWARD:
             moved = point.copy()
             moved[i] = distance
-            judged, _ = judge(params.from_unit(moved))
-            tries.append((judged, name, float(moved[i]), moved))
-    done: dict[str, object] = {"rmse": round(base, 3), "tried": len(tries), "moved": None}
+            tries.append((judge.squared(params.from_unit(moved)), name, float(moved[i]), moved))
+    done: dict[str, object] = {"error": round(root(base), 3), "tried": len(tries), "moved": None}
     if not tries or min(t[0] for t in tries) >= base:
         return point, done, []
     judged, name, value, moved = min(tries, key=lambda t: t[0])
     further, losses = refine.descend(problem, moved, steps, spp=STEP_SPP, seed=refine.SEED + seed, progress=progress)
-    after, _ = judge(params.from_unit(further))
-    both = [
-        (first + judge(params.from_unit(p), SECOND_SEED)[0]) / 2
-        for first, p in ((base, point), (judged, moved), (after, further))
-    ]
-    kept = int(np.argmin(both))
-    done.update({"moved": name, "to": round(value, 3), "rmse_two_seeds": [round(b, 3) for b in both]})
+    three = [base, judged, judge.squared(params.from_unit(further))]
+    kept = int(np.argmin(three))
+    done.update({"moved": name, "to": round(value, 3), "errors": [round(root(e), 3) for e in three]})
     done["kept"] = ("the descent's point", "the moved point", "the steps after it")[kept]
     return (point, moved, further)[kept], done, losses
 

@@ -330,12 +330,9 @@ def where_rounds_start(
 def squared_error(
     renders: list[Float[np.ndarray, "R R 3"]], target: Float[np.ndarray, "R R 3"], weights: Float[np.ndarray, "R R"]
 ) -> tuple[float, Float[np.ndarray, " m"]]:
-    """Returns (the unbiased estimate of the weighted mean squared error of the noise-free render, its jackknife
-    leave-one-out estimates (m,)) from m >= 3 independent sRGB renders (m, R, R, 3) of one material.
-
-    The estimate is the mean over pairs i != j of sum_p w_p (R_i - t)_p . (R_j - t)_p / (3 sum_p w_p): the cross
-    terms of independent renders have the noise-free error's square as their expectation, the noise's variance none.
-    """
+    """Returns (the unbiased estimate of the weighted mean squared error of the noise-free render,
+    `images.noise_free_mse`, and its jackknife leave-one-out estimates (m,)) from m >= 3 independent sRGB renders
+    (m, R, R, 3) of one material."""
     m = len(renders)
     if m < 3:
         raise ValueError(f"{m} renders: the estimate's jackknife needs at least 3")
@@ -344,7 +341,7 @@ def squared_error(
     gram = np.einsum("ipc,jpc->ij", weighted, residuals)
     diagonal, rows = np.diag(gram), gram.sum(axis=1)
     pairs = gram.sum() - diagonal.sum()  # every ordered pair i != j
-    estimate = pairs / (m * (m - 1))
+    estimate = images.noise_free_mse(np.asarray(renders), target, weights)
     leave_one_out = (pairs - 2.0 * (rows - diagonal)) / ((m - 1) * (m - 2))
     return float(estimate), leave_one_out
 
