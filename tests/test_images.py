@@ -27,7 +27,6 @@ def test_rmse_is_on_the_0_255_scale():
         images.rmse(a, np.zeros((2, 2, 3)))
 
 
-
 def test_the_noise_free_estimate_leaves_out_the_renders_noise_which_rmse_counts():
     # A material off by 0.05 everywhere, rendered twice with noise of spread 0.2: either render's squared error is
     # about 0.05^2 + 0.2^2, the two renders' cross term 0.05^2 (its standard error 0.2^2 / sqrt(3 64^2) = 3.6e-4)
@@ -47,6 +46,7 @@ def test_the_noise_free_estimate_leaves_out_the_renders_noise_which_rmse_counts(
     assert images.noise_free_mse(renders, target, half) == pytest.approx(0.05**2, abs=3 * 5.1e-4)
     with pytest.raises(ValueError, match="1 render: the estimate needs at least 2 independent renders"):
         images.noise_free_mse(renders[:1], target, weights)
+
 
 def test_rmse_per_image_weighted_and_in_jax():
     rng = np.random.default_rng(0)

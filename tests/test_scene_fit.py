@@ -175,7 +175,7 @@ def test_the_answer_is_the_candidate_of_lowest_noise_free_error_not_the_lowest_s
     point, squared = scene_fit.closest(judge, [green, green, truth, truth], [1.0, 9.0, 9.0])
     np.testing.assert_array_equal(point, truth)
     assert squared == judge.squared(params.from_unit(truth))
-    assert judge.error(params.from_unit(green)) > scene_fit.root(squared) + 10  # the green point is far from the picture
+    assert judge.error(params.from_unit(green)) > scene_fit.root(squared) + 10  # green: far from the picture
     assert scene_fit.closest(judge, [truth], []) == (truth, squared)
 
 

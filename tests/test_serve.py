@@ -794,9 +794,25 @@ def test_a_params_upload_is_read_as_the_command_line_reads_it(studio):
     assert time.perf_counter() - started < 5
 
 
+def quiet(studio, seconds: float = 1.0, limit: float = 120) -> None:
+    """Waits until every fit of the watched file has ended and no save of it is still on its way to the studio (no
+    new one for `seconds`): an earlier test's last save of it, fitted late, holds a snapshot in the studio's folder
+    and supersedes any watched job queued meanwhile."""
+    deadline = time.monotonic() + limit
+    while time.monotonic() < deadline:
+        count = len(studio.watch_jobs)
+        if all(studio.jobs[job].state not in ("queued", "running") for job in studio.watch_jobs):
+            time.sleep(seconds)
+            if len(studio.watch_jobs) == count:
+                return
+        time.sleep(0.05)
+    raise AssertionError(f"the watched file's fits did not end in {limit} s")
+
+
 def test_a_watched_file_deleted_before_its_fit_ends_the_job_with_a_410(url, studio, tmp_path):
     path = tmp_path / "edit.png"
     shutil.copy(EXAMPLE, path)
+    quiet(studio)
     before = set(os.listdir(studio.folder))
     busy = threading.Event()
     studio.worker.submit(busy.wait, 60)  # the worker is busy: the watched file's fit waits in the queue
