@@ -116,11 +116,30 @@ def test_a_mask_decides_where_the_fit_looks(knot, red_picture):
     mask = np.zeros((48, 64), np.float32)
     mask[:, :32] = 1.0
     outcome = scene_fit.fit(knot, red_picture, start=presets.preset("red-plastic"), mask=mask, steps=1)
-    assert outcome.weights[:, 40:].max() < 0.01 and outcome.weights[:, :24].min() > 0.99
+    # the mask decides where, each pixel's precision how much (`precision`: at most the mask's own weight)
+    assert outcome.weights[:, 40:].max() < 0.01 and outcome.weights[:, :24].min() > 0.05
+    assert outcome.weights.max() <= 1.0 and np.median(outcome.weights[:, :24]) < 0.9
     with pytest.raises(SceneError, match="the mask is black"):
         scene_fit.fit(knot, red_picture, mask=np.zeros((48, 64), np.float32), steps=1)
     # the figure is the noise-free error; the render's own RMSE counts its noise too
     assert 0 < outcome.rmse < images.rmse(outcome.rendered, outcome.target, outcome.weights)
+
+
+def test_each_pixel_is_weighted_by_how_little_its_render_is_noise():
+    rng = np.random.default_rng(5)
+    renders = np.full((2, 20, 40, 3), 0.5)
+    for columns, spread in ((slice(0, 10), 0.001), (slice(10, 30), 0.01), (slice(30, 40), 0.1)):  # the last: a caustic
+        renders[:, :, columns] += rng.normal(0, spread, (2, 20, columns.stop - columns.start, 3))
+    weights = np.ones((20, 40), np.float32)
+    weighted = scene_fit.precision((renders[0], renders[1]), weights)
+    assert weighted[:, :8].min() > 0.95  # a hundredth of the median's variance: its weight kept
+    assert np.median(weighted[:, 13:27]) == pytest.approx(0.5, abs=0.05)  # the median's: half
+    assert weighted[:, 33:].max() < 0.05  # a hundred times the median's
+    region = np.zeros((20, 40), np.float32)
+    region[:, :10] = 1.0  # the median is the weighted pixels' own
+    inside = scene_fit.precision((renders[0], renders[1]), region)
+    assert inside[:, 10:].max() == 0.0 and np.median(inside[:, :8]) == pytest.approx(0.5, abs=0.05)
+    np.testing.assert_array_equal(scene_fit.precision((renders[0], renders[0]), weights), weights)  # no noise
 
 
 def test_roughness_the_descent_left_at_0_is_tried_inward_and_a_closer_point_kept(knot, red_picture):

@@ -10,9 +10,10 @@ own camera, lights and shapes. In order:
    have the camera's aspect.
 2. Where the fit looks (`region`): the pixels the shape changes, found by rendering the scene with the shape
    white, with it black, and without it: its silhouette, its shadow, its reflections and what shows through
-   it. A mask given instead decides alone. Outside the region the picture must look like the scene's render
-   (else it is not a picture of this scene), and inside it like something other than the scene without the
-   shape.
+   it. A mask given instead decides alone. Each pixel's weight is scaled by how little its render is noise
+   (`precision`, from the start's two judged renders): caustics' pixels are noisy at any affordable sample count.
+   Outside the region the picture must look like the scene's render (else it is not a picture of this scene),
+   and inside it like something other than the scene without the shape.
 3. Starts: the material given (or the shape's own, or matfit's default) and four that keep its colour over
    metallic x roughness (a start with spec_trans < 0.5) or, for a transmissive one, two over roughness, one with
    all of it transmitted and one as clear glass without coat or sheen (the bench's jade box and glass box under
@@ -76,6 +77,7 @@ NOT_THIS_SCENE_RMSE = 20.0  # 0-255 outside the region: a picture further than t
 # 0-255 over the region: a picture this close to the scene without the shape has nothing of the shape in it (the
 # region's pixels are those the shape changes by 6 or more; two renders' noise alone stays under it)
 NOTHING_RMSE = 4.0
+NOISE_RADIUS = 2  # the noise variance of a pixel is averaged over its 5x5 neighbours (`precision`)
 PROBE = 0.15  # unit-cube step of the per-parameter check of what the view decides
 PROBE_SPP = 32
 INWARD = (0.1, 0.25)  # unit-cube distances from a bound that the judge tries for a parameter the descent left there
@@ -142,10 +144,26 @@ def _renderer(
     return renderer
 
 
-def _blurred(image: np.ndarray) -> np.ndarray:
-    padded = np.pad(image, ((1, 1), (1, 1), (0, 0)), mode="edge")
-    h, w = image.shape[:2]
-    return np.mean([padded[i : i + h, j : j + w] for i in range(3) for j in range(3)], axis=0)
+def _blurred(image: np.ndarray, radius: int = 1) -> np.ndarray:
+    """Returns the mean over each pixel's (2 radius + 1)^2 neighbours of an (h, w, ...) image, edges repeated."""
+    padded = np.pad(image, ((radius, radius), (radius, radius)) + ((0, 0),) * (image.ndim - 2), mode="edge")
+    h, w, side = image.shape[0], image.shape[1], 2 * radius + 1
+    return np.mean([padded[i : i + h, j : j + w] for i in range(side) for j in range(side)], axis=0)
+
+
+def precision(renders: tuple[np.ndarray, np.ndarray], weights: np.ndarray) -> np.ndarray:
+    """Returns `weights` (h, w) scaled by how little the pixel's render is noise: v0 / (v + v0), where v is the noise
+    variance of the two independent sRGB `renders` (half their squared difference, its `NOISE_RADIUS` mean) and v0
+    its median over the weighted pixels (a pixel without noise keeps its weight, one as noisy as the median half).
+
+    A least-squares fit weighted by its residuals' precision is the one whose answer varies least with the noise.
+    Where the light reaches the region by caustics (a sun through glass or jade onto the floor) a tenth of the
+    pixels held 0.71-0.90 of the render's variance on the bench, and a fit there chases the picture's noise."""
+    variance = _blurred((np.square(renders[0] - renders[1]) / 2.0).mean(axis=2), NOISE_RADIUS)
+    typical = float(np.median(variance[weights > 0])) if np.any(weights > 0) else 0.0
+    if typical <= 0:  # renders without noise: every pixel as sure as another
+        return weights
+    return (weights * typical / (variance + typical)).astype(np.float32)
 
 
 def _dilated(mask: np.ndarray, pixels: int) -> np.ndarray:
@@ -235,23 +253,37 @@ class Judge:
     the truth's 0.15 (noise-free error 9.5), whose sharper highlight renders with less noise: at two seeds the RMSE
     read 23.5 for it against 31.1 with the truth's roughness, the noise-free estimate 476 against 297 (squared)."""
 
-    def __init__(self, renderer: scene_file.Renderer, target: np.ndarray, weights: np.ndarray) -> None:
+    def __init__(
+        self,
+        renderer: scene_file.Renderer,
+        target: np.ndarray,
+        weights: np.ndarray,
+        made: dict[tuple[bytes, int], np.ndarray] | None = None,
+    ) -> None:
         self.renderer, self.target, self.weights = renderer, target, weights
-        self.made: dict[tuple[bytes, int], tuple[float, np.ndarray]] = {}
+        self.made: dict[tuple[bytes, int], np.ndarray] = {} if made is None else made
+
+    def render(self, values: np.ndarray, seed: int = JUDGE_SEED) -> np.ndarray:
+        """Returns the sRGB render of physical `values` at `seed` (`JUDGE_SPP`), made once."""
+        key = (np.asarray(values, np.float64).tobytes(), seed)
+        if key not in self.made:
+            self.made[key] = images.srgb_encode(self.renderer.render(values, seed=seed, spp=JUDGE_SPP))
+        return self.made[key]
+
+    def weighted(self, weights: np.ndarray) -> Judge:
+        """Returns the judge with other weights, sharing the renders made."""
+        return Judge(self.renderer, self.target, weights, self.made)
 
     def __call__(self, values: np.ndarray, seed: int = JUDGE_SEED) -> tuple[float, np.ndarray]:
         """Returns (the RMSE, the render) of physical `values` at `seed`."""
-        key = (np.asarray(values, np.float64).tobytes(), seed)
-        if key not in self.made:
-            rendered = images.srgb_encode(self.renderer.render(values, seed=seed, spp=JUDGE_SPP))
-            self.made[key] = (float(images.rmse(rendered, self.target, self.weights)), rendered)
-        return self.made[key]
+        rendered = self.render(values, seed)
+        return float(images.rmse(rendered, self.target, self.weights)), rendered
 
     def squared(self, values: np.ndarray) -> float:
         """Returns the estimate of the squared noise-free error (0-255 squared, negative where under what two
         renders resolve) of physical `values` from its renders at `JUDGE_SEED` and `SECOND_SEED`
         (`images.noise_free_mse`)."""
-        renders = [self(values, seed)[1] for seed in (JUDGE_SEED, SECOND_SEED)]
+        renders = [self.render(values, seed) for seed in (JUDGE_SEED, SECOND_SEED)]
         return 255.0**2 * images.noise_free_mse(np.asarray(renders), self.target, self.weights)
 
     def error(self, values: np.ndarray) -> float:
@@ -367,6 +399,10 @@ def fit(
             raise SceneError("the mask is black where the picture is fitted: paint the shape white", "mask")
     else:
         weights = shape_region.astype(np.float32)
+    # each pixel weighted by its precision, from the start's two judged renders (which the acceptance reuses)
+    judge = Judge(renderer, target, weights)
+    weights = precision((judge.render(first, JUDGE_SEED), judge.render(first, SECOND_SEED)), weights)
+    judge = judge.weighted(weights)
     problem = problem_of(renderer, target, weights, integrator)
     candidates = starts(first)
     short = min(SHORT_STEPS, max(1, steps // 4))
@@ -384,7 +420,6 @@ def fit(
 
         return step
 
-    judge = Judge(renderer, target, weights)
     tried: list[dict[str, Any]] = []
     for name, values in candidates:
         point, losses = refine.descend(
