@@ -79,23 +79,32 @@ def rmse(
     return 255.0 * (weighted.sum(axis=(-3, -2, -1)) / (3.0 * weights.sum())) ** 0.5
 
 
+def residual_products(
+    renders: Float[np.ndarray, "m H W 3"], target: Float[np.ndarray, "H W 3"], weights: Float[np.ndarray, "H W"]
+) -> Float[np.ndarray, "m m"]:
+    """Returns the (m, m) weighted mean products of m sRGB renders' residuals against `target` (`rmse`'s weighting):
+    entry (i, j) is sum_p w_p (R_i - t)_p . (R_j - t)_p / (3 sum_p w_p)."""
+    m = len(renders)
+    residuals = (np.asarray(renders, np.float64) - np.asarray(target, np.float64)).reshape(m, -1, 3)
+    weighted = residuals * (np.asarray(weights, np.float64).reshape(1, -1, 1) / (3.0 * float(np.sum(weights))))
+    return np.einsum("ipc,jpc->ij", weighted, residuals)
+
+
 def noise_free_mse(
     renders: Float[np.ndarray, "m H W 3"], target: Float[np.ndarray, "H W 3"], weights: Float[np.ndarray, "H W"]
 ) -> float:
     """Returns the unbiased estimate of the weighted mean squared error (`rmse`'s weighting, sRGB units squared) of
     a material's noise-free render against `target`, from m >= 2 independent sRGB renders of it (m, H, W, 3).
 
-    It is the mean over pairs i != j of sum_p w_p (R_i - t)_p . (R_j - t)_p / (3 sum_p w_p): the cross terms of
-    independent renders have the squared error of the mean render as their expectation and the noise's variance
-    none. A render's own noise, which `rmse` counts, favours the material that renders with less noise; this
-    does not. Below the error's resolution it can be negative.
+    It is the mean over pairs i != j of `residual_products`: the cross terms of independent renders have the squared
+    error of the mean render as their expectation and the noise's variance none. A render's own noise, which `rmse`
+    counts, favours the material that renders with less noise; this does not. Below the error's resolution it can
+    be negative.
     """
     m = len(renders)
     if m < 2:
         raise ValueError(f"{m} render: the estimate needs at least 2 independent renders")
-    residuals = (np.asarray(renders, np.float64) - np.asarray(target, np.float64)).reshape(m, -1, 3)
-    weighted = residuals * (np.asarray(weights, np.float64).reshape(1, -1, 1) / (3.0 * float(np.sum(weights))))
-    gram = np.einsum("ipc,jpc->ij", weighted, residuals)
+    gram = residual_products(renders, target, weights)
     return float((gram.sum() - np.diag(gram).sum()) / (m * (m - 1)))
 
 

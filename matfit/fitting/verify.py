@@ -336,12 +336,10 @@ def squared_error(
     m = len(renders)
     if m < 3:
         raise ValueError(f"{m} renders: the estimate's jackknife needs at least 3")
-    residuals = (np.asarray(renders, np.float64) - np.asarray(target, np.float64)).reshape(m, -1, 3)
-    weighted = residuals * (np.asarray(weights, np.float64).reshape(1, -1, 1) / (3.0 * float(np.sum(weights))))
-    gram = np.einsum("ipc,jpc->ij", weighted, residuals)
+    gram = images.residual_products(np.asarray(renders), target, weights)
     diagonal, rows = np.diag(gram), gram.sum(axis=1)
     pairs = gram.sum() - diagonal.sum()  # every ordered pair i != j
-    estimate = images.noise_free_mse(np.asarray(renders), target, weights)
+    estimate = pairs / (m * (m - 1))  # `images.noise_free_mse`
     leave_one_out = (pairs - 2.0 * (rows - diagonal)) / ((m - 1) * (m - 2))
     return float(estimate), leave_one_out
 
