@@ -250,8 +250,8 @@ class Judge:
 
     Every choice is made on `squared`, not on a render's RMSE: a render's RMSE counts its own noise, and a material
     that renders with less noise reads closer. Under the sun the bench's jade knot ended at roughness 0.02 against
-    the truth's 0.15 (noise-free error 9.5), whose sharper highlight renders with less noise: at two seeds the RMSE
-    read 23.5 for it against 31.1 with the truth's roughness, the noise-free estimate 476 against 297 (squared)."""
+    the truth's 0.15, whose sharper highlight renders with less noise: at two seeds the RMSE read 23.5 for it
+    against 31.1 with the truth's roughness, the noise-free estimate 476 against 297 (squared)."""
 
     def __init__(
         self,
