@@ -194,7 +194,7 @@ def test_the_answer_is_the_candidate_of_lowest_noise_free_error_not_the_lowest_s
     point, squared = scene_fit.closest(judge, [green, green, truth, truth], [1.0, 9.0, 9.0])
     np.testing.assert_array_equal(point, truth)
     assert squared == judge.squared(params.from_unit(truth))
-    assert judge.error(params.from_unit(green)) > scene_fit.root(squared) + 10  # green: far from the picture
+    assert scene_fit.root(judge.squared(params.from_unit(green))) > scene_fit.root(squared) + 10  # far from it
     assert scene_fit.closest(judge, [truth], []) == (truth, squared)
 
 
@@ -208,14 +208,14 @@ def test_the_judge_renders_a_material_once_at_each_seed(knot, red_picture, monke
     monkeypatch.setattr(renderer, "render", lambda values, **kw: asked.append(kw["seed"]) or render(values, **kw))
     judge = scene_fit.Judge(renderer, target, weights)
     red = presets.preset("red-plastic")
-    first = judge(red)
-    again = judge(red.copy())
-    assert again[0] == first[0] and again[1] is first[1] and asked == [scene_fit.JUDGE_SEED]
-    second = judge(red, scene_fit.SECOND_SEED)
-    assert asked == [scene_fit.JUDGE_SEED, scene_fit.SECOND_SEED] and second[0] != first[0]
-    assert first[0] == pytest.approx(float(images.rmse(first[1], target, weights)))
+    first = judge.render(red)
+    again = judge.render(red.copy())
+    assert again is first and asked == [scene_fit.JUDGE_SEED]
+    second = judge.render(red, scene_fit.SECOND_SEED)
+    assert asked == [scene_fit.JUDGE_SEED, scene_fit.SECOND_SEED] and not np.array_equal(second, first)
     # the noise-free error is made of the two seeds' renders, rendered no more
     squared = judge.squared(red)
-    assert squared == 255.0**2 * images.noise_free_mse(np.asarray([first[1], second[1]]), target, weights)
+    assert squared == 255.0**2 * images.noise_free_mse(np.asarray([first, second]), target, weights)
     assert asked == [scene_fit.JUDGE_SEED, scene_fit.SECOND_SEED]
-    assert judge.error(red) == pytest.approx(np.sqrt(max(squared, 0.0))) and judge.error(red) < first[0]
+    error = scene_fit.root(squared)
+    assert error == pytest.approx(np.sqrt(max(squared, 0.0))) and error < images.rmse(first, target, weights)

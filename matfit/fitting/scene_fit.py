@@ -244,9 +244,9 @@ def problem_of(
 
 
 class Judge:
-    """The judge of one fit: a material's sRGB render (`JUDGE_SPP`, a seed) and its RMSE to the target over the
-    weights, and its noise-free error from two such renders (`squared`), each made once however many stages ask
-    for it (the descent's answer is judged by `closest`, by `off_bounds` and by the acceptance, at the same seeds).
+    """The judge of one fit: a material's sRGB render (`JUDGE_SPP`, a seed), made once however many stages ask for
+    it, and its noise-free error over the weights from two such renders (`squared`; the descent's answer is judged by
+    `closest`, by `off_bounds` and by the acceptance, at the same seeds).
 
     Every choice is made on `squared`, not on a render's RMSE: a render's RMSE counts its own noise, and a material
     that renders with less noise reads closer. Under the sun the bench's jade knot ended at roughness 0.02 against
@@ -274,21 +274,12 @@ class Judge:
         """Returns the judge with other weights, sharing the renders made."""
         return Judge(self.renderer, self.target, weights, self.made)
 
-    def __call__(self, values: np.ndarray, seed: int = JUDGE_SEED) -> tuple[float, np.ndarray]:
-        """Returns (the RMSE, the render) of physical `values` at `seed`."""
-        rendered = self.render(values, seed)
-        return float(images.rmse(rendered, self.target, self.weights)), rendered
-
     def squared(self, values: np.ndarray) -> float:
         """Returns the estimate of the squared noise-free error (0-255 squared, negative where under what two
         renders resolve) of physical `values` from its renders at `JUDGE_SEED` and `SECOND_SEED`
         (`images.noise_free_mse`)."""
         renders = [self.render(values, seed) for seed in (JUDGE_SEED, SECOND_SEED)]
         return 255.0**2 * images.noise_free_mse(np.asarray(renders), self.target, self.weights)
-
-    def error(self, values: np.ndarray) -> float:
-        """Returns the noise-free error (0-255) of physical `values`: `squared`'s root, 0 where it is below 0."""
-        return root(self.squared(values))
 
 
 def root(squared: float) -> float:
@@ -453,7 +444,7 @@ def fit(
     answer = params.from_unit(point)
     start_squared, answer_squared = judge.squared(first), judge.squared(answer)
     start_rmse, rmse = root(start_squared), root(answer_squared)
-    start_rendered, rendered = judge(first)[1], judge(answer)[1]
+    start_rendered, rendered = judge.render(first), judge.render(answer)
     accepted = answer_squared < start_squared
     if not accepted:
         notices.append(
