@@ -40,6 +40,12 @@ def srgb_decode(encoded: Float[np.ndarray, "*shape"]) -> Float[np.ndarray, "*sha
     return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
 
 
+def srgb_slope(linear: Float[np.ndarray, "*shape"]) -> Float[np.ndarray, "*shape"]:
+    """Returns the slope of `srgb_encode`'s curve at linear values in [0, 1], ignoring its clip (1.055/2.4 at 1)."""
+    x = np.asarray(linear, dtype=np.float64)
+    return np.where(x <= 0.0031308, 12.92, 1.055 / 2.4 * np.maximum(x, 0.0031308) ** (1.0 / 2.4 - 1.0))
+
+
 @overload
 def rmse(
     images: Float[np.ndarray, "*batch H W 3"],

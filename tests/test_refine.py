@@ -39,16 +39,49 @@ def test_the_drjit_mapping_equals_params_and_scene_on_random_points(llvm):
         np.testing.assert_allclose(np.array(albedo).ravel(), expected_albedo, rtol=1e-6)
 
 
-def test_the_drjit_loss_is_images_rmse_with_and_without_a_mask(llvm):
+def test_the_drjit_loss_at_the_images_own_secant_is_images_rmse_with_and_without_a_mask(llvm):
     rng = np.random.default_rng(3)
     linear = rng.uniform(-0.1, 1.3, (8, 8, 3)).astype(np.float32)  # out of range on both sides: clipped
     target = rng.random((8, 8, 3)).astype(np.float32)
+    linear[0, 0] = images.srgb_decode(target[0, 0]) + 1e-5  # where the two meet, the tangent
+    slope = refine.secant(linear, images.srgb_decode(target))
     for weights in (np.ones((8, 8), np.float32), rng.random((8, 8)).astype(np.float32)):
-        loss = refine.srgb_rmse(
-            llvm.TensorXf(linear), llvm.TensorXf(target), llvm.TensorXf(refine.normalised_weights(weights))
+        loss = refine.step_rmse(
+            llvm.TensorXf(linear),
+            llvm.TensorXf(images.srgb_decode(target)),
+            llvm.TensorXf(slope),
+            llvm.TensorXf(refine.normalised_weights(weights)),
         )
         expected = images.rmse(images.srgb_encode(linear), target, weights)
-        assert loss.array[0] == pytest.approx(float(expected), rel=1e-5)
+        assert loss.array[0] == pytest.approx(float(expected), rel=1e-4)
+
+
+def test_a_noisy_images_residual_at_its_means_secant_is_that_of_its_mean_where_the_encoded_one_reads_darker():
+    rng = np.random.default_rng(5)
+    mean = np.full((64, 64, 3), 0.05)
+    noisy = mean * rng.gamma(0.5, 2.0, (64, 64, 3))  # a medium's pixels at few samples: mean 0.05, heavy-tailed
+    target = np.full((64, 64, 3), 0.05)
+    encoded = 255 * float((images.srgb_encode(noisy) - images.srgb_encode(target)).mean())
+    secant = 255 * float((refine.secant(mean, target) * (noisy - target)).mean())
+    assert encoded < -15.0  # concave: the noisy image reads darker than its mean
+    assert abs(secant) < 0.5  # linear in the image: its expectation is the mean's residual, 0
+
+
+def test_steps_with_the_linear_residual_start_at_the_encoded_loss_and_descend(renderer, reachable):
+    target, start = reachable
+    mi, loaded, scene_parameters = refine._differentiable_scene(target.shape[0], renderer.variant)
+    weights = refine.normalised_weights(np.ones(target.shape[:2], np.float32))
+    problems = {
+        linear: refine.Problem(
+            mi, loaded, scene_parameters, engine.Keys(), mi.TensorXf(target), mi.TensorXf(weights), linear
+        )
+        for linear in (False, True)
+    }
+    _, encoded = refine.path(problems[False], start, 1, spp=4)
+    points, losses = refine.path(problems[True], start, 4, spp=4, rate=0.05)
+    # the first step's slope is the chord to its own image: the encoded loss, up to float rounding
+    assert losses[0] == pytest.approx(encoded[0], rel=1e-3)
+    assert losses[-1] < losses[0] and points[-1][0] > start[0]  # towards the red truth
 
 
 def test_refinement_from_a_perturbed_point_lowers_the_mitsuba_loss(renderer, reachable):
