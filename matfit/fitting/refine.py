@@ -369,8 +369,9 @@ def path(
     import drjit as dr
 
     mi = problem.mitsuba
-    target = images.srgb_decode(np.asarray(problem.target))
-    linear_target = mi.TensorXf(target)
+    if problem.linear:
+        target = images.srgb_decode(np.asarray(problem.target))
+        linear_target = mi.TensorXf(target)
     x, moment, second = start.copy(), np.zeros(params.COUNT), np.zeros(params.COUNT)
     losses, points, mean = [], [], None
     for step in range(steps):

@@ -401,10 +401,10 @@ def fit(
     # bench's jade knot 0.7 of 255 at a step's 64 samples, a red plastic 0.03): its steps' residual is linear in the
     # image ([measured](docs/scenes.md#a-steps-residual)); an opaque one's keeps the encoded residual, whose noise
     # the curve compresses (linear, the gold knot under the sun ended at 2.33 and 2.43 against 1.30)
-    problem = problem_of(renderer, target, weights, integrator, linear=transmissive(first))
+    every = transmissive(first)  # every start descends, spec_trans held at first; else the closest start alone
+    problem = problem_of(renderer, target, weights, integrator, linear=every)
     candidates = starts(first)
     short = min(SHORT_STEPS, max(1, steps // 4))
-    every = transmissive(first)  # every start descends, spec_trans held at first; else the closest start alone
     total = short * len(candidates) + steps * (len(candidates) if every else 1) + short
     hold = (params.INDEX["spec_trans"],) if every else ()
     done = 0
