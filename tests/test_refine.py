@@ -67,23 +67,6 @@ def test_a_noisy_images_residual_at_its_means_secant_is_that_of_its_mean_where_t
     assert abs(secant) < 0.5  # linear in the image: its expectation is the mean's residual, 0
 
 
-def test_a_pixel_whose_samples_cross_1_keeps_its_means_residual_and_a_saturated_picture_gives_no_slope():
-    rng = np.random.default_rng(7)
-    mean = np.full((64, 64, 3), 0.8)
-    noisy = mean * rng.gamma(4.0, 0.25, mean.shape)  # a highlight at few samples: a quarter of them above 1
-    slope = refine.secant(mean, mean)  # at the truth: the residual's expectation is 0
-
-    def residual(clip: float) -> float:
-        return 255 * float((slope * (np.clip(noisy, 0.0, clip) - mean)).mean())
-
-    assert residual(1.0) < -10.0  # clipped at 1 the pixel reads darker than its mean
-    assert abs(residual(refine.LINEAR_CLIP)) < 0.6  # at LINEAR_CLIP a hundredth of the samples is clipped
-    # a mean above 1 where the picture is saturated: no residual, whatever the render; below it, the chord to encode(1)
-    assert refine.secant(np.full(3, 1.5), np.ones(3)).tolist() == [0.0, 0.0, 0.0]
-    chord = (1.0 - images.srgb_encode(np.full(3, 0.5))) / (1.5 - 0.5)
-    np.testing.assert_allclose(refine.secant(np.full(3, 1.5), np.full(3, 0.5)), chord, rtol=1e-5)
-
-
 def test_steps_with_the_linear_residual_start_at_the_encoded_loss_and_descend(renderer, reachable):
     target, start = reachable
     mi, loaded, scene_parameters = refine._differentiable_scene(target.shape[0], renderer.variant)

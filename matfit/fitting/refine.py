@@ -75,12 +75,6 @@ ACCEPT_SPP = 128  # enough to rank two materials with common random numbers (ver
 BETAS = (0.9, 0.999)
 EPSILON = 1e-8
 MEAN_DECAY = 0.5  # the running mean of the steps' images that sets each step's residual slope (`secant`)
-# A step's linear image is clipped at LINEAR_CLIP, not at 1 (`step_rmse`): a pixel whose noisy samples cross 1 read
-# darker clipped at 1 and the steps brightened the material. The expected gradient at the truth against a noise-free
-# target, 12 seeds (docs/scenes.md#a-steps-residual): on the bench's jade box under the sky, clipped at 1, clearcoat's,
-# base_color_g's and spec_trans's were 4.7, 8.8 and 5.4 standard errors from 0 (more of each); at 2 within 1.5 (the
-# roughness gradient 4 times noisier); at 4 or unclipped no less biased and noisier still.
-LINEAR_CLIP = 2.0
 
 
 @dataclass(frozen=True)
@@ -168,32 +162,27 @@ def srgb_rmse(linear: mi.TensorXf, target: mi.TensorXf, weights: mi.TensorXf) ->
 
 
 def secant(mean: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """Returns the slope from linear `target` to linear `mean` of the clipped sRGB encoding, element by element:
-    (encode(clip(mean)) - encode(clip(target))) / (mean - clip(target)), the derivative at their midpoint where they
-    meet. `mean` is not clipped in the denominator: where it is above 1 the chord reaches encode(1) at `mean` itself,
-    so a picture saturated there (target 1) gives a slope of 0.
+    """Returns the slope of sRGB encoding from linear `target` to linear `mean` (both clipped to [0, 1]), element by
+    element: (encode(mean) - encode(target)) / (mean - target), the derivative at their midpoint where they meet.
 
     A step's residual is this slope times (its render - the target): linear in the render, so its expectation is the
     residual of the render's mean however noisy the render (`path`), where encode(render) - encode(target) reads a
-    noisy pixel darker than its mean, and the render clipped at 1 a pixel whose samples cross 1."""
-    a = np.maximum(np.asarray(mean, np.float64), 0.0)
+    noisy pixel darker than its mean."""
+    a = np.clip(np.asarray(mean, np.float64), 0.0, 1.0)
     b = np.clip(np.asarray(target, np.float64), 0.0, 1.0)
     gap = a - b
     close = np.abs(gap) < 1e-4
-    encoded = images.srgb_encode(np.minimum(a, 1.0)).astype(np.float64)
-    chord = (encoded - images.srgb_encode(b)) / np.where(close, 1.0, gap)
-    return np.where(close, images.srgb_slope(np.minimum(0.5 * (a + b), 1.0)), chord).astype(np.float32)
+    chord = (images.srgb_encode(a).astype(np.float64) - images.srgb_encode(b)) / np.where(close, 1.0, gap)
+    return np.where(close, images.srgb_slope(0.5 * (a + b)), chord).astype(np.float32)
 
 
 def step_rmse(linear: mi.TensorXf, target: mi.TensorXf, slope: mi.TensorXf, weights: mi.TensorXf) -> mi.TensorXf:
     """Returns a step's loss, 0-255, as a Dr.Jit Float: the weighted RMS of `slope` (H, W, 3, `secant`) times the
-    linear image (H, W, 3, clipped to [0, LINEAR_CLIP]) less the linear `target`. Where `slope` is the secant to the
-    image itself (under LINEAR_CLIP) this is `images.rmse` of the two encoded; `weights` (H, W, 3) sum to 1
-    (`normalised_weights`)."""
+    linear image (H, W, 3, clipped to [0, 1]) less the linear `target`. Where `slope` is the secant to the image
+    itself this is `images.rmse` of the two encoded; `weights` (H, W, 3) sum to 1 (`normalised_weights`)."""
     import drjit as dr
 
-    clipped = dr.clip(linear, 0.0, LINEAR_CLIP)
-    return 255.0 * dr.sqrt(dr.sum(weights * dr.square(slope * (clipped - target)), axis=None))
+    return 255.0 * dr.sqrt(dr.sum(weights * dr.square(slope * (dr.clip(linear, 0.0, 1.0) - target)), axis=None))
 
 
 def normalised_weights(weights: np.ndarray) -> np.ndarray:
