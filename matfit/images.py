@@ -114,6 +114,34 @@ def noise_free_mse(
     return float((gram.sum() - np.diag(gram).sum()) / (m * (m - 1)))
 
 
+def noise_free_difference(
+    renders: Float[np.ndarray, "m H W 3"],
+    others: Float[np.ndarray, "m H W 3"],
+    target: Float[np.ndarray, "H W 3"],
+    weights: Float[np.ndarray, "H W"],
+) -> tuple[float, float]:
+    """Returns (d, its standard error): d is `noise_free_mse` of `renders` less that of `others` (m >= 2
+    independent sRGB renders of each of two materials, best at common seeds), sRGB units squared.
+
+    The standard error is over the pixels: each pixel's own estimate of the difference (the mean over pairs i != j
+    of its residuals' products, less the others'), spread about d, weighted as d is. It measures how far d would
+    move with other renders and other pixels of the same kind; a difference of a few standard errors is one the
+    renders decide."""
+    m = len(renders)
+    if m < 2 or len(others) != m:
+        raise ValueError(f"{m} and {len(others)} renders: the difference needs at least 2 of each, as many")
+
+    def pixels(stack: np.ndarray) -> np.ndarray:
+        residuals = np.asarray(stack, np.float64) - np.asarray(target, np.float64)
+        total = residuals.sum(axis=0)
+        return ((total * total).sum(axis=-1) - (residuals * residuals).sum(axis=(0, -1))) / (3.0 * m * (m - 1))
+
+    w = np.asarray(weights, np.float64)
+    x = pixels(renders) - pixels(others)
+    d = float((w * x).sum() / w.sum())
+    return d, float(np.sqrt((w * w * (x - d) ** 2).sum()) / w.sum())
+
+
 def box_downsample(linear: Float[np.ndarray, "*batch H W C"], size: int) -> Float[np.ndarray, "*batch size size C"]:
     """Returns images (..., H, W, C) averaged over square blocks down to (..., size, size, C).
 

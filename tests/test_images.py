@@ -48,6 +48,26 @@ def test_the_noise_free_estimate_leaves_out_the_renders_noise_which_rmse_counts(
         images.noise_free_mse(renders[:1], target, weights)
 
 
+def test_the_noise_free_difference_of_two_materials_comes_with_its_standard_error():
+    # two materials off by 0.05 and 0.06 everywhere, rendered twice each with noise of spread 0.2 at other seeds
+    rng = np.random.default_rng(5)
+    target = np.full((64, 64, 3), 0.5)
+    weights = np.ones((64, 64))
+    near = target + 0.05 + rng.normal(0, 0.2, (2, *target.shape))
+    far = target + 0.06 + rng.normal(0, 0.2, (2, *target.shape))
+    difference, error = images.noise_free_difference(far, near, target, weights)
+    assert difference == pytest.approx(
+        images.noise_free_mse(far, target, weights) - images.noise_free_mse(near, target, weights)
+    )
+    # each pixel's estimate spreads by about sqrt(2) 0.2^2 / sqrt(3) (two independent products): over 64^2 pixels
+    assert error == pytest.approx(np.sqrt(2) * 0.2**2 / np.sqrt(3) / 64, rel=0.1)
+    assert difference == pytest.approx(0.06**2 - 0.05**2, abs=3 * error)
+    # the same renders on both sides: no difference, none to doubt
+    assert images.noise_free_difference(near, near, target, weights) == (0.0, 0.0)
+    with pytest.raises(ValueError, match="2 and 1 renders: the difference needs at least 2 of each, as many"):
+        images.noise_free_difference(near, near[:1], target, weights)
+
+
 def test_rmse_per_image_weighted_and_in_jax():
     rng = np.random.default_rng(0)
     batch, target = rng.uniform(size=(2, 4, 4, 3)), rng.uniform(size=(4, 4, 3))

@@ -73,11 +73,15 @@ def test_a_fit_from_a_start_far_off_comes_closer_and_says_what_the_view_decides(
     assert outcome.accepted and outcome.rmse < 0.8 * outcome.start_rmse
     np.testing.assert_array_equal(outcome.start_values, start)
     assert outcome.integrator == "prb" and outcome.target.shape == (48, 64, 3)
-    # a quarter of the steps a start, then 8, then a quarter more if a parameter left at a trapping bound moved
+    # a quarter of the steps a start, then 8, then a quarter more if a parameter left at a trapping bound moved, and
+    # a quarter more if optional lobes were turned off (the steps of the try kept)
     moved = outcome.bounds["moved"] is not None
-    assert len(outcome.starts) == 5 and len(outcome.losses) == 2 + 8 + (2 if moved else 0)
+    plainer = bool(outcome.plain["off"])
+    assert len(outcome.starts) == 5 and len(outcome.losses) == 2 + 8 + (2 if moved else 0) + (2 if plainer else 0)
     assert [a[0] for a in heard][:10] == ["starts"] * 10 and heard[-1][0] == "judge"
-    assert heard[-1][1] == heard[-1][2] == 5 * 2 + 8 + 2
+    tries = len(outcome.plain["tried"])  # type: ignore[arg-type]
+    assert [a[0] for a in heard].count("plain") == 2 * tries
+    assert heard[-1][1] == heard[-1][2] == 5 * 2 + 8 + 2 + 2 * (1 + len(scene_fit.OPTIONAL))
     assert set(outcome.ranges) == set(params.NAMES)
     assert outcome.ranges["base_color_r"]["verdict"] == "decided"
     assert outcome.ranges["density"]["verdict"].startswith("not decided")  # an opaque fit shows no medium
@@ -92,7 +96,9 @@ def test_a_transmissive_fit_descends_from_every_start_and_keeps_the_one_that_end
     assert [s["name"] for s in outcome.starts] == names
     assert all(s["descended"] > 0 for s in outcome.starts)  # each went on the 2 steps, judged where it ended
     assert outcome.integrator == "prb" and outcome.rmse <= outcome.start_rmse  # glass shows no medium
-    assert len(outcome.losses) in (1 + 2, 1 + 2 + 1)  # the chosen start's short run, its descent, a move off a bound
+    # the chosen start's short run, its descent, a move off a bound, optional lobes off
+    moved, plainer = outcome.bounds["moved"] is not None, bool(outcome.plain["off"])
+    assert len(outcome.losses) == 1 + 2 + (1 if moved else 0) + (1 if plainer else 0)
 
 
 def test_a_fit_never_returns_something_worse_than_its_start(knot, red_picture):
@@ -219,3 +225,32 @@ def test_the_judge_renders_a_material_once_at_each_seed(knot, red_picture, monke
     assert asked == [scene_fit.JUDGE_SEED, scene_fit.SECOND_SEED]
     error = scene_fit.root(squared)
     assert error == pytest.approx(np.sqrt(max(squared, 0.0))) and error < images.rmse(first, target, weights)
+
+
+def test_a_lobe_the_picture_does_not_ask_for_is_turned_off_and_one_it_does_stays(knot, red_picture):
+    # the red plastic's coat (0.5) shows in its picture; a sheen of 0.3 on top of it, which the picture lacks, does not
+    renderer = scene_file.Renderer(knot, knot.size(64), integrator=scene_file.OPAQUE_INTEGRATOR)
+    target = np.clip(images.srgb_encode(red_picture), 0.0, 1.0).astype(np.float32)
+    weights = scene_fit.region(renderer)[0].astype(np.float32)
+    judge = scene_fit.Judge(renderer, target, weights)
+    problem = scene_fit.problem_of(renderer, target, weights, "prb")
+    truth = params.to_unit(presets.preset("red-plastic"))
+    sheened = truth.copy()
+    sheened[params.INDEX["sheen"]] = 0.3
+    heard = []
+    point, done, losses = scene_fit.plain(judge, problem, sheened, 2, seed=0, progress=lambda *a: heard.append(a))
+    assert done["on"] == ["clearcoat", "sheen"] and done["off"] == ["sheen"]
+    tried = done["tried"]
+    assert [t["off"] for t in tried] == [["clearcoat", "sheen"], ["clearcoat"], ["sheen"]]  # type: ignore[index]
+    assert [t["kept"] for t in tried] == [False, False, True]  # type: ignore[index]
+    # the coat off is behind by many standard errors: the picture asks for it
+    together = tried[0]  # type: ignore[index]
+    assert together["behind"] > 2 * scene_fit.PLAIN_LEAD * together["standard_error"]
+    assert point[params.INDEX["sheen"]] == 0.0 and point[params.INDEX["clearcoat"]] > 0.4  # held off, coat kept
+    assert len(losses) == 2 and len(heard) == 2 * 3
+    # a material without optional lobes: nothing to try, nothing rendered
+    plain_truth = truth.copy()
+    plain_truth[params.INDEX["clearcoat"]] = 0.0
+    point, done, losses = scene_fit.plain(judge, problem, plain_truth, 2, seed=0)
+    np.testing.assert_array_equal(point, plain_truth)
+    assert done == {"on": [], "tried": [], "off": []} and losses == []

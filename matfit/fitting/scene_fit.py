@@ -33,9 +33,14 @@ shapes. In order:
    such parameter the descent left there is moved inward by `INWARD` and judged; if one is closer, `short` more
    steps go on from it, and the point of the three of lowest noise-free error is the answer (the bench's box under
    a sky: roughness stuck at 0 against a truth of 0.3, 1.77 -> 0.69).
-5. The answer is judged against the start, and kept only if its noise-free error is lower: never worse than the
+5. Plain lobes: the lobes a material can do without (`OPTIONAL`: clearcoat, sheen, anisotropy) that the answer
+   holds are turned off, all together and else each alone, the others re-descended for `short` steps with them
+   held at 0; a try is kept unless the answer is closer by `PLAIN_LEAD` standard errors (`Judge.behind`). The
+   descent puts on a lobe to follow the target's noise as readily as the picture's light, and a lobe whose
+   gradient is 0 at 0 cannot be taken off by it (`plain`).
+6. The answer is judged against the start, and kept only if its noise-free error is lower: never worse than the
    start, as the two renders see it.
-6. What one view decides: each parameter moved by `PROBE` in the unit cube both ways from the answer, the two
+7. What one view decides: each parameter moved by `PROBE` in the unit cube both ways from the answer, the two
    renders (one common seed) compared over the region: a change under `UNDECIDED_RMSE` is not decided by this
    picture (`ranges` in params.json).
 
@@ -88,8 +93,15 @@ INWARD = (0.1, 0.25)  # unit-cube distances from a bound that the judge tries fo
 # gradient is valid, and a move there that the judge favours is the target's noise (measured: spec_tint moved off 0
 # on the glass knot, closer to the picture at two seeds, further from the truth, 1.78 -> 2.32).
 TRAPS = ("roughness", "sheen", "clearcoat")
+# The lobes a material can do without: an answer's are turned off, the others re-descended, unless the judge finds
+# the plainer material behind by `PLAIN_LEAD` standard errors or more (`plain`). The descent puts them on to follow
+# the target's noise: the bench's gold knot under the sun (no coat in truth) ended with clearcoat 0.78 at 1.38,
+# and with the three off and re-descended came to 0.72; the red knot's coat (0.5 in truth) stays.
+OPTIONAL = ("clearcoat", "sheen", "anisotropic")
+PLAIN_LEAD = 2.0  # standard errors, as the test scene's verification decides (`verify.LEAD`)
 UNDECIDED_RMSE = 0.75  # 0-255 over the region: a parameter that changes the picture less is not decided by it
 ASPECT_TOLERANCE = 0.02
+OFF = 0.001  # unit cube: a parameter at or under this is at its lower bound (a trap, a lobe that is off)
 
 
 @dataclass(frozen=True)
@@ -108,6 +120,7 @@ class SceneOutcome:
     guessed: str | None  # how `guess` found the start (None: the start was given, the shape's own or the default)
     starts: list[dict[str, object]]  # each start: name, judged RMSE after its short run
     bounds: dict[str, object]  # the off-the-bounds stage: what it tried, what it moved, the judged RMSEs
+    plain: dict[str, object]  # the optional lobes' stage: which were on, each try's lead, which were turned off
     losses: list[float]  # the chosen start's step losses, short run and continuation
     ranges: dict[str, dict[str, object]]  # per parameter: change over the region when probed, decided or not
     integrator: str
@@ -281,8 +294,20 @@ class Judge:
         """Returns the estimate of the squared noise-free error (0-255 squared, negative where under what two
         renders resolve) of physical `values` from its renders at `JUDGE_SEED` and `SECOND_SEED`
         (`images.noise_free_mse`)."""
-        renders = [self.render(values, seed) for seed in (JUDGE_SEED, SECOND_SEED)]
-        return 255.0**2 * images.noise_free_mse(np.asarray(renders), self.target, self.weights)
+        return 255.0**2 * images.noise_free_mse(self.renders(values), self.target, self.weights)
+
+    def renders(self, values: np.ndarray) -> np.ndarray:
+        """Returns the two sRGB renders (2, h, w, 3) of physical `values` that `squared` judges by."""
+        return np.asarray([self.render(values, seed) for seed in (JUDGE_SEED, SECOND_SEED)])
+
+    def behind(self, values: np.ndarray, other: np.ndarray) -> tuple[float, float]:
+        """Returns (how much further physical `values` is than `other`, its standard error): the difference of
+        their `squared` (0-255 squared, negative where `values` is closer) and its spread over the pixels
+        (`images.noise_free_difference`; the two are rendered at the same seeds)."""
+        difference, error = images.noise_free_difference(
+            self.renders(values), self.renders(other), self.target, self.weights
+        )
+        return 255.0**2 * difference, 255.0**2 * error
 
 
 def root(squared: float) -> float:
@@ -405,7 +430,7 @@ def fit(
     problem = problem_of(renderer, target, weights, integrator, linear=every)
     candidates = starts(first)
     short = min(SHORT_STEPS, max(1, steps // 4))
-    total = short * len(candidates) + steps * (len(candidates) if every else 1) + short
+    total = short * len(candidates) + steps * (len(candidates) if every else 1) + short + short * (1 + len(OPTIONAL))
     hold = (params.INDEX["spec_trans"],) if every else ()
     done = 0
 
@@ -448,6 +473,7 @@ def fit(
     best = min((t for t in tried if "answer" in t), key=lambda t: t["answer_squared"])
     point, more = best["answer"], best["more"]
     point, bounds, again = off_bounds(judge, problem, point, short, seed=short + steps, progress=heard("bounds"))
+    point, plainer, simpler = plain(judge, problem, point, short, seed=2 * short + steps, progress=heard("plain"))
     answer = params.from_unit(point)
     start_squared, answer_squared = judge.squared(first), judge.squared(answer)
     start_rmse, rmse = root(start_squared), root(answer_squared)
@@ -477,7 +503,8 @@ def fit(
             for t in tried
         ],
         bounds,
-        [*list(best["losses"]), *more, *again],
+        plainer,
+        [*list(best["losses"]), *more, *again, *simpler],
         decided(renderer, answer, weights, integrator),
         integrator,
         time.perf_counter() - started,
@@ -516,7 +543,7 @@ def off_bounds(
     tries = []
     for name in TRAPS:
         i = params.INDEX[name]
-        if point[i] > 0.001:
+        if point[i] > OFF:
             continue
         for distance in INWARD:
             moved = point.copy()
@@ -532,6 +559,57 @@ def off_bounds(
     done.update({"moved": name, "to": round(value, 3), "errors": [round(root(e), 3) for e in three]})
     done["kept"] = ("the descent's point", "the moved point", "the steps after it")[kept]
     return (point, moved, further)[kept], done, losses
+
+
+def plain(
+    judge: Judge,
+    problem: refine.Problem,
+    point: np.ndarray,
+    steps: int,
+    *,
+    seed: int,
+    progress: Callable[[int, float], None] | None = None,
+) -> tuple[np.ndarray, dict[str, object], list[float]]:
+    """Returns (the point, what the stage did, the losses of the steps kept) after trying the `OPTIONAL` lobes that
+    `point` (unit cube) holds turned off: all of them together, then (if the judge refused that and more than one
+    was on) each alone. Each try sets them to 0 and runs `steps` steps with them held there (seeds from
+    refine.SEED + `seed`), and is kept unless `point` is closer by `PLAIN_LEAD` of the difference's standard errors
+    (`Judge.behind`): a lobe stays only where the picture measurably asks for it. Of the tries each alone that the
+    judge keeps, the closest; all together, once kept, ends the stage."""
+    point = np.asarray(point, np.float64)
+    on = [name for name in OPTIONAL if point[params.INDEX[name]] > OFF]
+    done: dict[str, object] = {"on": on, "tried": [], "off": []}
+    if not on:
+        return point, done, []
+    tries = [tuple(on)] + ([(name,) for name in on] if len(on) > 1 else [])
+    kept: tuple[float, np.ndarray, tuple[str, ...], list[float]] | None = None
+    tried: list[dict[str, object]] = []
+    for k, names in enumerate(tries):
+        held = tuple(params.INDEX[name] for name in names)
+        off = point.copy()
+        off[list(held)] = 0.0
+        further, losses = refine.descend(
+            problem,
+            off,
+            steps,
+            spp=STEP_SPP,
+            seed=refine.SEED + seed + k * steps,
+            progress=progress,
+            hold=held,
+            held=steps,
+        )
+        behind, error = judge.behind(params.from_unit(further), params.from_unit(point))
+        keep = behind < PLAIN_LEAD * error
+        tried.append({"off": list(names), "behind": round(behind, 3), "standard_error": round(error, 3), "kept": keep})
+        if keep and (kept is None or behind < kept[0]):
+            kept = (behind, further, names, losses)
+        if keep and k == 0:
+            break
+    done["tried"] = tried
+    if kept is None:
+        return point, done, []
+    done["off"] = list(kept[2])
+    return kept[1], done, kept[3]
 
 
 def decided(

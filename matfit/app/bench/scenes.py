@@ -146,6 +146,7 @@ def run_case(case: Case, folder: str, steps: int, *, size: int = TARGET_SIZE, ju
         "target_vs_judge": round(float(images.rmse(small, truth_pair[0], weights)), 3),
         "accepted": outcome.accepted,
         "moved_off_bound": outcome.bounds.get("moved"),
+        "lobes_off": outcome.plain.get("off"),
         "integrator": outcome.integrator,
         "seconds": round(seconds, 1),
         "cpu_seconds": round(cpu, 1),  # the fit's, all threads together: what a load beside it changes less
