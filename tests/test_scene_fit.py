@@ -5,7 +5,7 @@ import pytest
 
 from matfit import images, params
 from matfit.errors import SceneError
-from matfit.fitting import refine, scene_fit
+from matfit.fitting import refine, scene_fit, scene_judge
 from matfit.rendering import presets, scene_file
 
 
@@ -155,7 +155,7 @@ def test_roughness_the_descent_left_at_0_is_tried_inward_and_a_closer_point_kept
     problem = scene_fit.problem_of(renderer, target, weights, "prb")
     stuck = params.to_unit(presets.preset("red-plastic"))  # the truth (roughness 0.3) but for its roughness at 0
     stuck[params.INDEX["roughness"]] = 0.0
-    point, done, losses = scene_fit.off_bounds(scene_fit.Judge(renderer, target, weights), problem, stuck, 2, seed=0)
+    point, done, losses = scene_fit.off_bounds(scene_judge.Judge(renderer, target, weights), problem, stuck, 2, seed=0)
     assert done["tried"] == 2 * len(scene_fit.INWARD) == 4  # roughness and sheen are at 0; clearcoat is not
     assert done["moved"] == "roughness" and len(losses) == 2
     assert point[params.INDEX["roughness"]] >= 0.1
@@ -163,7 +163,7 @@ def test_roughness_the_descent_left_at_0_is_tried_inward_and_a_closer_point_kept
     assert moved_error < stuck_error - 0.3  # the truth's roughness is closer than 0
     free = params.to_unit(presets.preset("red-plastic"))
     free[params.INDEX["sheen"]] = 0.3
-    kept, nothing, none = scene_fit.off_bounds(scene_fit.Judge(renderer, target, weights), problem, free, 2, seed=0)
+    kept, nothing, none = scene_fit.off_bounds(scene_judge.Judge(renderer, target, weights), problem, free, 2, seed=0)
     assert nothing == {"error": nothing["error"], "tried": 0, "moved": None} and none == []
     np.testing.assert_array_equal(kept, free)
 
@@ -196,35 +196,12 @@ def test_the_answer_is_the_candidate_of_lowest_noise_free_error_not_the_lowest_s
     green = truth.copy()
     green[params.INDEX["base_color_g"]] = 0.8
     # a lucky step's loss at a green point (winner's curse) and the truth last: the judge's render decides
-    judge = scene_fit.Judge(renderer, target, weights)
+    judge = scene_judge.Judge(renderer, target, weights)
     point, squared = scene_fit.closest(judge, [green, green, truth, truth], [1.0, 9.0, 9.0])
     np.testing.assert_array_equal(point, truth)
     assert squared == judge.squared(params.from_unit(truth))
-    assert scene_fit.root(judge.squared(params.from_unit(green))) > scene_fit.root(squared) + 10  # far from it
+    assert scene_judge.root(judge.squared(params.from_unit(green))) > scene_judge.root(squared) + 10  # far from it
     assert scene_fit.closest(judge, [truth], []) == (truth, squared)
-
-
-def test_the_judge_renders_a_material_once_at_each_seed(knot, red_picture, monkeypatch):
-    # the descent's answer is judged by `closest`, `off_bounds` and the acceptance at the same seeds: one render each
-    renderer = scene_file.Renderer(knot, knot.size(64), integrator=scene_file.OPAQUE_INTEGRATOR)
-    target = np.clip(images.srgb_encode(red_picture), 0.0, 1.0).astype(np.float32)
-    weights = scene_fit.region(renderer)[0].astype(np.float32)
-    asked = []
-    render = renderer.render
-    monkeypatch.setattr(renderer, "render", lambda values, **kw: asked.append(kw["seed"]) or render(values, **kw))
-    judge = scene_fit.Judge(renderer, target, weights)
-    red = presets.preset("red-plastic")
-    first = judge.render(red)
-    again = judge.render(red.copy())
-    assert again is first and asked == [scene_fit.JUDGE_SEED]
-    second = judge.render(red, scene_fit.SECOND_SEED)
-    assert asked == [scene_fit.JUDGE_SEED, scene_fit.SECOND_SEED] and not np.array_equal(second, first)
-    # the noise-free error is made of the two seeds' renders, rendered no more
-    squared = judge.squared(red)
-    assert squared == 255.0**2 * images.noise_free_mse(np.asarray([first, second]), target, weights)
-    assert asked == [scene_fit.JUDGE_SEED, scene_fit.SECOND_SEED]
-    error = scene_fit.root(squared)
-    assert error == pytest.approx(np.sqrt(max(squared, 0.0))) and error < images.rmse(first, target, weights)
 
 
 def test_a_lobe_the_picture_does_not_ask_for_is_turned_off_and_one_it_does_stays(knot, red_picture):
@@ -232,7 +209,7 @@ def test_a_lobe_the_picture_does_not_ask_for_is_turned_off_and_one_it_does_stays
     renderer = scene_file.Renderer(knot, knot.size(64), integrator=scene_file.OPAQUE_INTEGRATOR)
     target = np.clip(images.srgb_encode(red_picture), 0.0, 1.0).astype(np.float32)
     weights = scene_fit.region(renderer)[0].astype(np.float32)
-    judge = scene_fit.Judge(renderer, target, weights)
+    judge = scene_judge.Judge(renderer, target, weights)
     problem = scene_fit.problem_of(renderer, target, weights, "prb")
     truth = params.to_unit(presets.preset("red-plastic"))
     sheened = truth.copy()
