@@ -519,10 +519,7 @@ def plain(
     judge keeps, the closest; all together, once kept, ends the stage."""
     point = np.asarray(point, np.float64)
     on = [name for name in OPTIONAL if point[params.INDEX[name]] > OFF]
-    done: dict[str, object] = {"on": on, "tried": [], "off": []}
-    if not on:
-        return point, done, []
-    tries = [tuple(on)] + ([(name,) for name in on] if len(on) > 1 else [])
+    tries = ([tuple(on)] if on else []) + ([(name,) for name in on] if len(on) > 1 else [])
     kept: tuple[float, np.ndarray, tuple[str, ...], list[float]] | None = None
     tried: list[dict[str, object]] = []
     for k, names in enumerate(tries):
@@ -546,11 +543,8 @@ def plain(
             kept = (behind, further, names, losses)
         if keep and k == 0:
             break
-    done["tried"] = tried
-    if kept is None:
-        return point, done, []
-    done["off"] = list(kept[2])
-    return kept[1], done, kept[3]
+    done: dict[str, object] = {"on": on, "tried": tried, "off": [] if kept is None else list(kept[2])}
+    return (point, done, []) if kept is None else (kept[1], done, kept[3])
 
 
 def decided(
