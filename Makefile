@@ -46,14 +46,16 @@ $(BLENDER_VENV)/.installed: pyproject.toml
 blender-extension: $(BIN)/matfit
 	$(BIN)/python blender/build.py dist
 
-# Every test, on every core (pytest-xdist; a test file's tests share one worker and its module fixtures). `make
-# check` is the quick loop while working: the same lint and type check, every test but the slow end-to-end ones.
+# Every test, on one worker more than the cores (pytest-xdist; a test file's tests share one worker and its module
+# fixtures): the workers wait on the processes their tests start (matfit, Blender, a browser), and on 2 cores a
+# third worker fills those waits (docs/decisions.md). `make check` is the quick loop while working: the same lint and type check, every test but the slow end-to-end ones.
 # mypy reads its settings from pyproject.toml ([tool.mypy]: the package, not the tests). It runs beside the tests,
 # in the moments their workers wait (on a browser, Ray, a child process), and its output follows theirs; either
 # failing fails the target.
+TEST_WORKERS ?= $(shell $(PYTHON) -c 'import os; print(len(os.sched_getaffinity(0)) + 1)')
 define TYPED_TESTS
 @out=$$(mktemp); $(BIN)/mypy >"$$out" 2>&1 & typing=$$!; \
-$(BIN)/python -m pytest -q -n auto --dist loadfile $(1); tests=$$?; \
+$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadfile $(1); tests=$$?; \
 wait $$typing; typed=$$?; printf '%s\n' "$(BIN)/mypy"; cat "$$out"; rm -f "$$out"; \
 [ $$tests -eq 0 ] && [ $$typed -eq 0 ]
 endef
