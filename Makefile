@@ -48,7 +48,8 @@ blender-extension: $(BIN)/matfit
 
 # Every test, on one worker more than the cores (pytest-xdist; a test file's tests share one worker and its module
 # fixtures): the workers wait on the processes their tests start (matfit, Blender, a browser), and on 2 cores a
-# third worker fills those waits (docs/decisions.md). `make check` is the quick loop while working: the same lint and type check, every test but the slow end-to-end ones.
+# third worker fills those waits (docs/decisions.md). `make check` is the quick loop while working: the same lint
+# and type check, every test but the slow end-to-end ones.
 # mypy reads its settings from pyproject.toml ([tool.mypy]: the package, not the tests). It runs beside the tests,
 # in the moments their workers wait (on a browser, Ray, a child process), and its output follows theirs; either
 # failing fails the target.

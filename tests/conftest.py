@@ -85,3 +85,11 @@ def knot(tmp_path_factory):
 
     path = scene_library.write(str(tmp_path_factory.mktemp("scenes")), "knot", "studio", width=32, height=24)
     return scene_file.read(path, "object")
+
+
+@pytest.fixture(scope="session")
+def red_picture(knot) -> np.ndarray:
+    """Returns the knot in red plastic, linear (48, 64, 3): the picture a user renders and edits."""
+    from matfit.rendering import presets, scene_file
+
+    return scene_file.Renderer(knot, knot.size(64)).render(presets.preset("red-plastic"), seed=11, spp=64)

@@ -9,12 +9,6 @@ from matfit.fitting import refine, scene_fit, scene_judge
 from matfit.rendering import presets, scene_file
 
 
-@pytest.fixture(scope="module")
-def red_picture(knot) -> np.ndarray:
-    """Returns the knot in red plastic, linear (48, 64, 3): the picture a user renders and edits."""
-    return scene_file.Renderer(knot, knot.size(64)).render(presets.preset("red-plastic"), seed=11, spp=64)
-
-
 def test_the_starts_keep_the_colour_over_metallic_and_roughness_or_roughness_for_glass():
     plastic = presets.preset("red-plastic")
     found = scene_fit.starts(plastic)

@@ -8,12 +8,6 @@ from matfit.fitting import scene_fit, scene_judge
 from matfit.rendering import presets, scene_file
 
 
-@pytest.fixture(scope="module")
-def red_picture(knot) -> np.ndarray:
-    """Returns the knot in red plastic, linear (48, 64, 3)."""
-    return scene_file.Renderer(knot, knot.size(64)).render(presets.preset("red-plastic"), seed=11, spp=64)
-
-
 def test_the_judge_renders_a_material_once_at_each_seed(knot, red_picture, monkeypatch):
     # the descent's answer is judged by `closest`, `off_bounds` and the acceptance at the same seeds: one render each
     renderer = scene_file.Renderer(knot, knot.size(64), integrator=scene_file.OPAQUE_INTEGRATOR)
