@@ -87,6 +87,17 @@ def knot(tmp_path_factory):
     return scene_file.read(path, "object")
 
 
+@pytest.fixture
+def tiny_scene_fits(monkeypatch):
+    """Scene fits at a tiny configuration, their logic and not their figures (`matfit bench-scene` measures those):
+    renders 32 pixels on the longer side, a judge of 32 samples a pixel, probes of 8."""
+    from matfit.fitting import scene_fit, scene_judge
+
+    monkeypatch.setattr(scene_fit, "FIT_SIZE", 32)
+    monkeypatch.setattr(scene_judge, "JUDGE_SPP", 32)
+    monkeypatch.setattr(scene_fit, "PROBE_SPP", 8)
+
+
 @pytest.fixture(scope="session")
 def red_picture(knot) -> np.ndarray:
     """Returns the knot in red plastic, linear (48, 64, 3): the picture a user renders and edits."""

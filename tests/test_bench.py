@@ -162,6 +162,7 @@ def test_bench_ranges_goes_on_from_its_results_file_and_tabulates_each_tau(tmp_p
     assert "| decided | 1 | 1.00 | 1.50 | 100% |" in text  # Mitsuba 1.5 within the default tau, 1.8
 
 
+@pytest.mark.usefixtures("tiny_scene_fits")  # tests/conftest.py
 def test_a_scene_bench_row_holds_the_judges_own_floor_and_the_fits_cpu_seconds(tmp_path):
     case = scenes.cases(quick=True)[0]
     row = scenes.run_case(case, str(tmp_path), 1, size=32, judge_size=16)

@@ -8,6 +8,8 @@ from matfit.errors import SceneError
 from matfit.fitting import refine, scene_fit, scene_judge
 from matfit.rendering import presets, scene_file
 
+pytestmark = pytest.mark.usefixtures("tiny_scene_fits")  # tests/conftest.py
+
 
 def test_the_starts_keep_the_colour_over_metallic_and_roughness_or_roughness_for_glass():
     plastic = presets.preset("red-plastic")
@@ -66,7 +68,7 @@ def test_a_fit_from_a_start_far_off_comes_closer_and_says_what_the_view_decides(
     outcome = scene_fit.fit(knot, red_picture, start=start, steps=8, progress=lambda *a: heard.append(a))
     assert outcome.accepted and outcome.rmse < 0.8 * outcome.start_rmse
     np.testing.assert_array_equal(outcome.start_values, start)
-    assert outcome.integrator == "prb" and outcome.target.shape == (48, 64, 3)
+    assert outcome.integrator == "prb" and outcome.target.shape == (24, 32, 3)  # FIT_SIZE, tiny
     # a quarter of the steps a start, then 8, then a quarter more if a parameter left at a trapping bound moved, and
     # a quarter more if optional lobes were turned off (the steps of the try kept)
     moved = outcome.bounds["moved"] is not None
@@ -117,8 +119,8 @@ def test_a_mask_decides_where_the_fit_looks(knot, red_picture):
     mask[:, :32] = 1.0
     outcome = scene_fit.fit(knot, red_picture, start=presets.preset("red-plastic"), mask=mask, steps=1)
     # the mask decides where, each pixel's precision how much (`precision`: at most the mask's own weight)
-    assert outcome.weights[:, 40:].max() < 0.01 and outcome.weights[:, :24].min() > 0.05
-    assert outcome.weights.max() <= 1.0 and np.median(outcome.weights[:, :24]) < 0.9
+    assert outcome.weights[:, 20:].max() < 0.01 and outcome.weights[:, :12].min() > 0.05  # at FIT_SIZE, tiny
+    assert outcome.weights.max() <= 1.0 and np.median(outcome.weights[:, :12]) < 0.9
     with pytest.raises(SceneError, match="the mask is black"):
         scene_fit.fit(knot, red_picture, mask=np.zeros((48, 64), np.float32), steps=1)
     # the figure is the noise-free error; the render's own RMSE counts its noise too

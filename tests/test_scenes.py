@@ -14,6 +14,8 @@ from matfit import images, params
 from matfit.app.cli import app
 from matfit.rendering import scene_library
 
+pytestmark = pytest.mark.usefixtures("tiny_scene_fits")  # tests/conftest.py
+
 runner = CliRunner()
 
 
@@ -135,7 +137,7 @@ def test_the_api_renders_and_fits_in_a_scene(scene, edited):
     )
     assert isinstance(fitted.material, matfit.Material) and np.isnan(fitted.neural_rmse)
     assert fitted.mitsuba_rmse <= fitted.start_rmse and fitted.document["target"] == "array"
-    assert fitted.rendered.shape == fitted.target.shape == (48, 64, 3)
+    assert fitted.rendered.shape == fitted.target.shape == (24, 32, 3)  # FIT_SIZE, tiny
     assert heard[-1][0] == "judge"
     with pytest.raises(matfit.MatfitError, match="is no path"):
         matfit.render(matfit.Material(), scene=matfit.Scene(5, "object"))
