@@ -104,3 +104,16 @@ def red_picture(knot) -> np.ndarray:
     from matfit.rendering import presets, scene_file
 
     return scene_file.Renderer(knot, knot.size(64)).render(presets.preset("red-plastic"), seed=11, spp=64)
+
+
+@pytest.fixture(scope="session")
+def red_knot_fit(knot, red_picture):
+    """Returns (the knot's judging renderer for an opaque material at 64x48, the red picture as a fit's sRGB target, the
+    region's weights): what the tests of a fit's stages build their judge and problem on."""
+    from matfit import images
+    from matfit.fitting import scene_fit
+    from matfit.rendering import scene_file
+
+    renderer = scene_file.Renderer(knot, knot.size(64), integrator=scene_file.OPAQUE_INTEGRATOR)
+    target = np.clip(images.srgb_encode(red_picture), 0.0, 1.0).astype(np.float32)
+    return renderer, target, scene_fit.region(renderer)[0].astype(np.float32)

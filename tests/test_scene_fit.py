@@ -144,10 +144,8 @@ def test_each_pixel_is_weighted_by_how_little_its_render_is_noise():
     np.testing.assert_array_equal(scene_fit.precision((renders[0], renders[0]), weights), weights)  # no noise
 
 
-def test_roughness_the_descent_left_at_0_is_tried_inward_and_a_closer_point_kept(knot, red_picture):
-    renderer = scene_file.Renderer(knot, knot.size(64), integrator=scene_file.OPAQUE_INTEGRATOR)
-    target = np.clip(images.srgb_encode(red_picture), 0.0, 1.0).astype(np.float32)
-    weights = scene_fit.region(renderer)[0].astype(np.float32)
+def test_roughness_the_descent_left_at_0_is_tried_inward_and_a_closer_point_kept(red_knot_fit):
+    renderer, target, weights = red_knot_fit
     problem = scene_fit.problem_of(renderer, target, weights, "prb")
     stuck = params.to_unit(presets.preset("red-plastic"))  # the truth (roughness 0.3) but for its roughness at 0
     stuck[params.INDEX["roughness"]] = 0.0
@@ -164,10 +162,8 @@ def test_roughness_the_descent_left_at_0_is_tried_inward_and_a_closer_point_kept
     np.testing.assert_array_equal(kept, free)
 
 
-def test_the_path_holds_every_visited_point_and_descend_keeps_its_lowest_loss(knot, red_picture):
-    renderer = scene_file.Renderer(knot, knot.size(64), integrator=scene_file.OPAQUE_INTEGRATOR)
-    target = np.clip(images.srgb_encode(red_picture), 0.0, 1.0).astype(np.float32)
-    weights = scene_fit.region(renderer)[0].astype(np.float32)
+def test_the_path_holds_every_visited_point_and_descend_keeps_its_lowest_loss(red_knot_fit):
+    renderer, target, weights = red_knot_fit
     problem = scene_fit.problem_of(renderer, target, weights, "prb")
     start = params.to_unit(presets.preset("red-plastic"))
     start[params.INDEX["base_color_g"]] = 0.6  # a greener red: the steps bring it back down
@@ -184,10 +180,8 @@ def test_the_path_holds_every_visited_point_and_descend_keeps_its_lowest_loss(kn
     np.testing.assert_allclose(point, points[int(np.argmin(again))], atol=1e-4)  # its gradients' sums likewise
 
 
-def test_the_answer_is_the_candidate_of_lowest_noise_free_error_not_the_lowest_step_loss(knot, red_picture):
-    renderer = scene_file.Renderer(knot, knot.size(64), integrator=scene_file.OPAQUE_INTEGRATOR)
-    target = np.clip(images.srgb_encode(red_picture), 0.0, 1.0).astype(np.float32)
-    weights = scene_fit.region(renderer)[0].astype(np.float32)
+def test_the_answer_is_the_candidate_of_lowest_noise_free_error_not_the_lowest_step_loss(red_knot_fit):
+    renderer, target, weights = red_knot_fit
     truth = params.to_unit(presets.preset("red-plastic"))
     green = truth.copy()
     green[params.INDEX["base_color_g"]] = 0.8
@@ -200,11 +194,9 @@ def test_the_answer_is_the_candidate_of_lowest_noise_free_error_not_the_lowest_s
     assert scene_fit.closest(judge, [truth], []) == (truth, squared)
 
 
-def test_a_lobe_the_picture_does_not_ask_for_is_turned_off_and_one_it_does_stays(knot, red_picture):
+def test_a_lobe_the_picture_does_not_ask_for_is_turned_off_and_one_it_does_stays(red_knot_fit):
     # the red plastic's coat (0.5) shows in its picture; a sheen of 0.3 on top of it, which the picture lacks, does not
-    renderer = scene_file.Renderer(knot, knot.size(64), integrator=scene_file.OPAQUE_INTEGRATOR)
-    target = np.clip(images.srgb_encode(red_picture), 0.0, 1.0).astype(np.float32)
-    weights = scene_fit.region(renderer)[0].astype(np.float32)
+    renderer, target, weights = red_knot_fit
     judge = scene_judge.Judge(renderer, target, weights)
     problem = scene_fit.problem_of(renderer, target, weights, "prb")
     truth = params.to_unit(presets.preset("red-plastic"))

@@ -4,15 +4,13 @@ import numpy as np
 import pytest
 
 from matfit import images
-from matfit.fitting import scene_fit, scene_judge
-from matfit.rendering import presets, scene_file
+from matfit.fitting import scene_judge
+from matfit.rendering import presets
 
 
-def test_the_judge_renders_a_material_once_at_each_seed(knot, red_picture, monkeypatch):
+def test_the_judge_renders_a_material_once_at_each_seed(red_knot_fit, monkeypatch):
     # the descent's answer is judged by `closest`, `off_bounds` and the acceptance at the same seeds: one render each
-    renderer = scene_file.Renderer(knot, knot.size(64), integrator=scene_file.OPAQUE_INTEGRATOR)
-    target = np.clip(images.srgb_encode(red_picture), 0.0, 1.0).astype(np.float32)
-    weights = scene_fit.region(renderer)[0].astype(np.float32)
+    renderer, target, weights = red_knot_fit
     asked = []
     render = renderer.render
     monkeypatch.setattr(renderer, "render", lambda values, **kw: asked.append(kw["seed"]) or render(values, **kw))
