@@ -29,7 +29,7 @@ shapes. In order:
    base colour, roughness and specular settle first. Free from the start, the descent from a sharp highlight to a
    broader one reached for anisotropy, and of the valley it found there no later step or stage took it out (the
    bench's red knot under the sun: 0.66-1.25 over five runs, three over 1.0 by the stricter judge; held, 0.67-0.69
-   over four: [measured](docs/scenes.md#the-lobes-held)). Of a descent's visited point of lowest
+   over six: [measured](docs/scenes.md#the-lobes-held)). Of a descent's visited point of lowest
    step loss, its last point and the mean of its last quarter's points, the one of lowest noise-free error is its
    answer (`closest`): a step's loss is one seed's, and where the loss lies flat at its noise its lowest point is
    partly luck; of the starts' answers, the one of lowest noise-free error goes on.
@@ -98,7 +98,7 @@ TRAPS = ("roughness", "sheen", "clearcoat")
 # the target's noise: the bench's gold knot under the sun (no coat in truth) ended with clearcoat 0.78 at 1.38,
 # and with the three off and re-descended came to 0.72 (median over five runs 0.86, against 1.7 without). The red
 # knot's coat (0.5 in truth) stays under the studio light; under the sun, whose target is noisier, it went in two
-# runs of five (docs/scenes.md#plain-lobes).
+# runs of five with the lobes free from the start, in none of six held (docs/scenes.md#the-lobes-held).
 OPTIONAL = ("clearcoat", "sheen", "anisotropic")
 # The share of an opaque fit's descent that holds the optional lobes where they started (`holding`)
 LOBES_HELD = 0.5
