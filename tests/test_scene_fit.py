@@ -83,14 +83,14 @@ def test_a_fit_from_a_start_far_off_comes_closer_and_says_what_the_view_decides(
     assert outcome.ranges["density"]["verdict"].startswith("not decided")  # an opaque fit shows no medium
 
 
-def test_an_opaque_fit_holds_its_optional_lobes_for_half_the_descent_a_transmissive_one_its_transmission():
+def test_a_fit_holds_its_optional_lobes_and_a_transmissive_ones_transmission_for_half_the_descent():
     lobes = (params.INDEX["clearcoat"], params.INDEX["sheen"], params.INDEX["anisotropic"])
-    assert scene_fit.holding(presets.preset("red-plastic"), 48, 12) == (lobes, 24)
-    assert scene_fit.holding(presets.preset("gold"), 7, 1) == (lobes, 3)
-    assert scene_fit.holding(presets.preset("glass"), 48, 12) == ((params.INDEX["spec_trans"],), 12)
+    assert scene_fit.holding(presets.preset("red-plastic"), 48) == (lobes, 24)
+    assert scene_fit.holding(presets.preset("gold"), 7) == (lobes, 3)
+    assert scene_fit.holding(presets.preset("glass"), 48) == ((params.INDEX["spec_trans"], *lobes), 24)
     half = scene_fit._probe(presets.preset("jade"), spec_trans=0.5)  # transmissive from 0.5 on, as `starts` splits
-    assert scene_fit.holding(half, 48, 12)[0] == (params.INDEX["spec_trans"],)
-    assert scene_fit.holding(scene_fit._probe(half, spec_trans=0.49), 48, 12)[0] == lobes
+    assert scene_fit.holding(half, 48)[0] == (params.INDEX["spec_trans"], *lobes)
+    assert scene_fit.holding(scene_fit._probe(half, spec_trans=0.49), 48)[0] == lobes
 
 
 def test_a_transmissive_fit_descends_from_every_start_and_keeps_the_one_that_ends_closest(knot):

@@ -22,13 +22,13 @@ shapes. In order:
    rough gold stays at roughness 0.001 (measured in the prototype). Each runs a quarter of the steps (at most
    `SHORT_STEPS`). An opaque fit's start of lowest noise-free error (`Judge.squared`) then goes on for
    `steps` more; a transmissive fit's starts all go on, with spec_trans held where it started for the short run
-   and the descent's first `short` steps (`refine.path`'s `hold`): the descent could otherwise trade the
-   transmission for a diffuse lobe before the medium is fitted and stay in that valley (the jade box: 8.0 in
-   every run, the short runs' ranking no guide to where a descent ends). An opaque fit holds the lobes it can do
-   without (`OPTIONAL`) where they started for the short runs and the first half of the descent (`holding`): the
-   base colour, roughness and specular settle first. Free from the start, the descent from a sharp highlight to a
-   broader one reached for anisotropy, and of the valley it found there no later step or stage took it out (the
-   bench's red knot under the sun: 0.66-1.25 over five runs, three over 1.0 by the stricter judge; held, 0.67-0.69
+   and the descent's first half (`refine.path`'s `hold`): the descent could otherwise trade the transmission for
+   a diffuse lobe before the medium is fitted and stay in that valley (the jade box: 8.0 in every run, the short
+   runs' ranking no guide to where a descent ends). Every fit holds the lobes it can do without (`OPTIONAL`)
+   where they started for the short runs and the first half of the descent (`holding`): the base colour,
+   roughness and specular settle first. Free from the start, the descent from a sharp highlight to a broader one
+   reached for anisotropy, and of the valley it found there no later step or stage took it out (the bench's red
+   knot under the sun: 0.66-1.25 over five runs, three over 1.0 by the stricter judge; held, 0.67-0.69
    over six: [measured](docs/scenes.md#the-lobes-held)). Of a descent's visited point of lowest
    step loss, its last point and the mean of its last quarter's points, the one of lowest noise-free error is its
    answer (`closest`): a step's loss is one seed's, and where the loss lies flat at its noise its lowest point is
@@ -100,7 +100,8 @@ TRAPS = ("roughness", "sheen", "clearcoat")
 # knot's coat (0.5 in truth) stays under the studio light; under the sun, whose target is noisier, it went in two
 # runs of five with the lobes free from the start, in none of six held (docs/scenes.md#the-lobes-held).
 OPTIONAL = ("clearcoat", "sheen", "anisotropic")
-# The share of an opaque fit's descent that holds the optional lobes where they started (`holding`)
+# The share of a fit's descent that holds the optional lobes (and a transmissive start's spec_trans) where they
+# started (`holding`)
 LOBES_HELD = 0.5
 PLAIN_LEAD = 2.0  # standard errors, as the test scene's verification decides (`verify.LEAD`)
 UNDECIDED_RMSE = 0.75  # 0-255 over the region: a parameter that changes the picture less is not decided by it
@@ -298,14 +299,13 @@ def starts(start: np.ndarray) -> list[tuple[str, np.ndarray]]:
     ]
 
 
-def holding(first: np.ndarray, steps: int, short: int) -> tuple[tuple[int, ...], int]:
+def holding(first: np.ndarray, steps: int) -> tuple[tuple[int, ...], int]:
     """Returns (the indices of the parameters that a fit from physical `first` holds where they start through its
-    starts' `short` runs, for how many of its descent's `steps`): a transmissive start's spec_trans for `short`
-    steps (the medium is fitted before the descent can trade transmission for a diffuse lobe), an opaque one's
-    `OPTIONAL` lobes for `LOBES_HELD` of the steps (the base lobe settles before the descent can reach for them)."""
-    if transmissive(first):
-        return (params.INDEX["spec_trans"],), short
-    return tuple(params.INDEX[name] for name in OPTIONAL), int(LOBES_HELD * steps)
+    starts' short runs, for how many of its descent's `steps`): the `OPTIONAL` lobes, and a transmissive start's
+    spec_trans, for `LOBES_HELD` of the steps. The base lobe (and the medium) settle before the descent can reach
+    for a lobe, or trade the transmission for a diffuse lobe."""
+    lobes = tuple(params.INDEX[name] for name in OPTIONAL)
+    return ((params.INDEX["spec_trans"], *lobes) if transmissive(first) else lobes), int(LOBES_HELD * steps)
 
 
 def fit(
@@ -389,7 +389,7 @@ def fit(
     candidates = starts(first)
     short = min(SHORT_STEPS, max(1, steps // 4))
     total = short * len(candidates) + steps * (len(candidates) if every else 1) + short + short * (1 + len(OPTIONAL))
-    hold, held = holding(first, steps, short)
+    hold, held = holding(first, steps)
     done = 0
 
     def heard(stage: str) -> Callable[[int, float], None]:
