@@ -93,18 +93,29 @@ def test_a_fit_holds_its_optional_lobes_and_a_transmissive_ones_transmission_for
     assert scene_fit.holding(scene_fit._probe(half, spec_trans=0.49), 48)[0] == lobes
 
 
-def test_a_transmissive_fit_descends_from_every_start_and_keeps_the_one_that_ends_closest(knot):
+def test_a_transmissive_fit_descends_from_every_start_and_keeps_the_one_that_ends_closest(knot, monkeypatch):
     glass = presets.preset("glass")
     picture = scene_file.Renderer(knot, knot.size(64)).render(glass, seed=11, spp=64)
     start = scene_fit._probe(glass, spec_trans=0.8, roughness=0.2)
-    outcome = scene_fit.fit(knot, picture, start=start, steps=2)
+    descents, path = [], refine.path
+
+    def heard_path(problem, point, steps, **options):  # the real descent, its holding noted
+        descents.append((steps, options["hold"], options["held"]))
+        return path(problem, point, steps, **options)
+
+    monkeypatch.setattr(refine, "path", heard_path)
+    outcome = scene_fit.fit(knot, picture, start=start, steps=4)
+    held = scene_fit.holding(start, 4)
+    assert held == ((params.INDEX["spec_trans"], *(params.INDEX[n] for n in scene_fit.OPTIONAL)), 2)
+    # the five starts' short runs hold it all through (1 step each), their descents the first half (2 of 4)
+    assert descents[:5] == [(1, held[0], 1)] * 5 and descents[5:10] == [(4, held[0], 2)] * 5
     names = ["given", "roughness 0.02", "roughness 0.35", "all transmitted", "clear glass"]
     assert [s["name"] for s in outcome.starts] == names
-    assert all(s["descended"] > 0 for s in outcome.starts)  # each went on the 2 steps, judged where it ended
+    assert all(s["descended"] > 0 for s in outcome.starts)  # each went on the 4 steps, judged where it ended
     assert outcome.integrator == "prb" and outcome.rmse <= outcome.start_rmse  # glass shows no medium
     # the chosen start's short run, its descent, a move off a bound, optional lobes off
     moved, plainer = outcome.bounds["moved"] is not None, bool(outcome.plain["off"])
-    assert len(outcome.losses) == 1 + 2 + (1 if moved else 0) + (1 if plainer else 0)
+    assert len(outcome.losses) == 1 + 4 + (1 if moved else 0) + (1 if plainer else 0)
 
 
 def test_a_fit_never_returns_something_worse_than_its_start(knot, red_picture):
