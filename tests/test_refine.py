@@ -56,6 +56,50 @@ def test_the_drjit_loss_at_the_images_own_secant_is_images_rmse_with_and_without
         assert loss.array[0] == pytest.approx(float(expected), rel=1e-4)
 
 
+def test_the_huber_loss_is_the_squared_one_under_its_corner_and_grows_by_the_absolute_residual_past_it(llvm):
+    import drjit as dr
+
+    rng = np.random.default_rng(7)
+    linear = rng.random((8, 8, 3)).astype(np.float32)
+    target = rng.random((8, 8, 3)).astype(np.float32)
+    weights = rng.random((8, 8)).astype(np.float32)
+    normalised = llvm.TensorXf(refine.normalised_weights(weights))
+    residual = (images.srgb_encode(linear) - target).astype(np.float64)
+    squared = refine.srgb_rmse(llvm.TensorXf(linear), llvm.TensorXf(target), normalised)
+    wide = refine.srgb_rmse(llvm.TensorXf(linear), llvm.TensorXf(target), normalised, llvm.Float(2.0))
+    assert wide.array[0] == pytest.approx(squared.array[0], rel=1e-6)  # every residual under the corner
+    corner = 0.2
+    huber = np.where(np.abs(residual) <= corner, residual**2, 2 * corner * np.abs(residual) - corner**2)
+    expected = 255.0 * np.sqrt((huber * refine.normalised_weights(weights)).sum())
+    unit = llvm.TensorXf(linear)
+    dr.enable_grad(unit)
+    loss = refine.srgb_rmse(unit, llvm.TensorXf(target), normalised, llvm.Float(corner))
+    assert loss.array[0] == pytest.approx(expected, rel=1e-5) and expected < 255.0 * np.sqrt(
+        (residual**2 * refine.normalised_weights(weights)).sum()
+    )
+    # past the corner a pixel pulls with the corner, not its residual: the gradient of the loss squared is
+    # 2 corner w slope there (the encoding's slope), 2 r w slope under it
+    dr.backward(dr.square(loss / 255.0))
+    gradient = np.array(dr.grad(unit)).reshape(8, 8, 3)
+    slope = images.srgb_slope(linear)
+    pull = np.clip(residual, -corner, corner) * 2.0 * refine.normalised_weights(weights) * slope
+    np.testing.assert_allclose(gradient, pull, rtol=1e-3, atol=1e-7)
+
+
+def test_the_huber_corner_is_a_robust_spread_that_a_few_wild_pixels_do_not_move():
+    rng = np.random.default_rng(9)
+    residuals = rng.normal(0.0, 0.01, (64, 64, 3))
+    wild = residuals.copy()
+    wild.reshape(-1)[rng.choice(wild.size, wild.size // 50, replace=False)] = 0.8  # 2% fireflies
+    weights = np.ones((64, 64, 3), np.float32)
+    assert refine.huber_corner(residuals, weights, 3.0) == pytest.approx(0.03, rel=0.05)
+    assert refine.huber_corner(wild, weights, 3.0) == pytest.approx(0.03, rel=0.1)  # the square root of the
+    assert np.sqrt(np.mean(wild**2)) > 0.1  # mean square moves tenfold
+    weights[:32] = 0.0  # only the pixels the fit looks at count
+    wild[:32] = 0.8
+    assert refine.huber_corner(wild, weights, 3.0) == pytest.approx(0.03, rel=0.1)
+
+
 def test_a_noisy_images_residual_at_its_means_secant_is_that_of_its_mean_where_the_encoded_one_reads_darker():
     rng = np.random.default_rng(5)
     mean = np.full((64, 64, 3), 0.05)

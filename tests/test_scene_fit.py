@@ -186,18 +186,23 @@ def test_roughness_the_descent_left_at_0_is_tried_inward_and_a_closer_point_kept
 def test_the_path_holds_every_visited_point_and_descend_keeps_its_lowest_loss(red_knot_fit):
     renderer, target, weights = red_knot_fit
     problem = scene_fit.problem_of(renderer, target, weights, "prb")
+    assert problem.robust == scene_fit.ROBUST == 3.0  # Huber's loss, its corner 3 robust spreads
+    assert scene_fit.problem_of(renderer, target, weights, "prb", linear=True).robust is None  # a transmissive fit's
     start = params.to_unit(presets.preset("red-plastic"))
     start[params.INDEX["base_color_g"]] = 0.6  # a greener red: the steps bring it back down
     points, losses = refine.path(problem, start, 3, seed=7)
     assert len(points) == 4 and len(losses) == 3
     np.testing.assert_array_equal(points[0], start)
     assert points[-1][params.INDEX["base_color_g"]] < 0.6 - 0.02  # Adam's three steps of 0.02 each, downhill
-    held, _ = refine.path(problem, start, 3, seed=7, hold=(params.INDEX["base_color_g"],), held=2)
+    held, held_losses = refine.path(problem, start, 3, seed=7, hold=(params.INDEX["base_color_g"],), held=2)
     assert [p[params.INDEX["base_color_g"]] for p in held[:3]] == [0.6, 0.6, 0.6]  # held for two steps, then free
     assert held[3][params.INDEX["base_color_g"]] < 0.6 - 0.01
     assert held[1][params.INDEX["base_color_r"]] != start[params.INDEX["base_color_r"]]  # the others move meanwhile
     point, again = refine.descend(problem, start, 3, seed=7)
     assert again == pytest.approx(losses, rel=1e-3)  # the same seeds: the same losses, but for the threads' order
+    # a step that holds takes Huber's loss (a scene problem's `robust`): at the same seed, the same image, under the
+    # squares where a residual is past the corner
+    assert held_losses[0] < 0.8 * losses[0]  # 14.4 against 25.7
     np.testing.assert_allclose(point, points[int(np.argmin(again))], atol=1e-4)  # its gradients' sums likewise
 
 

@@ -19,6 +19,11 @@ expectation the residual of its mean render: encoded at 64 samples and 64 px the
 read 0.7 of 255 darker over its region than its mean (glass 0.4, a red plastic 0.03). The point
 returned is the visited point of lowest step loss (the start included), since late steps drift; `path`
 returns every visited point, for a caller that chooses among them otherwise (`fitting/scene_fit`).
+Where a `Problem` asks (`robust`: an opaque scene fit's) the steps that hold parameters (`held`) take
+Huber's loss instead of the squares: a residual past a corner, `robust` times the step's residuals' robust
+spread (`huber_corner`), pulls by the corner, not by itself, so that a few wild pixels (a noisy picture's
+fireflies, what no material makes of an edit) do not steer the search while it is far; the steps after
+take the squares, which use every pixel as it is.
 
 What moves: all 19 parameters; none is held fixed by choice. Mitsuba 3.9 marks every scene value
 they set as differentiable (principled `specular` too: it sets eta; `roughness`, `specular` and the
@@ -142,7 +147,16 @@ def set_material(scene_parameters: mi.SceneParameters, values: list[mi.Float], k
     scene_parameters.update()
 
 
-def srgb_rmse(linear: mi.TensorXf, target: mi.TensorXf, weights: mi.TensorXf) -> mi.TensorXf:
+def huber_corner(residuals: np.ndarray, weights: np.ndarray, corner: float) -> float:
+    """Returns `corner` robust spreads (1.4826 x the median absolute residual, over the channels of the pixels of
+    positive weight) of a step's residuals (H, W, 3): where Huber's loss turns from squares to absolute values."""
+    seen = np.abs(np.asarray(residuals, np.float64)[np.asarray(weights) > 0])
+    return float(corner * 1.4826 * np.median(seen)) if seen.size else 0.0
+
+
+def srgb_rmse(
+    linear: mi.TensorXf, target: mi.TensorXf, weights: mi.TensorXf, corner: mi.Float | None = None
+) -> mi.TensorXf:
     """Returns `images.rmse` of a linear Dr.Jit image (H, W, 3) against an sRGB `target`, as a Dr.Jit Float.
 
     `weights` (H, W, 3) sum to 1 (`normalised_weights`). sRGB encoding after clipping to [0, 1]; the
@@ -158,7 +172,18 @@ def srgb_rmse(linear: mi.TensorXf, target: mi.TensorXf, weights: mi.TensorXf) ->
         12.92 * x,
         1.055 * dr.power(dr.maximum(x, 0.0031308), 1.0 / 2.4) - 0.055,  # type: ignore[operator]
     )
-    return 255.0 * dr.sqrt(dr.sum(weights * dr.square(encoded - target), axis=None))
+    return 255.0 * dr.sqrt(dr.sum(weights * _squares(encoded - target, corner), axis=None))
+
+
+def _squares(residual: mi.TensorXf, corner: mi.Float | None) -> mi.TensorXf:
+    """Returns the residuals squared, or past `corner` Huber's 2 corner |r| - corner^2 (their square below it)."""
+    import drjit as dr
+
+    if corner is None:
+        return dr.square(residual)
+    size = dr.abs(residual)
+    # Dr.Jit's stubs do not type a tensor against a Float (the Float of one value broadcasts)
+    return dr.select(size <= corner, dr.square(residual), 2.0 * corner * size - dr.square(corner))  # type: ignore[operator]
 
 
 def secant(mean: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -176,13 +201,20 @@ def secant(mean: np.ndarray, target: np.ndarray) -> np.ndarray:
     return np.where(close, images.srgb_slope(0.5 * (a + b)), chord).astype(np.float32)
 
 
-def step_rmse(linear: mi.TensorXf, target: mi.TensorXf, slope: mi.TensorXf, weights: mi.TensorXf) -> mi.TensorXf:
+def step_rmse(
+    linear: mi.TensorXf,
+    target: mi.TensorXf,
+    slope: mi.TensorXf,
+    weights: mi.TensorXf,
+    corner: mi.Float | None = None,
+) -> mi.TensorXf:
     """Returns a step's loss, 0-255, as a Dr.Jit Float: the weighted RMS of `slope` (H, W, 3, `secant`) times the
     linear image (H, W, 3, clipped to [0, 1]) less the linear `target`. Where `slope` is the secant to the image
     itself this is `images.rmse` of the two encoded; `weights` (H, W, 3) sum to 1 (`normalised_weights`)."""
     import drjit as dr
 
-    return 255.0 * dr.sqrt(dr.sum(weights * dr.square(slope * (dr.clip(linear, 0.0, 1.0) - target)), axis=None))
+    residual = slope * (dr.clip(linear, 0.0, 1.0) - target)
+    return 255.0 * dr.sqrt(dr.sum(weights * _squares(residual, corner), axis=None))
 
 
 def normalised_weights(weights: np.ndarray) -> np.ndarray:
@@ -303,6 +335,7 @@ class Problem:
     target: mi.TensorXf  # sRGB (H, W, 3)
     weights: mi.TensorXf  # (H, W, 3), summing to 1 (`normalised_weights`)
     linear: bool = False  # each step's residual linear in its image (`secant`), not its image encoded (`srgb_rmse`)
+    robust: float | None = None  # Huber's corner in robust spreads of the residuals (`huber_corner`); None: squares
 
 
 def _descend(
@@ -361,17 +394,21 @@ def path(
     """Returns the points that `steps` projected Adam steps from `start` visit (the start first, the point after
     the last update last: `steps` + 1 of them) and the losses (step k's loss is that of point k, before its update).
 
-    Step k renders with seed `seed + k`: its image takes PRIMAL x `spp` samples, its gradient `spp`.
-    `progress(step, loss)` hears of each step.
+    Step k renders with seed `seed + k`: its image takes PRIMAL x `spp` samples, its gradient `spp`. The first
+    `held` steps leave the parameters `hold` where they are and, where the problem is `robust`, take Huber's loss
+    (their losses are Huber's too). `progress(step, loss)` hears of each step.
     """
     if steps == 0:
         return [start], []
     import drjit as dr
 
     mi = problem.mitsuba
+    weights = np.asarray(problem.weights)
     if problem.linear:
         target = images.srgb_decode(np.asarray(problem.target))
         linear_target = mi.TensorXf(target)
+    else:
+        target = np.asarray(problem.target, np.float64)
     x, moment, second = start.copy(), np.zeros(params.COUNT), np.zeros(params.COUNT)
     losses, points, mean = [], [], None
     for step in range(steps):
@@ -382,15 +419,24 @@ def path(
         image = mi.render(
             problem.scene, problem.parameters, seed=(seed + step) & 0xFFFFFFFF, spp=PRIMAL * spp, spp_grad=spp
         )
-        if problem.linear:
+        corner = None
+        spreads = problem.robust if step < held else None  # Huber's while the search holds, then the squares
+        if problem.linear or spreads is not None:
             seen = np.array(dr.detach(image), np.float64)
+        if problem.linear:
             # the slope from the earlier steps' images (the first step's own): independent of this step's noise, so
             # that the residual is in expectation that of the image's mean
             slope = secant(seen if mean is None else mean, target)
-            loss = step_rmse(image, linear_target, mi.TensorXf(slope), problem.weights)
+            if spreads is not None:
+                residual = slope * (np.clip(seen, 0.0, 1.0) - target)
+                corner = dr.opaque(mi.Float, huber_corner(residual, weights, spreads))
+            loss = step_rmse(image, linear_target, mi.TensorXf(slope), problem.weights, corner)
             mean = seen if mean is None else MEAN_DECAY * mean + (1.0 - MEAN_DECAY) * seen
         else:
-            loss = srgb_rmse(image, problem.target, problem.weights)
+            if spreads is not None:
+                residual = images.srgb_encode(np.clip(seen, 0.0, 1.0)) - target
+                corner = dr.opaque(mi.Float, huber_corner(residual, weights, spreads))
+            loss = srgb_rmse(image, problem.target, problem.weights, corner)
         dr.backward(loss)
         gradient = np.array(dr.grad(unit), np.float64)
         if step < held:

@@ -103,6 +103,9 @@ OPTIONAL = ("clearcoat", "sheen", "anisotropic")
 # The share of a fit's descent that holds the optional lobes (and a transmissive start's spec_trans) where they
 # started (`holding`)
 LOBES_HELD = 0.5
+# An opaque fit's step loss: Huber's, its corner this many robust spreads of the step's residuals (`refine.Problem`);
+# a transmissive fit's stays the squares: its caustics are the picture, not its noise (docs/scenes.md#hubers-loss)
+ROBUST = 3.0
 PLAIN_LEAD = 2.0  # standard errors, as the test scene's verification decides (`verify.LEAD`)
 UNDECIDED_RMSE = 0.75  # 0-255 over the region: a parameter that changes the picture less is not decided by it
 ASPECT_TOLERANCE = 0.02
@@ -244,7 +247,8 @@ def problem_of(
 ) -> refine.Problem:
     """Returns the scene of `renderer` loaded for `refine.descend` with `integrator` ("prb" or "prbvolpath") at the
     path length `renderer` judges with, its renders compared with the sRGB `target` over `weights` (h, w), each
-    step's residual linear in its image where `linear` (`refine.Problem.linear`)."""
+    step's residual linear in its image where `linear` (`refine.Problem.linear`, a transmissive fit's), else its loss
+    Huber's (`ROBUST`)."""
     mi, scene, size = renderer.mi, renderer.scene_file, renderer.size
     start_values = scene.own if scene.own is not None else scene_model.all_lobes_values()
     # the judge's path length, so that a step's image is in expectation the judged one (at 12 against the judge's
@@ -261,6 +265,7 @@ def problem_of(
         mi.TensorXf(target),
         mi.TensorXf(refine.normalised_weights(weights)),
         linear,
+        None if linear else ROBUST,
     )
 
 
