@@ -54,6 +54,14 @@ def test_the_drjit_loss_at_the_images_own_secant_is_images_rmse_with_and_without
         )
         expected = images.rmse(images.srgb_encode(linear), target, weights)
         assert loss.array[0] == pytest.approx(float(expected), rel=1e-4)
+        # with Huber's corner too, at the image's own secant the linear residual's loss is the encoded one's
+        normalised = llvm.TensorXf(refine.normalised_weights(weights))
+        corner = llvm.Float(0.2)
+        huber = refine.step_rmse(
+            llvm.TensorXf(linear), llvm.TensorXf(images.srgb_decode(target)), llvm.TensorXf(slope), normalised, corner
+        )
+        encoded = refine.srgb_rmse(llvm.TensorXf(linear), llvm.TensorXf(target), normalised, corner)
+        assert huber.array[0] == pytest.approx(encoded.array[0], rel=1e-4) and huber.array[0] < 0.9 * loss.array[0]
 
 
 def test_the_huber_loss_is_the_squared_one_under_its_corner_and_grows_by_the_absolute_residual_past_it(llvm):

@@ -147,11 +147,11 @@ def set_material(scene_parameters: mi.SceneParameters, values: list[mi.Float], k
     scene_parameters.update()
 
 
-def huber_corner(residuals: np.ndarray, weights: np.ndarray, corner: float) -> float:
-    """Returns `corner` robust spreads (1.4826 x the median absolute residual, over the channels of the pixels of
+def huber_corner(residuals: np.ndarray, weights: np.ndarray, spreads: float) -> float:
+    """Returns `spreads` robust spreads (1.4826 x the median absolute residual, over the channels of the pixels of
     positive weight) of a step's residuals (H, W, 3): where Huber's loss turns from squares to absolute values."""
     seen = np.abs(np.asarray(residuals, np.float64)[np.asarray(weights) > 0])
-    return float(corner * 1.4826 * np.median(seen)) if seen.size else 0.0
+    return float(spreads * 1.4826 * np.median(seen)) if seen.size else 0.0
 
 
 def srgb_rmse(
@@ -434,7 +434,7 @@ def path(
             mean = seen if mean is None else MEAN_DECAY * mean + (1.0 - MEAN_DECAY) * seen
         else:
             if spreads is not None:
-                residual = images.srgb_encode(np.clip(seen, 0.0, 1.0)) - target
+                residual = images.srgb_encode(seen) - target  # encoding clips to [0, 1], as the loss does
                 corner = dr.opaque(mi.Float, huber_corner(residual, weights, spreads))
             loss = srgb_rmse(image, problem.target, problem.weights, corner)
         dr.backward(loss)

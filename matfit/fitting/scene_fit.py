@@ -29,7 +29,8 @@ shapes. In order:
    roughness and specular settle first. Free from the start, the descent from a sharp highlight to a broader one
    reached for anisotropy, and of the valley it found there no later step or stage took it out (the bench's red
    knot under the sun: 0.66-1.25 over five runs, three over 1.0 by the stricter judge; held, 0.67-0.69
-   over six: [measured](docs/scenes.md#the-lobes-held)). Of a descent's visited point of lowest
+   over six: [measured](docs/scenes.md#the-lobes-held)). While an opaque fit holds them its steps take Huber's
+   loss (`ROBUST`), the squares after. Of a descent's visited point of lowest
    step loss, its last point and the mean of its last quarter's points, the one of lowest noise-free error is its
    answer (`closest`): a step's loss is one seed's, and where the loss lies flat at its noise its lowest point is
    partly luck; of the starts' answers, the one of lowest noise-free error goes on.
