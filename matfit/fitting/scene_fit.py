@@ -46,9 +46,9 @@ shapes. In order:
    gradient is 0 at 0 cannot be taken off by it (`plain`).
 6. The answer is judged against the start, and kept only if its noise-free error is lower: never worse than the
    start, as the two renders see it.
-7. What one view decides: each parameter moved by `PROBE` in the unit cube both ways from the answer, the two
-   renders (one common seed) compared over the region: a change under `UNDECIDED_RMSE` is not decided by this
-   picture (`ranges` in params.json).
+7. What one view decides (`scene_ranges`): each parameter moved by `PROBE` in the unit cube both ways from the
+   answer, the two renders (one common seed) compared over the region: a change under `UNDECIDED_RMSE` is not
+   decided by this picture (`ranges` in params.json).
 
 A start whose medium shows (some transmission, some density) differentiates with `prbvolpath` and is judged with
 `volpathmis`; any other differentiates with `prb` (the measured faster integrator; the medium then has no effect
@@ -68,7 +68,7 @@ import numpy as np
 
 from matfit import images, params
 from matfit.errors import SceneError
-from matfit.fitting import refine
+from matfit.fitting import refine, scene_ranges
 from matfit.fitting.scene_judge import JUDGE_SEED, SECOND_SEED, Judge, root
 from matfit.rendering import engine, scene_file
 from matfit.rendering import scene as scene_model
@@ -85,8 +85,6 @@ NOT_THIS_SCENE_RMSE = 20.0  # 0-255 outside the region: a picture further than t
 # region's pixels are those the shape changes by 6 or more; two renders' noise alone stays under it)
 NOTHING_RMSE = 4.0
 NOISE_RADIUS = 2  # the noise variance of a pixel is averaged over its 5x5 neighbours (`precision`)
-PROBE = 0.15  # unit-cube step of the per-parameter check of what the view decides
-PROBE_SPP = 32
 INWARD = (0.1, 0.25)  # unit-cube distances from a bound that the judge tries for a parameter the descent left there
 # The bounds the descent cannot leave by its gradient: sheen and clearcoat at 0 (Mitsuba does not evaluate a lobe
 # of weight 0, so their derivative there is 0) and roughness at 0 (a near-mirror lobe's gradient, its directions
@@ -108,7 +106,6 @@ LOBES_HELD = 0.5
 # a transmissive fit's stays the squares: its caustics are the picture, not its noise (docs/scenes.md#hubers-loss)
 ROBUST = 3.0
 PLAIN_LEAD = 2.0  # standard errors, as the test scene's verification decides (`verify.LEAD`)
-UNDECIDED_RMSE = 0.75  # 0-255 over the region: a parameter that changes the picture less is not decided by it
 ASPECT_TOLERANCE = 0.02
 OFF = 0.001  # unit cube: a parameter at or under this is at its lower bound (a trap, a lobe that is off)
 
@@ -469,7 +466,7 @@ def fit(
         bounds,
         plainer,
         [*list(best["losses"]), *more, *again, *simpler],
-        decided(renderer, answer, weights, integrator),
+        scene_ranges.decided(renderer, answer, weights, integrator),
         integrator,
         time.perf_counter() - started,
         notices,
@@ -570,27 +567,3 @@ def plain(
             break
     done: dict[str, object] = {"on": on, "tried": tried, "off": [] if kept is None else list(kept[2])}
     return (point, done, []) if kept is None else (kept[1], done, kept[3])
-
-
-def decided(
-    renderer: scene_file.Renderer, values: np.ndarray, weights: np.ndarray, integrator: str
-) -> dict[str, dict[str, object]]:
-    """Returns, per parameter, how much the picture changes over `weights` when it moves by PROBE both ways from
-    `values` (RMSE of the two renders, one common seed), and whether the picture decides it."""
-    unit = params.to_unit(values)
-    found: dict[str, dict[str, object]] = {}
-    for name in params.NAMES:
-        i = params.INDEX[name]
-        low, high = unit.copy(), unit.copy()
-        low[i], high[i] = max(0.0, unit[i] - PROBE), min(1.0, unit[i] + PROBE)
-        a, b = (
-            images.srgb_encode(renderer.render(params.from_unit(u), seed=JUDGE_SEED, spp=PROBE_SPP))
-            for u in (low, high)
-        )
-        change = float(images.rmse(a, b, weights))
-        medium = name.startswith("medium_") or name in ("density", "scattering", "phase_g")
-        verdict = "decided" if change >= UNDECIDED_RMSE else "not decided by this view"
-        if medium and integrator == "prb":
-            verdict += " (the fit's integrator shows no medium)"
-        found[name] = {"change": round(change, 3), "verdict": verdict}
-    return found
