@@ -224,6 +224,27 @@ def test_the_answer_is_the_candidate_of_lowest_noise_free_error_not_the_lowest_s
     np.testing.assert_array_equal(point, green)
 
 
+def test_a_roughness_near_0_goes_to_0_unless_the_picture_asks_for_it(red_knot_fit):
+    renderer, target, weights = red_knot_fit
+    judge = scene_judge.Judge(renderer, target, weights)
+    truth = params.to_unit(presets.preset("red-plastic"))  # roughness 0.3: past NEAR_ZERO, not tried
+    assert scene_fit.at_zero(judge, truth) == (truth, {"near": [], "tried": [], "zero": []})
+    rough = truth.copy()
+    rough[params.INDEX["roughness"]] = 0.2  # near 0, but the picture's highlight is broad: kept
+    point, done = scene_fit.at_zero(judge, rough)
+    np.testing.assert_array_equal(point, rough)
+    assert done["near"] == ["roughness"] and done["zero"] == []  # density: an opaque material's medium shows not
+    [tried] = done["tried"]  # type: ignore[misc]
+    assert tried["behind"] > scene_fit.PLAIN_LEAD * tried["standard_error"]  # 2.3 +- 0.6, squared
+    # a picture of that material made sharper: the renders at roughness 0 are closer, and it goes to 0
+    sharp = truth.copy()
+    sharp[params.INDEX["roughness"]] = 0.0
+    mirror = scene_judge.Judge(renderer, judge.render(params.from_unit(sharp), seed=7), weights)
+    point, done = scene_fit.at_zero(mirror, rough)
+    np.testing.assert_array_equal(point, sharp)
+    assert done["zero"] == ["roughness"]
+
+
 def test_a_lobe_the_picture_does_not_ask_for_is_turned_off_and_one_it_does_stays(red_knot_fit):
     # the red plastic's coat (0.5) shows in its picture; a sheen of 0.3 on top of it, which the picture lacks, does not
     renderer, target, weights = red_knot_fit

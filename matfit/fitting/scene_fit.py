@@ -44,6 +44,8 @@ shapes. In order:
    held at 0; a try is kept unless the answer is closer by `PLAIN_LEAD` standard errors (`Judge.behind`). The
    descent puts on a lobe to follow the target's noise as readily as the picture's light, and a lobe whose
    gradient is 0 at 0 cannot be taken off by it (`plain`).
+   Then a roughness, or a shown medium's density, within `NEAR_ZERO` of 0 is tried at 0 by the same rule, without
+   steps (`at_zero`): smooth and clear are plainer, and roughness 0 a bound the descent cannot reach (`TRAPS`).
 6. The answer is judged against the start, and kept only if its noise-free error is lower: never worse than the
    start, as the two renders see it.
 7. What one view decides (`scene_ranges`): each parameter moved by `PROBE` in the unit cube both ways from the
@@ -106,6 +108,8 @@ LOBES_HELD = 0.5
 # a transmissive fit's stays the squares: its caustics are the picture, not its noise (docs/scenes.md#hubers-loss)
 ROBUST = 3.0
 PLAIN_LEAD = 2.0  # standard errors, as the test scene's verification decides (`verify.LEAD`)
+PLAIN_ZERO = ("roughness", "density")  # a plainer material's bounds (smooth, clear), tried near them (`at_zero`)
+NEAR_ZERO = 0.25  # unit cube
 ASPECT_TOLERANCE = 0.02
 OFF = 0.001  # unit cube: a parameter at or under this is at its lower bound (a trap, a lobe that is off)
 
@@ -435,6 +439,7 @@ def fit(
     point, more = best["answer"], best["more"]
     point, bounds, again = off_bounds(judge, problem, point, short, seed=short + steps, progress=heard("bounds"))
     point, plainer, simpler = plain(judge, problem, point, short, seed=2 * short + steps, progress=heard("plain"))
+    point, bounds["at_zero"] = at_zero(judge, point)
     answer = params.from_unit(point)
     start_squared, answer_squared = judge.squared(first), judge.squared(answer)
     start_rmse, rmse = root(start_squared), root(answer_squared)
@@ -567,3 +572,29 @@ def plain(
             break
     done: dict[str, object] = {"on": on, "tried": tried, "off": [] if kept is None else list(kept[2])}
     return (point, done, []) if kept is None else (kept[1], done, kept[3])
+
+
+def at_zero(judge: Judge, point: np.ndarray) -> tuple[np.ndarray, dict[str, object]]:
+    """Returns (the point, what the stage did) after trying the `PLAIN_ZERO` parameters that `point` (unit cube) holds
+    within `NEAR_ZERO` of 0 (density only where the medium shows) set to 0: all together, then (if refused and more
+    than one) each alone; a try is kept unless `point` is closer by `PLAIN_LEAD` standard errors (`Judge.behind`), of
+    those each alone the closest. No steps follow: the judge alone decides."""
+    point = np.asarray(point, np.float64)
+    values = params.from_unit(point)
+    shows = shows_medium(values)
+    near = [n for n in PLAIN_ZERO if 0.0 < point[params.INDEX[n]] <= NEAR_ZERO and (n != "density" or shows)]
+    tries = ([tuple(near)] if near else []) + ([(name,) for name in near] if len(near) > 1 else [])
+    kept: tuple[float, np.ndarray, tuple[str, ...]] | None = None
+    tried: list[dict[str, object]] = []
+    for k, names in enumerate(tries):
+        zero = point.copy()
+        zero[[params.INDEX[name] for name in names]] = 0.0
+        behind, error = judge.behind(params.from_unit(zero), values)
+        keep = behind < PLAIN_LEAD * error
+        tried.append({"zero": list(names), "behind": round(behind, 3), "standard_error": round(error, 3), "kept": keep})
+        if keep and (kept is None or behind < kept[0]):
+            kept = (behind, zero, names)
+        if keep and k == 0:
+            break
+    done: dict[str, object] = {"near": near, "tried": tried, "zero": [] if kept is None else list(kept[2])}
+    return (point if kept is None else kept[1]), done
