@@ -22,6 +22,7 @@ import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -147,6 +148,7 @@ def run_case(case: Case, folder: str, steps: int, *, size: int = TARGET_SIZE, ju
         "accepted": outcome.accepted,
         "moved_off_bound": outcome.bounds.get("moved"),
         "lobes_off": outcome.plain.get("off"),
+        "at_zero": cast(dict, outcome.bounds.get("at_zero", {})).get("zero"),
         "integrator": outcome.integrator,
         "seconds": round(seconds, 1),
         "cpu_seconds": round(cpu, 1),  # the fit's, all threads together: what a load beside it changes less
