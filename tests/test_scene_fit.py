@@ -218,10 +218,6 @@ def test_the_answer_is_the_candidate_of_lowest_noise_free_error_not_the_lowest_s
     assert squared == judge.squared(params.from_unit(truth))
     assert scene_judge.root(judge.squared(params.from_unit(green))) > scene_judge.root(squared) + 10  # far from it
     assert scene_fit.closest(judge, [truth], []) == (truth, squared)
-    # the first loss Huber's (a held step of a robust problem): lower than the squares, so not weighed against them
-    assert scene_fit.closest(judge, [truth, green, green, green], [1.0, 9.0, 9.0])[0] is truth
-    point, _ = scene_fit.closest(judge, [truth, green, green, green], [1.0, 9.0, 9.0], huber=1)
-    np.testing.assert_array_equal(point, green)
 
 
 def test_a_roughness_near_0_goes_to_0_unless_the_picture_asks_for_it(red_knot_fit):
