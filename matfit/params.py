@@ -448,3 +448,8 @@ def medium_coefficients(values: Float[np.ndarray, " 19"]) -> tuple[Float[np.ndar
     sigma_t = np.maximum(values[INDEX["density"]] * -np.log(colour), MINIMUM_EXTINCTION)
     albedo = np.full(3, values[INDEX["scattering"]])
     return sigma_t, albedo
+
+
+def shows_medium(values: Float[np.ndarray, " 19"]) -> bool:
+    """Returns whether a material's interior medium shows: some transmission and some density."""
+    return bool(values[INDEX["spec_trans"]] > 0.01 and values[INDEX["density"]] > 0)

@@ -169,7 +169,7 @@ def test_a_scene_bench_row_holds_the_judges_own_floor_and_the_fits_cpu_seconds(t
     assert row["case"] == "knot-studio-opaque" and row["start"] > 5.0  # the start is 0.2 off in every coordinate
     assert 0.0 <= row["judge_floor"] < 1.0 < row["start"]  # the truth against itself reads near 0, the start does not
     assert row["cpu_seconds"] > 0.0 and row["floor"] > 0.0
-    assert isinstance(row["at_zero"], list)  # what the fit set to 0 (`scene_fit.at_zero`), [] where nothing
+    assert isinstance(row["at_zero"], list)  # what the fit set to 0 (`scene_plain.at_zero`), [] where nothing
     text = scenes.table([row, {k: v for k, v in row.items() if k not in ("judge_floor", "cpu_seconds")}])
     lines = text.splitlines()
     assert "judge's floor" in lines[0] and "CPU seconds" in lines[0]

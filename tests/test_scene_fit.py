@@ -5,7 +5,7 @@ import pytest
 
 from matfit import images, params
 from matfit.errors import SceneError
-from matfit.fitting import refine, scene_fit, scene_judge
+from matfit.fitting import refine, scene_fit, scene_judge, scene_plain
 from matfit.rendering import presets, scene_file
 
 pytestmark = pytest.mark.usefixtures("tiny_scene_fits")  # tests/conftest.py
@@ -77,7 +77,7 @@ def test_a_fit_from_a_start_far_off_comes_closer_and_says_what_the_view_decides(
     assert [a[0] for a in heard][:10] == ["starts"] * 10 and heard[-1][0] == "judge"
     tries = len(outcome.plain["tried"])  # type: ignore[arg-type]
     assert [a[0] for a in heard].count("plain") == 2 * tries
-    assert heard[-1][1] == heard[-1][2] == 5 * 2 + 8 + 2 + 2 * (1 + len(scene_fit.OPTIONAL))
+    assert heard[-1][1] == heard[-1][2] == 5 * 2 + 8 + 2 + 2 * (1 + len(scene_plain.OPTIONAL))
     assert set(outcome.ranges) == set(params.NAMES)
     assert outcome.ranges["base_color_r"]["verdict"] == "decided"
     assert outcome.ranges["density"]["verdict"].startswith("not decided")  # an opaque fit shows no medium
@@ -106,7 +106,7 @@ def test_a_transmissive_fit_descends_from_every_start_and_keeps_the_one_that_end
     monkeypatch.setattr(refine, "path", heard_path)
     outcome = scene_fit.fit(knot, picture, start=start, steps=4)
     held = scene_fit.holding(start, 4)
-    assert held == ((params.INDEX["spec_trans"], *(params.INDEX[n] for n in scene_fit.OPTIONAL)), 2)
+    assert held == ((params.INDEX["spec_trans"], *(params.INDEX[n] for n in scene_plain.OPTIONAL)), 2)
     # the five starts' short runs hold it all through (1 step each), their descents the first half (2 of 4)
     assert descents[:5] == [(1, held[0], 1)] * 5 and descents[5:10] == [(4, held[0], 2)] * 5
     names = ["given", "roughness 0.02", "roughness 0.35", "all transmitted", "clear glass"]
@@ -218,51 +218,3 @@ def test_the_answer_is_the_candidate_of_lowest_noise_free_error_not_the_lowest_s
     assert squared == judge.squared(params.from_unit(truth))
     assert scene_judge.root(judge.squared(params.from_unit(green))) > scene_judge.root(squared) + 10  # far from it
     assert scene_fit.closest(judge, [truth], []) == (truth, squared)
-
-
-def test_a_roughness_near_0_goes_to_0_unless_the_picture_asks_for_it(red_knot_fit):
-    renderer, target, weights = red_knot_fit
-    judge = scene_judge.Judge(renderer, target, weights)
-    truth = params.to_unit(presets.preset("red-plastic"))  # roughness 0.3: past NEAR_ZERO, not tried
-    assert scene_fit.at_zero(judge, truth) == (truth, {"near": [], "tried": [], "zero": []})
-    rough = truth.copy()
-    rough[params.INDEX["roughness"]] = 0.2  # near 0, but the picture's highlight is broad: kept
-    point, done = scene_fit.at_zero(judge, rough)
-    np.testing.assert_array_equal(point, rough)
-    assert done["near"] == ["roughness"] and done["zero"] == []  # density: an opaque material's medium shows not
-    [tried] = done["tried"]  # type: ignore[misc]
-    assert tried["behind"] > scene_fit.PLAIN_LEAD * tried["standard_error"]  # 2.3 +- 0.6, squared
-    # a picture of that material made sharper: the renders at roughness 0 are closer, and it goes to 0
-    sharp = truth.copy()
-    sharp[params.INDEX["roughness"]] = 0.0
-    mirror = scene_judge.Judge(renderer, judge.render(params.from_unit(sharp), seed=7), weights)
-    point, done = scene_fit.at_zero(mirror, rough)
-    np.testing.assert_array_equal(point, sharp)
-    assert done["zero"] == ["roughness"]
-
-
-def test_a_lobe_the_picture_does_not_ask_for_is_turned_off_and_one_it_does_stays(red_knot_fit):
-    # the red plastic's coat (0.5) shows in its picture; a sheen of 0.3 on top of it, which the picture lacks, does not
-    renderer, target, weights = red_knot_fit
-    judge = scene_judge.Judge(renderer, target, weights)
-    problem = scene_fit.problem_of(renderer, target, weights, "prb")
-    truth = params.to_unit(presets.preset("red-plastic"))
-    sheened = truth.copy()
-    sheened[params.INDEX["sheen"]] = 0.3
-    heard = []
-    point, done, losses = scene_fit.plain(judge, problem, sheened, 2, seed=0, progress=lambda *a: heard.append(a))
-    assert done["on"] == ["clearcoat", "sheen"] and done["off"] == ["sheen"]
-    tried = done["tried"]
-    assert [t["off"] for t in tried] == [["clearcoat", "sheen"], ["clearcoat"], ["sheen"]]  # type: ignore[index]
-    assert [t["kept"] for t in tried] == [False, False, True]  # type: ignore[index]
-    # the coat off is behind by many standard errors: the picture asks for it
-    together = tried[0]  # type: ignore[index]
-    assert together["behind"] > 2 * scene_fit.PLAIN_LEAD * together["standard_error"]
-    assert point[params.INDEX["sheen"]] == 0.0 and point[params.INDEX["clearcoat"]] > 0.4  # held off, coat kept
-    assert len(losses) == 2 and len(heard) == 2 * 3
-    # a material without optional lobes: nothing to try, nothing rendered
-    plain_truth = truth.copy()
-    plain_truth[params.INDEX["clearcoat"]] = 0.0
-    point, done, losses = scene_fit.plain(judge, problem, plain_truth, 2, seed=0)
-    np.testing.assert_array_equal(point, plain_truth)
-    assert done == {"on": [], "tried": [], "off": []} and losses == []

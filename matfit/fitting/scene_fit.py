@@ -39,11 +39,11 @@ shapes. In order:
    such parameter the descent left there is moved inward by `INWARD` and judged; if one is closer, `short` more
    steps go on from it, and the point of the three of lowest noise-free error is the answer (the bench's box under
    a sky: roughness stuck at 0 against a truth of 0.3, 1.77 -> 0.69).
-5. Plain lobes: the lobes a material can do without (`OPTIONAL`: clearcoat, sheen, anisotropy) that the answer
-   holds are turned off, all together and else each alone, the others re-descended for `short` steps with them
-   held at 0; a try is kept unless the answer is closer by `PLAIN_LEAD` standard errors (`Judge.behind`). The
-   descent puts on a lobe to follow the target's noise as readily as the picture's light, and a lobe whose
-   gradient is 0 at 0 cannot be taken off by it (`plain`).
+5. Plain lobes (`scene_plain`): the lobes a material can do without (`OPTIONAL`: clearcoat, sheen, anisotropy)
+   that the answer holds are turned off, all together and else each alone, the others re-descended for `short`
+   steps with them held at 0; a try is kept unless the answer is closer by `PLAIN_LEAD` standard errors
+   (`Judge.behind`). The descent puts on a lobe to follow the target's noise as readily as the picture's light, and
+   a lobe whose gradient is 0 at 0 cannot be taken off by it (`plain`).
    Then a roughness, or a shown medium's density, within `NEAR_ZERO` of 0 is tried at 0 by the same rule, without
    steps (`at_zero`): smooth and clear are plainer, and roughness 0 a bound the descent cannot reach (`TRAPS`).
 6. The answer is judged against the start, and kept only if its noise-free error is lower: never worse than the
@@ -70,7 +70,7 @@ import numpy as np
 
 from matfit import images, params
 from matfit.errors import SceneError
-from matfit.fitting import refine, scene_ranges
+from matfit.fitting import refine, scene_plain, scene_ranges
 from matfit.fitting.scene_judge import JUDGE_SEED, SECOND_SEED, Judge, root
 from matfit.rendering import engine, scene_file
 from matfit.rendering import scene as scene_model
@@ -94,24 +94,13 @@ INWARD = (0.1, 0.25)  # unit-cube distances from a bound that the judge tries fo
 # gradient is valid, and a move there that the judge favours is the target's noise (measured: spec_tint moved off 0
 # on the glass knot, closer to the picture at two seeds, further from the truth, 1.78 -> 2.32).
 TRAPS = ("roughness", "sheen", "clearcoat")
-# The lobes a material can do without: an answer's are turned off, the others re-descended, unless the judge finds
-# the plainer material behind by `PLAIN_LEAD` standard errors or more (`plain`). The descent puts them on to follow
-# the target's noise: the bench's gold knot under the sun (no coat in truth) ended with clearcoat 0.78 at 1.38,
-# and with the three off and re-descended came to 0.72 (median over five runs 0.86, against 1.7 without). The red
-# knot's coat (0.5 in truth) stays under the studio light; under the sun, whose target is noisier, it went in two
-# runs of five with the lobes free from the start, in none of six held (docs/scenes.md#the-lobes-held).
-OPTIONAL = ("clearcoat", "sheen", "anisotropic")
 # The share of a fit's descent that holds the optional lobes (and a transmissive start's spec_trans) where they
 # started (`holding`)
 LOBES_HELD = 0.5
 # An opaque fit's step loss: Huber's, its corner this many robust spreads of the step's residuals (`refine.Problem`);
 # a transmissive fit's stays the squares: its caustics are the picture, not its noise (docs/scenes.md#hubers-loss)
 ROBUST = 3.0
-PLAIN_LEAD = 2.0  # standard errors, as the test scene's verification decides (`verify.LEAD`)
-PLAIN_ZERO = ("roughness", "density")  # a plainer material's bounds (smooth, clear), tried near them (`at_zero`)
-NEAR_ZERO = 0.25  # unit cube
 ASPECT_TOLERANCE = 0.02
-OFF = 0.001  # unit cube: a parameter at or under this is at its lower bound (a trap, a lobe that is off)
 
 
 @dataclass(frozen=True)
@@ -157,7 +146,7 @@ def _renderer(
     scene: scene_file.SceneFile, size: tuple[int, int], variant: str | None, first: np.ndarray
 ) -> scene_file.Renderer:
     """Returns the judging renderer of a fit from `first`: `volpathmis` where its medium shows, else `path`."""
-    judging = None if shows_medium(first) else scene_file.OPAQUE_INTEGRATOR
+    judging = None if params.shows_medium(first) else scene_file.OPAQUE_INTEGRATOR
     renderer = scene_file.Renderer(scene, size, variant, judging)
     if renderer.variant == engine.SCALAR_VARIANT:
         raise SceneError(
@@ -271,11 +260,6 @@ def problem_of(
     )
 
 
-def shows_medium(values: np.ndarray) -> bool:
-    """Returns whether a material's interior medium shows: some transmission and some density."""
-    return bool(values[params.INDEX["spec_trans"]] > 0.01 and values[params.INDEX["density"]] > 0)
-
-
 def transmissive(values: np.ndarray) -> bool:
     """Returns whether a material (physical) is fitted as a transmissive one: spec_trans 0.5 or more."""
     return bool(values[params.INDEX["spec_trans"]] >= 0.5)
@@ -308,10 +292,10 @@ def starts(start: np.ndarray) -> list[tuple[str, np.ndarray]]:
 
 def holding(first: np.ndarray, steps: int) -> tuple[tuple[int, ...], int]:
     """Returns (the indices of the parameters that a fit from physical `first` holds where they start through its
-    starts' short runs, for how many of its descent's `steps`): the `OPTIONAL` lobes, and a transmissive start's
-    spec_trans, for `LOBES_HELD` of the steps. The base lobe (and the medium) settle before the descent can reach
-    for a lobe, or trade the transmission for a diffuse lobe."""
-    lobes = tuple(params.INDEX[name] for name in OPTIONAL)
+    starts' short runs, for how many of its descent's `steps`): the optional lobes (`scene_plain.OPTIONAL`), and a
+    transmissive start's spec_trans, for `LOBES_HELD` of the steps. The base lobe (and the medium) settle before
+    the descent can reach for a lobe, or trade the transmission for a diffuse lobe."""
+    lobes = tuple(params.INDEX[name] for name in scene_plain.OPTIONAL)
     return ((params.INDEX["spec_trans"], *lobes) if transmissive(first) else lobes), int(LOBES_HELD * steps)
 
 
@@ -374,9 +358,9 @@ def fit(
         )  # a shape lit too dimly to differ by SILHOUETTE_CHANGE: the region instead
         guessed, source = guess(target, shape if shape.any() else shape_region)
         first = np.clip(np.asarray(guessed, np.float64), params.LOW, params.HIGH)
-        if shows_medium(first) != (renderer.integrator != scene_file.OPAQUE_INTEGRATOR):  # judged another way
+        if params.shows_medium(first) != (renderer.integrator != scene_file.OPAQUE_INTEGRATOR):  # judged another way
             renderer = _renderer(scene, size, variant, first)
-    integrator = "prbvolpath" if shows_medium(first) else "prb"
+    integrator = "prbvolpath" if params.shows_medium(first) else "prb"
     if mask is not None:
         weights = np.asarray(images.resample(mask[..., None].astype(np.float32), *size)[..., 0], np.float32)
         if weights.sum() <= 0:
@@ -395,7 +379,12 @@ def fit(
     problem = problem_of(renderer, target, weights, integrator, linear=every)
     candidates = starts(first)
     short = min(SHORT_STEPS, max(1, steps // 4))
-    total = short * len(candidates) + steps * (len(candidates) if every else 1) + short + short * (1 + len(OPTIONAL))
+    total = (
+        short * len(candidates)
+        + steps * (len(candidates) if every else 1)
+        + short
+        + short * (1 + len(scene_plain.OPTIONAL))
+    )
     hold, held = holding(first, steps)
     done = 0
 
@@ -438,8 +427,10 @@ def fit(
     best = min((t for t in tried if "answer" in t), key=lambda t: t["answer_squared"])
     point, more = best["answer"], best["more"]
     point, bounds, again = off_bounds(judge, problem, point, short, seed=short + steps, progress=heard("bounds"))
-    point, plainer, simpler = plain(judge, problem, point, short, seed=2 * short + steps, progress=heard("plain"))
-    point, bounds["at_zero"] = at_zero(judge, point)
+    point, plainer, simpler = scene_plain.plain(
+        judge, problem, point, short, seed=2 * short + steps, progress=heard("plain")
+    )
+    point, bounds["at_zero"] = scene_plain.at_zero(judge, point)
     answer = params.from_unit(point)
     start_squared, answer_squared = judge.squared(first), judge.squared(answer)
     start_rmse, rmse = root(start_squared), root(answer_squared)
@@ -510,7 +501,7 @@ def off_bounds(
     tries = []
     for name in TRAPS:
         i = params.INDEX[name]
-        if point[i] > OFF:
+        if point[i] > scene_plain.OFF:
             continue
         for distance in INWARD:
             moved = point.copy()
@@ -526,74 +517,3 @@ def off_bounds(
     done.update({"moved": name, "to": round(value, 3), "errors": [round(root(e), 3) for e in three]})
     done["kept"] = ("the descent's point", "the moved point", "the steps after it")[kept]
     return (point, moved, further)[kept], done, losses
-
-
-def plain(
-    judge: Judge,
-    problem: refine.Problem,
-    point: np.ndarray,
-    steps: int,
-    *,
-    seed: int,
-    progress: Callable[[int, float], None] | None = None,
-) -> tuple[np.ndarray, dict[str, object], list[float]]:
-    """Returns (the point, what the stage did, the losses of the steps kept) after trying the `OPTIONAL` lobes that
-    `point` (unit cube) holds turned off: all of them together, then (if the judge refused that and more than one
-    was on) each alone. Each try sets them to 0 and runs `steps` steps with them held there (seeds from
-    refine.SEED + `seed`), and is kept unless `point` is closer by `PLAIN_LEAD` of the difference's standard errors
-    (`Judge.behind`): a lobe stays only where the picture measurably asks for it. Of the tries each alone that the
-    judge keeps, the closest; all together, once kept, ends the stage."""
-    point = np.asarray(point, np.float64)
-    on = [name for name in OPTIONAL if point[params.INDEX[name]] > OFF]
-    tries = ([tuple(on)] if on else []) + ([(name,) for name in on] if len(on) > 1 else [])
-    kept: tuple[float, np.ndarray, tuple[str, ...], list[float]] | None = None
-    tried: list[dict[str, object]] = []
-    for k, names in enumerate(tries):
-        held = tuple(params.INDEX[name] for name in names)
-        off = point.copy()
-        off[list(held)] = 0.0
-        further, losses = refine.descend(
-            problem,
-            off,
-            steps,
-            spp=STEP_SPP,
-            seed=refine.SEED + seed + k * steps,
-            progress=progress,
-            hold=held,
-            held=steps,
-        )
-        behind, error = judge.behind(params.from_unit(further), params.from_unit(point))
-        keep = behind < PLAIN_LEAD * error
-        tried.append({"off": list(names), "behind": round(behind, 3), "standard_error": round(error, 3), "kept": keep})
-        if keep and (kept is None or behind < kept[0]):
-            kept = (behind, further, names, losses)
-        if keep and k == 0:
-            break
-    done: dict[str, object] = {"on": on, "tried": tried, "off": [] if kept is None else list(kept[2])}
-    return (point, done, []) if kept is None else (kept[1], done, kept[3])
-
-
-def at_zero(judge: Judge, point: np.ndarray) -> tuple[np.ndarray, dict[str, object]]:
-    """Returns (the point, what the stage did) after trying the `PLAIN_ZERO` parameters that `point` (unit cube) holds
-    within `NEAR_ZERO` of 0 (density only where the medium shows) set to 0: all together, then (if refused and more
-    than one) each alone; a try is kept unless `point` is closer by `PLAIN_LEAD` standard errors (`Judge.behind`), of
-    those each alone the closest. No steps follow: the judge alone decides."""
-    point = np.asarray(point, np.float64)
-    values = params.from_unit(point)
-    shows = shows_medium(values)
-    near = [n for n in PLAIN_ZERO if 0.0 < point[params.INDEX[n]] <= NEAR_ZERO and (n != "density" or shows)]
-    tries = ([tuple(near)] if near else []) + ([(name,) for name in near] if len(near) > 1 else [])
-    kept: tuple[float, np.ndarray, tuple[str, ...]] | None = None
-    tried: list[dict[str, object]] = []
-    for k, names in enumerate(tries):
-        zero = point.copy()
-        zero[[params.INDEX[name] for name in names]] = 0.0
-        behind, error = judge.behind(params.from_unit(zero), values)
-        keep = behind < PLAIN_LEAD * error
-        tried.append({"zero": list(names), "behind": round(behind, 3), "standard_error": round(error, 3), "kept": keep})
-        if keep and (kept is None or behind < kept[0]):
-            kept = (behind, zero, names)
-        if keep and k == 0:
-            break
-    done: dict[str, object] = {"near": near, "tried": tried, "zero": [] if kept is None else list(kept[2])}
-    return (point if kept is None else kept[1]), done
