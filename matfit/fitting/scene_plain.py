@@ -29,6 +29,34 @@ NEAR_ZERO = 0.25  # unit cube
 OFF = 0.001  # unit cube: a parameter at or under this is at its lower bound (a trap, a lobe that is off)
 
 
+# (k, the names of the parameters a try changes) -> (the try's point, unit cube; the losses of its steps)
+Make = Callable[[int, tuple[str, ...]], tuple[np.ndarray, list[float]]]
+
+
+def plainer(
+    judge: Judge, point: np.ndarray, names: list[str], make: Make, key: str
+) -> tuple[tuple[np.ndarray, tuple[str, ...], list[float]] | None, list[dict[str, object]]]:
+    """Returns (the try kept: its point, the names it changed, its steps' losses; None where the judge kept none, the
+    record of each try, its names under `key`) of `names` changed from `point` (unit cube) by `make`: all of them
+    together, then (if the judge refused that and there is more than one) each alone. A try is kept unless `point`
+    is closer by `PLAIN_LEAD` of the difference's standard errors (`Judge.behind`); of those each alone the closest;
+    all together, once kept, ends the tries."""
+    values = params.from_unit(point)
+    tries = ([tuple(names)] if names else []) + ([(name,) for name in names] if len(names) > 1 else [])
+    kept: tuple[float, np.ndarray, tuple[str, ...], list[float]] | None = None
+    tried: list[dict[str, object]] = []
+    for k, changed in enumerate(tries):
+        candidate, losses = make(k, changed)
+        behind, error = judge.behind(params.from_unit(candidate), values)
+        keep = behind < PLAIN_LEAD * error
+        tried.append({key: list(changed), "behind": round(behind, 3), "standard_error": round(error, 3), "kept": keep})
+        if keep and (kept is None or behind < kept[0]):
+            kept = (behind, candidate, changed, losses)
+        if keep and k == 0:
+            break
+    return (None if kept is None else kept[1:]), tried
+
+
 def plain(
     judge: Judge,
     problem: refine.Problem,
@@ -39,62 +67,38 @@ def plain(
     progress: Callable[[int, float], None] | None = None,
 ) -> tuple[np.ndarray, dict[str, object], list[float]]:
     """Returns (the point, what the stage did, the losses of the steps kept) after trying the `OPTIONAL` lobes that
-    `point` (unit cube) holds turned off: all of them together, then (if the judge refused that and more than one
-    was on) each alone. Each try sets them to 0 and runs `steps` steps with them held there (seeds from
-    refine.SEED + `seed`), and is kept unless `point` is closer by `PLAIN_LEAD` of the difference's standard errors
-    (`Judge.behind`): a lobe stays only where the picture measurably asks for it. Of the tries each alone that the
-    judge keeps, the closest; all together, once kept, ends the stage."""
+    `point` (unit cube) holds turned off (`plainer`): each try sets them to 0 and runs `steps` steps with them held
+    there (seeds from refine.SEED + `seed`). A lobe stays only where the picture measurably asks for it."""
     point = np.asarray(point, np.float64)
     on = [name for name in OPTIONAL if point[params.INDEX[name]] > OFF]
-    tries = ([tuple(on)] if on else []) + ([(name,) for name in on] if len(on) > 1 else [])
-    kept: tuple[float, np.ndarray, tuple[str, ...], list[float]] | None = None
-    tried: list[dict[str, object]] = []
-    for k, names in enumerate(tries):
+
+    def off(k: int, names: tuple[str, ...]) -> tuple[np.ndarray, list[float]]:
         held = tuple(params.INDEX[name] for name in names)
-        off = point.copy()
-        off[list(held)] = 0.0
-        further, losses = refine.descend(
-            problem,
-            off,
-            steps,
-            spp=refine.SPP,
-            seed=refine.SEED + seed + k * steps,
-            progress=progress,
-            hold=held,
-            held=steps,
+        start = point.copy()
+        start[list(held)] = 0.0
+        seed_k = refine.SEED + seed + k * steps
+        return refine.descend(
+            problem, start, steps, spp=refine.SPP, seed=seed_k, progress=progress, hold=held, held=steps
         )
-        behind, error = judge.behind(params.from_unit(further), params.from_unit(point))
-        keep = behind < PLAIN_LEAD * error
-        tried.append({"off": list(names), "behind": round(behind, 3), "standard_error": round(error, 3), "kept": keep})
-        if keep and (kept is None or behind < kept[0]):
-            kept = (behind, further, names, losses)
-        if keep and k == 0:
-            break
-    done: dict[str, object] = {"on": on, "tried": tried, "off": [] if kept is None else list(kept[2])}
-    return (point, done, []) if kept is None else (kept[1], done, kept[3])
+
+    kept, tried = plainer(judge, point, on, off, "off")
+    done: dict[str, object] = {"on": on, "tried": tried, "off": [] if kept is None else list(kept[1])}
+    return (point, done, []) if kept is None else (kept[0], done, kept[2])
 
 
 def at_zero(judge: Judge, point: np.ndarray) -> tuple[np.ndarray, dict[str, object]]:
     """Returns (the point, what the stage did) after trying the `PLAIN_ZERO` parameters that `point` (unit cube) holds
-    within `NEAR_ZERO` of 0 (density only where the medium shows) set to 0: all together, then (if refused and more
-    than one) each alone; a try is kept unless `point` is closer by `PLAIN_LEAD` standard errors (`Judge.behind`), of
-    those each alone the closest. No steps follow: the judge alone decides."""
+    within `NEAR_ZERO` of 0 (density only where the medium shows) set to 0 (`plainer`). No steps follow: the judge
+    alone decides."""
     point = np.asarray(point, np.float64)
-    values = params.from_unit(point)
-    shows = params.shows_medium(values)
+    shows = params.shows_medium(params.from_unit(point))
     near = [n for n in PLAIN_ZERO if 0.0 < point[params.INDEX[n]] <= NEAR_ZERO and (n != "density" or shows)]
-    tries = ([tuple(near)] if near else []) + ([(name,) for name in near] if len(near) > 1 else [])
-    kept: tuple[float, np.ndarray, tuple[str, ...]] | None = None
-    tried: list[dict[str, object]] = []
-    for k, names in enumerate(tries):
-        zero = point.copy()
-        zero[[params.INDEX[name] for name in names]] = 0.0
-        behind, error = judge.behind(params.from_unit(zero), values)
-        keep = behind < PLAIN_LEAD * error
-        tried.append({"zero": list(names), "behind": round(behind, 3), "standard_error": round(error, 3), "kept": keep})
-        if keep and (kept is None or behind < kept[0]):
-            kept = (behind, zero, names)
-        if keep and k == 0:
-            break
-    done: dict[str, object] = {"near": near, "tried": tried, "zero": [] if kept is None else list(kept[2])}
-    return (point if kept is None else kept[1]), done
+
+    def zero(k: int, names: tuple[str, ...]) -> tuple[np.ndarray, list[float]]:
+        moved = point.copy()
+        moved[[params.INDEX[name] for name in names]] = 0.0
+        return moved, []
+
+    kept, tried = plainer(judge, point, near, zero, "zero")
+    done: dict[str, object] = {"near": near, "tried": tried, "zero": [] if kept is None else list(kept[1])}
+    return (point if kept is None else kept[0]), done
