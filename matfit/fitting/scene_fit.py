@@ -125,6 +125,8 @@ class SceneOutcome:
     integrator: str
     seconds: float
     notices: list[str] = field(default_factory=list)
+    # the judge after the descent: its residual's kurtosis there, whether it looked past outliers, the weight kept
+    judge: dict[str, object] = field(default_factory=dict)
 
 
 def check_aspect(scene: scene_file.SceneFile, height: int, width: int, name: str) -> None:
@@ -411,8 +413,9 @@ def fit(
         )
         judged = judge.squared(params.from_unit(point))
         tried.append({"name": name, "squared": judged, "point": point, "losses": losses})
-    for t in tried if every else [min(tried, key=lambda t: t["squared"])]:
-        points, more = refine.path(
+    descended = tried if every else [min(tried, key=lambda t: t["squared"])]
+    for t in descended:
+        t["points"], t["more"] = refine.path(
             problem,
             np.asarray(t["point"]),
             steps,
@@ -422,8 +425,20 @@ def fit(
             hold=hold,
             held=held,
         )
-        t["answer"], t["answer_squared"] = closest(judge, points, more)
-        t["more"] = more
+    looked: dict[str, object] = {}
+    if not every:  # from here on an opaque fit's judge looks past a heavy-tailed target's outlying pixels, as seen
+        # from where its descent ends (`Judge.robust`); a transmissive fit's caustics are its picture, not its noise
+        reference = params.from_unit(ending(descended[0]["points"]))
+        robust = judge.robust(reference)
+        weight = float(robust.weights.sum() / max(float(judge.weights.sum()), 1e-12))
+        looked = {
+            "kurtosis": round(judge.tails(reference), 2),
+            "robust": robust is not judge,
+            "weight": round(weight, 3),
+        }
+        judge = robust
+    for t in descended:
+        t["answer"], t["answer_squared"] = closest(judge, t["points"], t["more"])
     best = min((t for t in tried if "answer" in t), key=lambda t: t["answer_squared"])
     point, more = best["answer"], best["more"]
     point, bounds, again = off_bounds(judge, problem, point, short, seed=short + steps, progress=heard("bounds"))
@@ -466,6 +481,7 @@ def fit(
         integrator,
         time.perf_counter() - started,
         notices,
+        looked,
     )
 
 
@@ -476,11 +492,16 @@ def closest(judge: Judge, points: list[np.ndarray], losses: list[float]) -> tupl
     steps alone, the red knot under the sun lost its coat in three runs of six (docs/scenes.md#the-lowest-step)."""
     if not losses:
         return points[0], judge.squared(params.from_unit(points[0]))
-    quarter = max(1, len(points) // 4)
-    candidates = [points[int(np.argmin(losses))], points[-1], np.mean(points[-quarter:], axis=0)]
+    candidates = [points[int(np.argmin(losses))], points[-1], ending(points)]
     judged = [judge.squared(params.from_unit(p)) for p in candidates]
     kept = int(np.argmin(judged))
     return candidates[kept], judged[kept]
+
+
+def ending(points: list[np.ndarray]) -> np.ndarray:
+    """Returns the mean of the last quarter of a descent's points (unit cube): where it ends, its steps' noise
+    averaged."""
+    return np.mean(points[-max(1, len(points) // 4) :], axis=0)
 
 
 def off_bounds(
