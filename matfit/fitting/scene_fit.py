@@ -33,7 +33,9 @@ shapes. In order:
    loss (`ROBUST`), the squares after. Of a descent's visited point of lowest
    step loss, its last point and the mean of its last quarter's points, the one of lowest noise-free error is its
    answer (`closest`): a step's loss is one seed's, and where the loss lies flat at its noise its lowest point is
-   partly luck; of the starts' answers, the one of lowest noise-free error goes on.
+   partly luck; of the starts' answers, the one of lowest noise-free error goes on. From there on an opaque fit's
+   judge looks past the target's outlying pixels where the renders of where its descent ends have heavy-tailed
+   noise (`Judge.robust`: a glossy metal's fireflies under a small light).
 4. Off the bounds: at some bounds the gradient is zero (sheen and clearcoat at 0 are not evaluated) or wrong
    (roughness at 0, a near-mirror lobe's: `refine`'s docstring), so the descent cannot leave them (`TRAPS`). Each
    such parameter the descent left there is moved inward by `INWARD` and judged; if one is closer, `short` more
@@ -125,7 +127,8 @@ class SceneOutcome:
     integrator: str
     seconds: float
     notices: list[str] = field(default_factory=list)
-    # the judge after the descent: its residual's kurtosis there, whether it looked past outliers, the weight kept
+    # an opaque fit's judge after the descent: the kurtosis of its renders' noise where the descent ended, whether it
+    # looked past the target's outlying pixels (`Judge.robust`), the share of the weight it kept
     judge: dict[str, object] = field(default_factory=dict)
 
 
