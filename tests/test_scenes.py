@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 import matfit
 from matfit import images, params
 from matfit.app.cli import app
+from matfit.fitting import scene_judge
 from matfit.rendering import scene_library
 
 pytestmark = pytest.mark.usefixtures("tiny_scene_fits")  # tests/conftest.py
@@ -85,6 +86,10 @@ def test_matfit_fit_in_a_scene_writes_every_output_and_comes_closer(scene, edite
     assert document["mitsuba_rmse"] <= document["start"]["rmse"]
     assert document["steps"] == {"short": 1, "descent": 4, "spp": 16}
     assert set(document["ranges"]) == set(params.NAMES)
+    # an opaque fit's judge after its descent: the kurtosis of its renders' noise, whether it looked past outliers
+    assert set(document["judge"]) == {"kurtosis", "robust", "weight"} and document["judge"]["kurtosis"] > 0
+    assert document["judge"]["robust"] == (document["judge"]["kurtosis"] > scene_judge.HEAVY_TAILED)
+    assert (document["judge"]["weight"] < 1.0) == document["judge"]["robust"]
     assert images.header(str(out["big.png"]))[:2] == (32, 24)
     assert "matfit-material" in out["m.xml"].read_text()
     assert matfit.Material.read(out["p.json"]) == matfit.Material.from_dict(document["params"])

@@ -148,7 +148,8 @@ def run_case(case: Case, folder: str, steps: int, *, size: int = TARGET_SIZE, ju
         "accepted": outcome.accepted,
         "moved_off_bound": outcome.bounds.get("moved"),
         "lobes_off": outcome.plain.get("off"),
-        "robust_judge": outcome.judge.get("robust"),
+        "robust_judge": outcome.judge.get("robust"),  # None: a transmissive fit, whose judge keeps the squares
+        "noise_kurtosis": outcome.judge.get("kurtosis"),
         "at_zero": cast(dict, outcome.bounds.get("at_zero", {})).get("zero"),
         "integrator": outcome.integrator,
         "seconds": round(seconds, 1),
