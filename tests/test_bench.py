@@ -170,6 +170,7 @@ def test_a_scene_bench_row_holds_the_judges_own_floor_and_the_fits_cpu_seconds(t
     assert 0.0 <= row["judge_floor"] < 1.0 < row["start"]  # the truth against itself reads near 0, the start does not
     assert row["cpu_seconds"] > 0.0 and row["floor"] > 0.0
     assert isinstance(row["at_zero"], list)  # what the fit set to 0 (`scene_plain.at_zero`), [] where nothing
+    assert row["plain"]["off"] == row["lobes_off"] and isinstance(row["plain"]["tried"], list)
     # an opaque fit's judge: the kurtosis of its renders' noise where the descent ended, and whether it looked past
     assert row["noise_kurtosis"] > 0 and row["robust_judge"] == (row["noise_kurtosis"] > scene_judge.HEAVY_TAILED)
     text = scenes.table([row, {k: v for k, v in row.items() if k not in ("judge_floor", "cpu_seconds")}])

@@ -148,6 +148,7 @@ def run_case(case: Case, folder: str, steps: int, *, size: int = TARGET_SIZE, ju
         "accepted": outcome.accepted,
         "moved_off_bound": outcome.bounds.get("moved"),
         "lobes_off": outcome.plain.get("off"),
+        "plain": outcome.plain,  # each try of plain lobes: the lobes off, behind by, its standard error, kept
         "robust_judge": outcome.judge.get("robust"),  # None: a transmissive fit, whose judge keeps the squares
         "noise_kurtosis": outcome.judge.get("kurtosis"),
         "at_zero": cast(dict, outcome.bounds.get("at_zero", {})).get("zero"),
