@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from matfit import images
+from matfit.fitting import refine
 from matfit.rendering import scene_file
 
 JUDGE_SPP = 128  # the renders that choose between starts and accept the answer
@@ -59,9 +60,9 @@ class Judge:
     def robust(self, reference: np.ndarray) -> Judge:
         """Returns the judge whose weights also fall with the target's residual from the mean of physical
         `reference`'s two renders, by Tukey's biweight: (1 - (r / c)^2)^2 where r, the residual's largest channel, is
-        under c, `OUTLIER_SPREADS` robust spreads (1.4826 times its median over the weighted pixels), else 0; where
-        the reference's renders' noise is light-tailed (`tails` up to `HEAVY_TAILED`), the judge itself. One set of
-        weights for every material it then judges.
+        under c, `OUTLIER_SPREADS` robust spreads (`refine.huber_corner`: 1.4826 times its median over the weighted
+        pixels), else 0; where the reference's renders' noise is light-tailed (`tails` up to `HEAVY_TAILED`), the
+        judge itself. One set of weights for every material it then judges.
 
         A target at a few hundred samples can be heavy-tailed: the gold knot under the sun's residual from the truth
         has a kurtosis of 39, its top 1% of pixels 45% of the squares. The squares then measure the target's noise:
@@ -73,7 +74,7 @@ class Judge:
         if self.tails(reference) <= HEAVY_TAILED:  # the squares are the judge for light tails
             return self
         residual = np.abs(self.residual(reference)).max(axis=2)
-        corner = OUTLIER_SPREADS * 1.4826 * float(np.median(residual[self.weights > 0]))
+        corner = refine.huber_corner(residual[..., None], self.weights, OUTLIER_SPREADS)
         if corner <= 0:  # a target the reference renders exactly over half its pixels: nothing stands out
             return self
         kept = np.square(1.0 - np.square(np.minimum(residual / corner, 1.0)))
