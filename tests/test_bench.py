@@ -5,7 +5,7 @@ from helpers import decode, random_model, true_point
 from matfit import images
 from matfit.app.bench import fits, optimisers, reachable, scenes, suite_report
 from matfit.app.bench.sequence import black_level, sequence_table
-from matfit.fitting import scene_judge, search
+from matfit.fitting import scene_fit, scene_judge, search
 
 
 @pytest.fixture(scope="module")
@@ -173,6 +173,8 @@ def test_a_scene_bench_row_holds_the_judges_own_floor_and_the_fits_cpu_seconds(t
     assert row["plain"]["off"] == row["lobes_off"] and isinstance(row["plain"]["tried"], list)
     # an opaque fit's judge: the kurtosis of its renders' noise where the descent ended, and whether it looked past
     assert row["noise_kurtosis"] > 0 and row["robust_judge"] == (row["noise_kurtosis"] > scene_judge.HEAVY_TAILED)
+    # and its steps' residual: encoded, a step's image of the red knot reads a little darker than its mean
+    assert 0.0 < row["darkening"] < scene_fit.DARKENING and row["linear_residual"] is False
     text = scenes.table([row, {k: v for k, v in row.items() if k not in ("judge_floor", "cpu_seconds")}])
     lines = text.splitlines()
     assert "judge's floor" in lines[0] and "CPU seconds" in lines[0]

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from matfit import images
-from matfit.fitting import scene_fit, scene_judge
+from matfit.fitting import refine, scene_fit, scene_judge
 from matfit.rendering import presets, scene_file, scene_library
 
 
@@ -71,6 +71,32 @@ def test_the_judge_looks_past_outliers_only_where_the_renders_noise_is_heavy_tai
     assert metal.tails(gold) > 1.5 * scene_judge.HEAVY_TAILED  # 29.4
     robust = metal.robust(gold)
     assert robust is not metal and 0.5 < robust.weights.sum() / metal.weights.sum() < 1.0
+    # and encoded, its noisy renders read darker than their mean: a step's image of the gold knot under the sun by
+    # more than `scene_fit.DARKENING`, whose steps then take the linear residual; the red knot under the studio
+    # light's by a twelfth of it
+    step = refine.PRIMAL * scene_fit.STEP_SPP
+    assert metal.darkening(gold, step) > scene_fit.DARKENING  # 0.77
+    assert 0.0 < judge.darkening(red, step) < 0.2 * scene_fit.DARKENING  # 0.04
+
+
+def test_the_darkening_is_the_encoding_of_the_mean_less_the_encodings_scaled_to_the_samples(red_knot_fit):
+    # two renders a pixel's mean 0.2 +- 0.05 apart (linear): the curve's bend reads them darker than their mean
+    renderer, target, weights = red_knot_fit
+    red = presets.preset("red-plastic")
+    judge = scene_judge.Judge(renderer, target, weights)
+    shape = target.shape
+    lower, upper = np.full(shape, 0.15, np.float32), np.full(shape, 0.25, np.float32)
+    for seed, linear in ((scene_judge.JUDGE_SEED, lower), (scene_judge.SECOND_SEED, upper)):
+        judge.made[(np.asarray(red, np.float64).tobytes(), seed)] = images.srgb_encode(linear)
+    encode = lambda x: float(images.srgb_encode(np.float32(x)))  # noqa: E731
+    pair = encode(0.2) - (encode(0.15) + encode(0.25)) / 2  # 0.0046: a quarter of the bend times the variance
+    assert pair > 0
+    assert judge.darkening(red, scene_judge.JUDGE_SPP) == pytest.approx(255 * 2 * pair, rel=1e-4)
+    # a render of half the samples has twice the variance: twice as dark
+    assert judge.darkening(red, scene_judge.JUDGE_SPP // 2) == pytest.approx(255 * 4 * pair, rel=1e-4)
+    # two renders alike: no noise, no darkening
+    judge.made[(np.asarray(red, np.float64).tobytes(), scene_judge.SECOND_SEED)] = images.srgb_encode(lower)
+    assert judge.darkening(red, 64) == pytest.approx(0.0, abs=1e-4)
 
 
 def test_the_kurtosis_is_3_for_gaussian_noise_and_grows_with_a_few_wild_pixels():

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 import matfit
 from matfit import images, params
 from matfit.app.cli import app
-from matfit.fitting import scene_judge
+from matfit.fitting import scene_fit, scene_judge
 from matfit.rendering import scene_library
 
 pytestmark = pytest.mark.usefixtures("tiny_scene_fits")  # tests/conftest.py
@@ -90,6 +90,10 @@ def test_matfit_fit_in_a_scene_writes_every_output_and_comes_closer(scene, edite
     assert set(document["judge"]) == {"kurtosis", "robust", "weight"} and document["judge"]["kurtosis"] > 0
     assert document["judge"]["robust"] == (document["judge"]["kurtosis"] > scene_judge.HEAVY_TAILED)
     assert (document["judge"]["weight"] < 1.0) == document["judge"]["robust"]
+    # its steps' residual: how much darker than its mean a step's image encodes where the descent began, and linear
+    # in the image past `scene_fit.DARKENING` (a red plastic under a studio light: encoded)
+    assert set(document["residual"]) == {"darkening", "linear"} and document["residual"]["darkening"] > 0
+    assert document["residual"]["darkening"] < scene_fit.DARKENING and document["residual"]["linear"] is False
     assert images.header(str(out["big.png"]))[:2] == (32, 24)
     assert "matfit-material" in out["m.xml"].read_text()
     assert matfit.Material.read(out["p.json"]) == matfit.Material.from_dict(document["params"])

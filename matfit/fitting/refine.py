@@ -12,13 +12,14 @@ clipping are concave, so a noisy image's pixel reads darker than its mean: at 16
 brightened jade (more sheen, scattering) until its render was 14 RMSE away instead of 5. So the
 image whose residual drives the gradient takes `PRIMAL` times the gradient's samples (Mitsuba
 decorrelates the primal and adjoint passes itself, `seed_grad`); and where a `Problem` asks
-(`linear`: a scene fit of a transmissive material) the residual is the image's difference from the
-linear target times the chord of the sRGB curve between the target and the mean of the earlier
-steps' images (`secant`; the first step's, its own image), linear in this step's image, so in
-expectation the residual of its mean render: encoded at 64 samples and 64 px the bench's jade knot
-read 0.7 of 255 darker over its region than its mean (glass 0.4, a red plastic 0.03). The point
-returned is the visited point of lowest step loss (the start included), since late steps drift; `path`
-returns every visited point, for a caller that chooses among them otherwise (`fitting/scene_fit`).
+(`linear`: a scene fit of a transmissive material, or of an opaque one whose images darken so,
+`scene_fit.DARKENING`) the residual is the image's difference from the linear target times the
+chord of the sRGB curve between the target and the mean of the earlier steps' images (`secant`; the
+first step's, its own image), linear in this step's image, so in expectation the residual of its
+mean render: encoded at 64 samples and 64 px the bench's jade knot read 0.7 of 255 darker over its
+region than its mean (glass 0.4, gold under a sun 0.5, a red plastic 0.03). The point returned is
+the visited point of lowest step loss (the start included), since late steps drift; `path` returns
+every visited point, for a caller that chooses among them otherwise (`fitting/scene_fit`).
 Where a `Problem` asks (`robust`: an opaque scene fit's) the steps that hold parameters (`held`) take
 Huber's loss instead of the squares: a residual past a corner, `robust` times the step's residuals' robust
 spread (`huber_corner`), pulls by the corner, not by itself, so that a few wild pixels (a noisy picture's

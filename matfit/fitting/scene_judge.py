@@ -93,6 +93,20 @@ class Judge:
         renders = self.renders(values)
         return kurtosis(renders[0] - renders[1], self.weights)
 
+    def darkening(self, values: np.ndarray, spp: int) -> float:
+        """Returns how much darker than its mean (0-255 sRGB, over the weights) a render of physical `values` at
+        `spp` samples a pixel reads once encoded, from its two judged renders: the sRGB curve is concave, so a noisy
+        pixel's encoding is below its mean's by about half the curve's bend times the noise's variance. The two
+        renders' encodings less the encoding of their mean (both clipped to [0, 1], as a step's image is) is a
+        quarter of that bend times a judged render's variance; a render at `spp` samples has `JUDGE_SPP / spp` times
+        that variance, so the figure is scaled by 2 `JUDGE_SPP / spp`."""
+        encoded = np.asarray(self.renders(values), np.float64)
+        mean = images.srgb_encode(images.srgb_decode(encoded).mean(axis=0)).astype(np.float64)
+        darker = (mean - encoded.mean(axis=0)).mean(axis=2)
+        weights = np.asarray(self.weights, np.float64)
+        share = float((weights * darker).sum() / max(weights.sum(), 1e-12))
+        return 255.0 * 2.0 * JUDGE_SPP / spp * share
+
     def squared(self, values: np.ndarray) -> float:
         """Returns the estimate of the squared noise-free error (0-255 squared, negative where under what two
         renders resolve) of physical `values` from its renders at `JUDGE_SEED` and `SECOND_SEED`

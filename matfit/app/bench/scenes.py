@@ -151,6 +151,8 @@ def run_case(case: Case, folder: str, steps: int, *, size: int = TARGET_SIZE, ju
         "plain": outcome.plain,  # each try of plain lobes: the lobes off, behind by, its standard error, kept
         "robust_judge": outcome.judge.get("robust"),  # None: a transmissive fit, whose judge keeps the squares
         "noise_kurtosis": outcome.judge.get("kurtosis"),
+        "darkening": outcome.residual.get("darkening"),  # None: a transmissive fit, whose residual is linear
+        "linear_residual": outcome.residual.get("linear"),
         "at_zero": cast(dict, outcome.bounds.get("at_zero", {})).get("zero"),
         "integrator": outcome.integrator,
         "seconds": round(seconds, 1),
