@@ -105,8 +105,8 @@ ROBUST = 3.0
 # An opaque fit's steps from its descent on take the residual linear in their image (`refine.Problem.linear`, as a
 # transmissive fit's do throughout) where a step's image, encoded, reads darker than its mean by more than this
 # (0-255 over the weights, `Judge.darkening` at the descent's first point): the bench's gold knot under the sun
-# 0.6-0.7, whose answers' green then came back from 0.728-0.756 to the truth's 0.71; its red knot 0.3-0.35, its
-# other opaque cases and edits under 0.1 (docs/scenes.md#a-steps-residual)
+# 0.67-0.72, whose answers' green then read 0.707-0.729 against the truth's 0.71 (0.728-0.756 encoded); its red
+# knot under the sun 0.26, its other opaque cases and edits 0.01-0.05 (docs/scenes.md#the-steps-darkening)
 DARKENING = 0.5
 ASPECT_TOLERANCE = 0.02
 
