@@ -118,6 +118,28 @@ def test_a_transmissive_fit_descends_from_every_start_and_keeps_the_one_that_end
     assert len(outcome.losses) == 1 + 4 + (1 if moved else 0) + (1 if plainer else 0)
 
 
+@pytest.mark.parametrize("darkening", [0.0, 1e9])
+def test_an_opaque_fits_descent_takes_the_linear_residual_where_its_images_darken(
+    knot, red_picture, darkening, monkeypatch
+):
+    # where a step's image encodes darker than its mean by more than DARKENING, the descent and the stages after it
+    # step on the residual linear in the image; the short runs before it, and every step where it does not, encoded
+    monkeypatch.setattr(scene_fit, "DARKENING", darkening)
+    linear, path = [], refine.path
+
+    def heard_path(problem, point, steps, **options):
+        linear.append(problem.linear)
+        return path(problem, point, steps, **options)
+
+    monkeypatch.setattr(refine, "path", heard_path)
+    start = presets.preset("red-plastic").copy()
+    start[params.INDEX["roughness"]] = 0.6
+    outcome = scene_fit.fit(knot, red_picture, start=start, steps=4)
+    fired = darkening == 0.0
+    assert outcome.residual["linear"] is fired and outcome.residual["darkening"] > 0  # type: ignore[operator]
+    assert linear[:5] == [False] * 5 and linear[5:] == [fired] * len(linear[5:]) and len(linear) > 5
+
+
 def test_a_fit_never_returns_something_worse_than_its_start(knot, red_picture):
     truth = presets.preset("red-plastic")
     outcome = scene_fit.fit(knot, red_picture, start=truth, steps=1)
