@@ -56,4 +56,22 @@ def test_a_lobe_the_picture_does_not_ask_for_is_turned_off_and_one_it_does_stays
     plain_truth[params.INDEX["clearcoat"]] = 0.0
     point, done, losses = scene_plain.plain(judge, problem, plain_truth, 2, seed=0)
     np.testing.assert_array_equal(point, plain_truth)
-    assert done == {"on": [], "tried": [], "off": []} and losses == []
+    assert done == {"on": [], "silent": [], "tried": [], "off": []} and losses == []
+
+
+def test_a_lobe_that_cannot_show_is_turned_off_without_a_try(red_knot_fit):
+    # sheen belongs to Mitsuba's diffuse lobe: on a full metal, or through full transmission, it cannot show
+    gold = presets.preset("gold")
+    assert gold[params.INDEX["metallic"]] == 1.0 and scene_plain.silent(gold) == ("sheen",)
+    glass = presets.preset("glass")
+    assert glass[params.INDEX["spec_trans"]] == 1.0 and scene_plain.silent(glass) == ("sheen",)
+    assert scene_plain.silent(presets.preset("red-plastic")) == ()
+    renderer, target, weights = red_knot_fit
+    judge = scene_judge.Judge(renderer, target, weights)
+    problem = scene_fit.problem_of(renderer, target, weights, "prb")
+    sheened = params.to_unit(gold)
+    sheened[params.INDEX["sheen"]] = 0.3
+    assert np.array_equal(judge.render(params.from_unit(sheened)), judge.render(gold))  # the same picture
+    point, done, losses = scene_plain.plain(judge, problem, sheened, 2, seed=0)
+    np.testing.assert_array_equal(point, params.to_unit(gold))  # sheen off, nothing else to try
+    assert done == {"on": [], "silent": ["sheen"], "tried": [], "off": []} and losses == []
