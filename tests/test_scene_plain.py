@@ -71,7 +71,8 @@ def test_a_lobe_that_cannot_show_is_turned_off_without_a_try(red_knot_fit):
     problem = scene_fit.problem_of(renderer, target, weights, "prb")
     sheened = params.to_unit(gold)
     sheened[params.INDEX["sheen"]] = 0.3
-    assert np.array_equal(judge.render(params.from_unit(sheened)), judge.render(gold))  # the same picture
+    # the same picture, but for float rounding (a lobe of weight 0 is still evaluated where sheen is on)
+    np.testing.assert_allclose(judge.render(params.from_unit(sheened)), judge.render(gold), rtol=0, atol=1e-4)
     point, done, losses = scene_plain.plain(judge, problem, sheened, 2, seed=0)
     np.testing.assert_array_equal(point, params.to_unit(gold))  # sheen off, nothing else to try
     assert done == {"on": [], "silent": ["sheen"], "tried": [], "off": []} and losses == []
