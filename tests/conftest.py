@@ -90,13 +90,11 @@ def knot(tmp_path_factory):
 @pytest.fixture
 def tiny_scene_fits(monkeypatch):
     """Scene fits at a tiny configuration, their logic and not their figures (`matfit bench-scene` measures those):
-    renders 32 pixels on the longer side, a judge of 32 samples a pixel (a transmissive fit's plainer materials 64),
-    probes of 8."""
+    renders 32 pixels on the longer side, a judge of 32 samples a pixel, probes of 8."""
     from matfit.fitting import scene_fit, scene_judge, scene_ranges
 
     monkeypatch.setattr(scene_fit, "FIT_SIZE", 32)
     monkeypatch.setattr(scene_judge, "JUDGE_SPP", 32)
-    monkeypatch.setattr(scene_judge, "PLAIN_SPP", 64)
     monkeypatch.setattr(scene_ranges, "PROBE_SPP", 8)
 
 

@@ -29,20 +29,6 @@ def test_the_judge_renders_a_material_once_at_each_seed(red_knot_fit, monkeypatc
     assert error == pytest.approx(np.sqrt(max(squared, 0.0))) and error < images.rmse(first, target, weights)
 
 
-def test_a_judge_at_more_samples_renders_its_own_renders_with_less_noise_and_shares_the_store(red_knot_fit):
-    # a transmissive fit's plainer materials are judged at `PLAIN_SPP`: the same weights, renders of their own
-    renderer, target, weights = red_knot_fit
-    red = presets.preset("red-plastic")
-    few = scene_judge.Judge(renderer, target, weights, spp=8)
-    more = few.at(32)
-    assert more.spp == 32 and more.made is few.made and more.weights is few.weights and more.target is few.target
-    assert more.weighted(weights).spp == 32  # other weights keep the samples
-    noise = lambda judge: float(np.var(np.diff(judge.renders(red), axis=0)))  # noqa: E731
-    assert noise(more) < 0.5 * noise(few)  # a quarter of the variance, give or take the sRGB curve
-    assert len(few.made) == 4  # two seeds at each count, none taken for the other's
-    assert not np.array_equal(more.render(red), few.render(red))
-
-
 def test_the_robust_judge_weighs_nothing_where_the_target_stands_out_of_its_reference(red_knot_fit, monkeypatch):
     # a target with fireflies: a few of the shape's pixels white, as a heavy-tailed target's noise leaves them
     monkeypatch.setattr(scene_judge, "HEAVY_TAILED", 0.0)  # as if the renders' noise were heavy-tailed (below)
@@ -101,7 +87,7 @@ def test_the_darkening_is_the_encoding_of_the_mean_less_the_encodings_scaled_to_
     shape = target.shape
     lower, upper = np.full(shape, 0.15, np.float32), np.full(shape, 0.25, np.float32)
     for seed, linear in ((scene_judge.JUDGE_SEED, lower), (scene_judge.SECOND_SEED, upper)):
-        judge.made[(np.asarray(red, np.float64).tobytes(), seed, judge.spp)] = images.srgb_encode(linear)
+        judge.made[(np.asarray(red, np.float64).tobytes(), seed)] = images.srgb_encode(linear)
     encode = lambda x: float(images.srgb_encode(np.float32(x)))  # noqa: E731
     pair = encode(0.2) - (encode(0.15) + encode(0.25)) / 2  # 0.0046: a quarter of the bend times the variance
     assert pair > 0
@@ -109,7 +95,7 @@ def test_the_darkening_is_the_encoding_of_the_mean_less_the_encodings_scaled_to_
     # a render of half the samples has twice the variance: twice as dark
     assert judge.darkening(red, scene_judge.JUDGE_SPP // 2) == pytest.approx(255 * 4 * pair, rel=1e-4)
     # two renders alike: no noise, no darkening
-    judge.made[(np.asarray(red, np.float64).tobytes(), scene_judge.SECOND_SEED, judge.spp)] = images.srgb_encode(lower)
+    judge.made[(np.asarray(red, np.float64).tobytes(), scene_judge.SECOND_SEED)] = images.srgb_encode(lower)
     assert judge.darkening(red, 64) == pytest.approx(0.0, abs=1e-4)
 
 

@@ -48,8 +48,6 @@ shapes. In order:
    a lobe whose gradient is 0 at 0 cannot be taken off by it (`plain`).
    Then a roughness, or a shown medium's density, within `NEAR_ZERO` of 0 is tried at 0 by the same rule, without
    steps (`at_zero`): smooth and clear are plainer, and roughness 0 a bound the descent cannot reach (`TRAPS`).
-   A transmissive fit's judge renders at `scene_judge.PLAIN_SPP` samples for this stage (`Judge.at`): its renders' noise
-   at the judge's decided as often as the picture's light.
 6. The answer is judged against the start, and kept only if its noise-free error is lower: never worse than the
    start, as the two renders see it.
 7. What one view decides (`scene_ranges`): each parameter moved by `PROBE` in the unit cube both ways from the
@@ -74,7 +72,7 @@ import numpy as np
 
 from matfit import images, params
 from matfit.errors import SceneError
-from matfit.fitting import refine, scene_judge, scene_plain, scene_ranges
+from matfit.fitting import refine, scene_plain, scene_ranges
 from matfit.fitting.scene_judge import JUDGE_SEED, SECOND_SEED, Judge, root
 from matfit.rendering import engine, scene_file
 from matfit.rendering import scene as scene_model
@@ -465,13 +463,10 @@ def fit(
     best = min((t for t in tried if "answer" in t), key=lambda t: t["answer_squared"])
     point, more = best["answer"], best["more"]
     point, bounds, again = off_bounds(judge, problem, point, short, seed=short + steps, progress=heard("bounds"))
-    # a transmissive fit's plainer materials are decided at more samples: at the judge's its noise decided as often
-    plainest = judge.at(scene_judge.PLAIN_SPP) if every else judge
     point, plainer, simpler = scene_plain.plain(
-        plainest, problem, point, short, seed=2 * short + steps, progress=heard("plain")
+        judge, problem, point, short, seed=2 * short + steps, progress=heard("plain")
     )
-    point, bounds["at_zero"] = scene_plain.at_zero(plainest, point)
-    plainer["spp"] = plainest.spp
+    point, bounds["at_zero"] = scene_plain.at_zero(judge, point)
     answer = params.from_unit(point)
     start_squared, answer_squared = judge.squared(first), judge.squared(answer)
     start_rmse, rmse = root(start_squared), root(answer_squared)

@@ -1,5 +1,4 @@
-"""The judge of a fit in a scene: a material's renders at `JUDGE_SPP` (a transmissive fit's plainer materials at
-`PLAIN_SPP`) with the seeds `JUDGE_SEED` and
+"""The judge of a fit in a scene: a material's renders at `JUDGE_SPP` with the seeds `JUDGE_SEED` and
 `SECOND_SEED`, which no step uses, and the unbiased estimate of its noise-free error from the two
 (`images.noise_free_mse`, as the test scene's verification judges): a render's own RMSE counts its noise, and the
 material that renders with less noise would read closer. `scene_fit` chooses between starts, between a descent's
@@ -17,11 +16,6 @@ from matfit.fitting import refine
 from matfit.rendering import scene_file
 
 JUDGE_SPP = 128  # the renders that choose between starts and accept the answer
-# the renders that decide a transmissive fit's plainer materials (`scene_fit`'s stage 5, `Judge.at`): at 128 samples
-# its judge kept a lobe off or a roughness at 0 as often on the target's noise as on its light; remade at 512 from
-# the same point, the bench's jade knot, glass knot and jade box ended closer in 4 of 9 paired runs, further in none
-# (docs/scenes.md#what-the-judge-reads-of-the-answers). A transmissive render at 512 takes 0.8 s at the fit's size
-PLAIN_SPP = 512
 JUDGE_SEED = 4_000_037  # their common seed: no step uses it (steps use refine.SEED + k)
 SECOND_SEED = 5_000_011  # the off-the-bounds stage's second opinion: a move chosen at one seed must hold at another
 # Tukey's biweight on the target's residual from a reference material's renders (`Judge.robust`): a pixel this many
@@ -33,9 +27,9 @@ HEAVY_TAILED = 15.0
 
 
 class Judge:
-    """The judge of one fit: a material's sRGB render (`spp`, by default `JUDGE_SPP`; a seed), made once however many
-    stages ask for it, and its noise-free error over the weights from two such renders (`squared`; `scene_fit`
-    judges the descent's answer by `closest`, `off_bounds`, `plain` and the acceptance, at the same seeds).
+    """The judge of one fit: a material's sRGB render (`JUDGE_SPP`, a seed), made once however many stages ask for
+    it, and its noise-free error over the weights from two such renders (`squared`; `scene_fit` judges the
+    descent's answer by `closest`, `off_bounds`, `plain` and the acceptance, at the same seeds).
 
     Every choice is made on `squared`, not on a render's RMSE: a render's RMSE counts its own noise, and a material
     that renders with less noise reads closer. Under the sun the bench's jade knot ended at roughness 0.02 against
@@ -47,27 +41,21 @@ class Judge:
         renderer: scene_file.Renderer,
         target: np.ndarray,
         weights: np.ndarray,
-        made: dict[tuple[bytes, int, int], np.ndarray] | None = None,
-        spp: int | None = None,
+        made: dict[tuple[bytes, int], np.ndarray] | None = None,
     ) -> None:
         self.renderer, self.target, self.weights = renderer, target, weights
-        self.spp = JUDGE_SPP if spp is None else spp
-        self.made: dict[tuple[bytes, int, int], np.ndarray] = {} if made is None else made
+        self.made: dict[tuple[bytes, int], np.ndarray] = {} if made is None else made
 
     def render(self, values: np.ndarray, seed: int = JUDGE_SEED) -> np.ndarray:
-        """Returns the sRGB render of physical `values` at `seed` (the judge's `spp`), made once."""
-        key = (np.asarray(values, np.float64).tobytes(), seed, self.spp)
+        """Returns the sRGB render of physical `values` at `seed` (`JUDGE_SPP`), made once."""
+        key = (np.asarray(values, np.float64).tobytes(), seed)
         if key not in self.made:
-            self.made[key] = images.srgb_encode(self.renderer.render(values, seed=seed, spp=self.spp))
+            self.made[key] = images.srgb_encode(self.renderer.render(values, seed=seed, spp=JUDGE_SPP))
         return self.made[key]
 
     def weighted(self, weights: np.ndarray) -> Judge:
         """Returns the judge with other weights, sharing the renders made."""
-        return Judge(self.renderer, self.target, weights, self.made, self.spp)
-
-    def at(self, spp: int) -> Judge:
-        """Returns the judge whose renders take `spp` samples, with the same weights, sharing the renders made."""
-        return Judge(self.renderer, self.target, self.weights, self.made, spp)
+        return Judge(self.renderer, self.target, weights, self.made)
 
     def robust(self, reference: np.ndarray) -> Judge:
         """Returns the judge whose weights also fall with the target's residual from the mean of physical
@@ -110,14 +98,14 @@ class Judge:
         `spp` samples a pixel reads once encoded, from its two judged renders: the sRGB curve is concave, so a noisy
         pixel's encoding is below its mean's by about half the curve's bend times the noise's variance. The two
         renders' encodings less the encoding of their mean (both clipped to [0, 1], as a step's image is) is a
-        quarter of that bend times a judged render's variance; a render at `spp` samples has the judge's samples over
-        `spp` times that variance, so the figure is scaled by twice that ratio."""
+        quarter of that bend times a judged render's variance; a render at `spp` samples has `JUDGE_SPP / spp` times
+        that variance, so the figure is scaled by 2 `JUDGE_SPP / spp`."""
         encoded = np.asarray(self.renders(values), np.float64)
         mean = images.srgb_encode(images.srgb_decode(encoded).mean(axis=0)).astype(np.float64)
         darker = (mean - encoded.mean(axis=0)).mean(axis=2)
         weights = np.asarray(self.weights, np.float64)
         share = float((weights * darker).sum() / max(weights.sum(), 1e-12))
-        return 255.0 * 2.0 * self.spp / spp * share
+        return 255.0 * 2.0 * JUDGE_SPP / spp * share
 
     def squared(self, values: np.ndarray) -> float:
         """Returns the estimate of the squared noise-free error (0-255 squared, negative where under what two
