@@ -107,10 +107,15 @@ def test_a_transmissive_fit_descends_from_every_start_and_keeps_the_one_that_end
     outcome = scene_fit.fit(knot, picture, start=start, steps=4)
     held = scene_fit.holding(start, 4)
     assert held == ((params.INDEX["spec_trans"], *(params.INDEX[n] for n in scene_plain.OPTIONAL)), 2)
-    # the five starts' short runs hold it all through (1 step each), their descents the first half (2 of 4)
-    assert descents[:5] == [(1, held[0], 1)] * 5 and descents[5:10] == [(4, held[0], 2)] * 5
+    # the five starts' short runs hold it all through (1 step each), their descents the first half (2 of 4), then the
+    # chosen start's two more descents alike
+    assert descents[:5] == [(1, held[0], 1)] * 5 and descents[5:12] == [(4, held[0], 2)] * 7
     names = ["given", "roughness 0.02", "roughness 0.35", "all transmitted", "clear glass"]
     assert [s["name"] for s in outcome.starts] == names
+    assert outcome.again["start"] in names and outcome.again["kept"] in outcome.again["errors"]
+    assert list(outcome.again["errors"]) == ["descent 1", "descent 2", "descent 3", "mean"]
+    chosen = next(s for s in outcome.starts if s["name"] == outcome.again["start"])
+    assert outcome.again["errors"]["descent 1"] == chosen["descended"] == min(s["descended"] for s in outcome.starts)
     assert all(s["descended"] > 0 for s in outcome.starts)  # each went on the 4 steps, judged where it ended
     assert outcome.integrator == "prb" and outcome.rmse <= outcome.start_rmse  # glass shows no medium
     # the chosen start's short run, its descent, a move off a bound, optional lobes off
@@ -240,3 +245,40 @@ def test_the_answer_is_the_candidate_of_lowest_noise_free_error_not_the_lowest_s
     assert squared == judge.squared(params.from_unit(truth))
     assert scene_judge.root(judge.squared(params.from_unit(green))) > scene_judge.root(squared) + 10  # far from it
     assert scene_fit.closest(judge, [truth], []) == (truth, squared)
+
+
+def test_the_chosen_start_descends_again_with_other_seeds_and_the_closest_answer_or_their_mean_is_kept(
+    red_knot_fit, monkeypatch
+):
+    renderer, target, weights = red_knot_fit
+    judge = scene_judge.Judge(renderer, target, weights)
+    problem = scene_fit.problem_of(renderer, target, weights, "prb", linear=True)
+    start = params.to_unit(scene_fit._probe(presets.preset("red-plastic"), base_color_r=0.3, roughness=0.5))
+    points, losses = refine.path(problem, start, 3, seed=refine.SEED + 1)
+    answer, squared = scene_fit.closest(judge, points, losses)
+    chosen = {"name": "given", "point": start, "answer": answer, "answer_squared": squared, "more": losses}
+    descents, path = [], refine.path
+
+    def heard_path(problem, point, steps, **options):  # the real descent, where it starts and its seeds noted
+        descents.append((point.copy(), steps, options["seed"]))
+        found = path(problem, point, steps, **options)
+        answers.append(found)
+        return found
+
+    answers: list = []
+    monkeypatch.setattr(refine, "path", heard_path)
+    kept, kept_losses, done = scene_fit.again(judge, problem, chosen, 3, seed=refine.SEED + 1, hold=(), held=0)
+    # two more descents of the same steps from the chosen start's point, their seeds apart from its and each other's
+    assert [(steps, seed) for _, steps, seed in descents] == [(3, refine.SEED + 1001), (3, refine.SEED + 2001)]
+    assert all(np.array_equal(point, start) for point, _, _ in descents)
+    assert not np.array_equal(answers[0][0][-1], answers[1][0][-1])  # other seeds, other descents
+    errors = done["errors"]
+    assert done["start"] == "given" and errors["descent 1"] == round(scene_judge.root(squared), 3)
+    assert errors[done["kept"]] == min(errors.values())  # the judge's pick: the answer of lowest noise-free error
+    mean = np.mean([answer, *(scene_fit.closest(judge, *found)[0] for found in answers)], axis=0)
+    candidates = {"descent 1": answer, "mean": mean} | {
+        f"descent {k + 2}": scene_fit.closest(judge, *found)[0] for k, found in enumerate(answers)
+    }
+    np.testing.assert_allclose(kept, candidates[done["kept"]])
+    assert errors["mean"] == round(scene_judge.root(judge.squared(params.from_unit(mean))), 3)
+    assert len(kept_losses) == 3

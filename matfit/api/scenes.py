@@ -199,6 +199,7 @@ def fit_in_scene(
         plain=outcome.plain,
         judge=outcome.judge,
         residual=outcome.residual,
+        again=outcome.again,
         steps={"short": min(scene_fit.SHORT_STEPS, max(1, steps // 4)), "descent": steps, "spp": scene_fit.STEP_SPP},
         integrator=outcome.integrator,
         region_fraction=round(float(outcome.weights.mean()), 4),
