@@ -94,6 +94,7 @@ def test_matfit_fit_in_a_scene_writes_every_output_and_comes_closer(scene, edite
     # in the image past `scene_fit.DARKENING` (a red plastic under a studio light: encoded)
     assert set(document["residual"]) == {"darkening", "linear"} and document["residual"]["darkening"] > 0
     assert document["residual"]["darkening"] < scene_fit.DARKENING and document["residual"]["linear"] is False
+    assert document["again"] == {}  # an opaque fit's chosen start descends once (`scene_fit.again`: a transmissive's)
     assert images.header(str(out["big.png"]))[:2] == (32, 24)
     assert "matfit-material" in out["m.xml"].read_text()
     assert matfit.Material.read(out["p.json"]) == matfit.Material.from_dict(document["params"])
