@@ -32,25 +32,28 @@ shapes. In order:
    three over 1.0 by the stricter judge; held, 0.67-0.69 over six: [measured](docs/scenes.md#the-lobes-held)). While
    an opaque fit holds them its steps take Huber's loss (`ROBUST`), the squares after. Of a descent's visited point
    of lowest step loss, its last point and the mean of its last quarter's points, the one of lowest noise-free error
-   is its answer (`closest`): a step's loss is one seed's, and where the loss lies flat at its noise its lowest point
-   is partly luck; of the starts' answers, the one of lowest noise-free error goes on. A transmissive fit's chosen
-   start then descends `AGAIN` more times from its short run's point with other step seeds, and of the three answers
-   and their mean the one of lowest noise-free error goes on (`again`): where the loss lies flat at its noise, one
-   start's descents end where their seeds take them (the bench's jade knot: 1.0-4.5 apart). From there on an opaque
-   fit's judge looks past the target's outlying pixels where the renders of where its descent ends have heavy-tailed
-   noise (`Judge.robust`: a glossy metal's fireflies under a small light).
+   is its answer (`scene_descent.closest`): a step's loss is one seed's, and where the loss lies flat at its noise
+   its lowest point is partly luck; of the starts' answers, the one of lowest noise-free error goes on. A
+   transmissive fit's chosen start then descends `scene_descent.AGAIN` more times from its short run's point with
+   other step seeds, and of the three answers and their mean the one of lowest noise-free error goes on
+   (`scene_descent.again`): where the loss lies flat at its noise, one start's descents end where their seeds take
+   them (the bench's jade knot: 1.0-4.5 apart). From there on an opaque fit's judge looks past the target's
+   outlying pixels where the renders of where its descent ends have heavy-tailed noise (`Judge.robust`: a glossy
+   metal's fireflies under a small light).
 4. Off the bounds: at some bounds the gradient is zero (sheen and clearcoat at 0 are not evaluated) or wrong
-   (roughness at 0, a near-mirror lobe's: `refine`'s docstring), so the descent cannot leave them (`TRAPS`). Each
-   such parameter the descent left there is moved inward by `INWARD` and judged; if one is closer, `short` more
-   steps go on from it, and the point of the three of lowest noise-free error is the answer (the bench's box under
-   a sky: roughness stuck at 0 against a truth of 0.3, 1.77 -> 0.69).
+   (roughness at 0, a near-mirror lobe's: `refine`'s docstring), so the descent cannot leave them
+   (`scene_descent.TRAPS`). Each such parameter the descent left there is moved inward by `scene_descent.INWARD`
+   and judged; if one is closer, `short` more steps go on from it, and the point of the three of lowest noise-free
+   error is the answer (`scene_descent.off_bounds`; the bench's box under a sky: roughness stuck at 0 against a
+   truth of 0.3, 1.77 -> 0.69).
 5. Plain lobes (`scene_plain`): the lobes a material can do without (`OPTIONAL`: clearcoat, sheen, anisotropy)
    that the answer holds are turned off, all together and else each alone, the others re-descended for `short`
    steps with them held at 0; a try is kept unless the answer is closer by `PLAIN_LEAD` standard errors
    (`Judge.behind`). The descent puts on a lobe to follow the target's noise as readily as the picture's light, and
    a lobe whose gradient is 0 at 0 cannot be taken off by it (`plain`).
    Then a roughness, or a shown medium's density, within `NEAR_ZERO` of 0 is tried at 0 by the same rule, without
-   steps (`at_zero`): smooth and clear are plainer, and roughness 0 a bound the descent cannot reach (`TRAPS`).
+   steps (`at_zero`): smooth and clear are plainer, and roughness 0 a bound the descent cannot reach
+   (`scene_descent.TRAPS`).
 6. The answer is judged against the start, and kept only if its noise-free error is lower: never worse than the
    start, as the two renders see it.
 7. What one view decides (`scene_ranges`): each parameter moved by `PROBE` in the unit cube both ways from the
@@ -75,7 +78,7 @@ import numpy as np
 
 from matfit import images, params
 from matfit.errors import SceneError
-from matfit.fitting import refine, scene_plain, scene_ranges
+from matfit.fitting import refine, scene_descent, scene_plain, scene_ranges
 from matfit.fitting.scene_judge import JUDGE_SEED, SECOND_SEED, Judge, root
 from matfit.rendering import engine, scene_file
 from matfit.rendering import scene as scene_model
@@ -92,13 +95,6 @@ NOT_THIS_SCENE_RMSE = 20.0  # 0-255 outside the region: a picture further than t
 # region's pixels are those the shape changes by 6 or more; two renders' noise alone stays under it)
 NOTHING_RMSE = 4.0
 NOISE_RADIUS = 2  # the noise variance of a pixel is averaged over its 5x5 neighbours (`precision`)
-INWARD = (0.1, 0.25)  # unit-cube distances from a bound that the judge tries for a parameter the descent left there
-# The bounds the descent cannot leave by its gradient: sheen and clearcoat at 0 (Mitsuba does not evaluate a lobe
-# of weight 0, so their derivative there is 0) and roughness at 0 (a near-mirror lobe's gradient, its directions
-# sampled detached, is valid only in expectation and very noisy: `refine`'s docstring). Elsewhere at a bound the
-# gradient is valid, and a move there that the judge favours is the target's noise (measured: spec_tint moved off 0
-# on the glass knot, closer to the picture at two seeds, further from the truth, 1.78 -> 2.32).
-TRAPS = ("roughness", "sheen", "clearcoat")
 # The share of a fit's descent that holds the optional lobes (and a transmissive start's spec_trans) where they
 # started (`holding`)
 LOBES_HELD = 0.5
@@ -112,11 +108,6 @@ ROBUST = 3.0
 # knot under the sun 0.26, its other opaque cases and edits 0.01-0.05 (docs/scenes.md#the-steps-darkening)
 DARKENING = 0.5
 ASPECT_TOLERANCE = 0.02
-# A transmissive fit's chosen start descends this many more times from its short run's point, each with other step
-# seeds (`SEEDS_APART` apart), and the judge picks among the descents' answers and their mean (`again`): one start's
-# descents of the jade knot ended 1.0-4.5 apart by the bench (docs/scenes.md#the-chosen-start-descending-again)
-AGAIN = 2
-SEEDS_APART = 1000
 
 
 @dataclass(frozen=True)
@@ -147,7 +138,8 @@ class SceneOutcome:
     # the descent's step residual: the darkening of a step's image where the descent began (`Judge.darkening`, an
     # opaque fit's), whether the residual was linear in the image (`DARKENING`; a transmissive fit's always)
     residual: dict[str, object] = field(default_factory=dict)
-    # a transmissive fit's chosen start descending again (`again`): the start, each answer's judged RMSE, which was kept
+    # a transmissive fit's chosen start descending again (`scene_descent.again`): the start, each answer's judged
+    # RMSE, which was kept
     again: dict[str, object] = field(default_factory=dict)
 
 
@@ -406,7 +398,7 @@ def fit(
     short = min(SHORT_STEPS, max(1, steps // 4))
     total = (
         short * len(candidates)
-        + steps * (len(candidates) + AGAIN if every else 1)
+        + steps * (len(candidates) + scene_descent.AGAIN if every else 1)
         + short
         + short * (1 + len(scene_plain.OPTIONAL))
     )
@@ -459,7 +451,7 @@ def fit(
     looked: dict[str, object] = {}
     if not every:  # from here on an opaque fit's judge looks past a heavy-tailed target's outlying pixels, as seen
         # from where its descent ends (`Judge.robust`); a transmissive fit's caustics are its picture, not its noise
-        reference = params.from_unit(ending(descended[0]["points"]))
+        reference = params.from_unit(scene_descent.ending(descended[0]["points"]))
         robust = judge.robust(reference)
         weight = float(robust.weights.sum() / max(float(judge.weights.sum()), 1e-12))
         looked = {
@@ -469,15 +461,17 @@ def fit(
         }
         judge = robust
     for t in descended:
-        t["answer"], t["answer_squared"] = closest(judge, t["points"], t["more"])
+        t["answer"], t["answer_squared"] = scene_descent.closest(judge, t["points"], t["more"])
     best = min((t for t in tried if "answer" in t), key=lambda t: t["answer_squared"])
     point, more = best["answer"], best["more"]
     descents: dict[str, object] = {}
     if every:
-        point, more, descents = again(
+        point, more, descents = scene_descent.again(
             judge, problem, best, steps, seed=refine.SEED + short, hold=hold, held=held, progress=heard("again")
         )
-    point, bounds, inward = off_bounds(judge, problem, point, short, seed=short + steps, progress=heard("bounds"))
+    point, bounds, inward = scene_descent.off_bounds(
+        judge, problem, point, short, seed=short + steps, progress=heard("bounds")
+    )
     point, plainer, simpler = scene_plain.plain(
         judge, problem, point, short, seed=2 * short + steps, progress=heard("plain")
     )
@@ -521,103 +515,3 @@ def fit(
         residual,
         descents,
     )
-
-
-def closest(judge: Judge, points: list[np.ndarray], losses: list[float]) -> tuple[np.ndarray, float]:
-    """Returns (the descent's answer, its `Judge.squared`): of the visited point of lowest step loss, the last point
-    and the mean of the last quarter's points (unit cube, `refine.path`'s), the one whose noise-free error at two
-    seeds is lowest. A held step's loss is Huber's, lower than the squares, and counts: sought among the squares'
-    steps alone, the red knot under the sun lost its coat in three runs of six (docs/scenes.md#the-lowest-step)."""
-    if not losses:
-        return points[0], judge.squared(params.from_unit(points[0]))
-    candidates = [points[int(np.argmin(losses))], points[-1], ending(points)]
-    judged = [judge.squared(params.from_unit(p)) for p in candidates]
-    kept = int(np.argmin(judged))
-    return candidates[kept], judged[kept]
-
-
-def again(
-    judge: Judge,
-    problem: refine.Problem,
-    chosen: dict[str, Any],
-    steps: int,
-    *,
-    seed: int,
-    hold: tuple[int, ...],
-    held: int,
-    progress: Callable[[int, float], None] | None = None,
-) -> tuple[np.ndarray, list[float], dict[str, object]]:
-    """Returns (the answer, its descent's step losses, what the stage did) after the `chosen` start (`fit`'s entry:
-    its short run's `point`, its descent's `answer`, `answer_squared` and `more` losses) descends `AGAIN` more times
-    from the same point, `steps` steps with seeds from `seed` + k `SEEDS_APART` and its hold, each answer by `closest`:
-    of the descents' answers and their mean (unit cube), the one of lowest noise-free error (`Judge.squared`).
-
-    Where the loss lies flat at its noise, one start's descent ends where its steps' seeds take it: the jade knot's
-    three descents from one point ended 1.0-4.5 apart by the bench, their mean often closer than each; where they end
-    in other valleys the mean is far off, and the judge keeps the closest answer (docs/scenes.md)."""
-    answers = [(np.asarray(chosen["answer"]), float(chosen["answer_squared"]), list(chosen["more"]))]
-    for k in range(1, AGAIN + 1):
-        points, losses = refine.path(
-            problem,
-            np.asarray(chosen["point"]),
-            steps,
-            spp=STEP_SPP,
-            seed=seed + k * SEEDS_APART,
-            progress=progress,
-            hold=hold,
-            held=held,
-        )
-        point, squared = closest(judge, points, losses)
-        answers.append((point, squared, losses))
-    mean = np.clip(np.mean([a[0] for a in answers], axis=0), 0.0, 1.0)
-    answers.append((mean, judge.squared(params.from_unit(mean)), answers[0][2]))
-    kept = int(np.argmin([a[1] for a in answers]))
-    names = [*(f"descent {k + 1}" for k in range(AGAIN + 1)), "mean"]
-    done: dict[str, object] = {
-        "start": chosen["name"],
-        "errors": {name: round(root(a[1]), 3) for name, a in zip(names, answers, strict=True)},
-        "kept": names[kept],
-    }
-    return answers[kept][0], answers[kept][2], done
-
-
-def ending(points: list[np.ndarray]) -> np.ndarray:
-    """Returns the mean of the last quarter of a descent's points (unit cube): where it ends, its steps' noise
-    averaged."""
-    return np.mean(points[-max(1, len(points) // 4) :], axis=0)
-
-
-def off_bounds(
-    judge: Judge,
-    problem: refine.Problem,
-    point: np.ndarray,
-    steps: int,
-    *,
-    seed: int,
-    progress: Callable[[int, float], None] | None = None,
-) -> tuple[np.ndarray, dict[str, object], list[float]]:
-    """Returns (the point, what the stage did, the losses of its steps) after trying each of `TRAPS` that `point`
-    (unit cube) leaves at 0 moved inward by `INWARD`: the try of lowest noise-free error (`Judge.squared`), if
-    lower than `point`'s, goes on for `steps` steps (seeds from refine.SEED + `seed`), and of the three points the
-    one of lowest noise-free error is returned."""
-    point = np.asarray(point, np.float64)
-    base = judge.squared(params.from_unit(point))
-    tries = []
-    for name in TRAPS:
-        i = params.INDEX[name]
-        if point[i] > scene_plain.OFF:
-            continue
-        for distance in INWARD:
-            moved = point.copy()
-            moved[i] = distance
-            tries.append((judge.squared(params.from_unit(moved)), name, float(moved[i]), moved))
-    done: dict[str, object] = {"error": round(root(base), 3), "tried": len(tries), "moved": None}
-    if not tries or min(t[0] for t in tries) >= base:
-        return point, done, []
-    judged, name, value, moved = min(tries, key=lambda t: t[0])
-    further, losses = refine.descend(problem, moved, steps, spp=STEP_SPP, seed=refine.SEED + seed, progress=progress)
-    three = [base, judged, judge.squared(params.from_unit(further))]
-    kept = int(np.argmin(three))
-    done.update({"moved": name, "to": round(value, 3), "errors": [round(root(e), 3) for e in three]})
-    done["kept"] = ("the descent's point", "the moved point", "the steps after it")[kept]
-    return (point, moved, further)[kept], done, losses

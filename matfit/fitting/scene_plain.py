@@ -2,7 +2,7 @@
 by `PLAIN_LEAD` standard errors (`Judge.behind`): its optional lobes turned off and the others re-descended
 (`plain`), and a roughness or a shown medium's density near 0 set to 0 (`at_zero`). The descent puts on a lobe to
 follow the target's noise as readily as the picture's light, and a lobe whose gradient is 0 at 0 cannot be taken off
-by it; roughness 0 is a bound the descent cannot reach (`scene_fit.TRAPS`). Stage 5 of `scene_fit` and
+by it; roughness 0 is a bound the descent cannot reach (`scene_descent.TRAPS`). Stage 5 of `scene_fit` and
 docs/scenes.md#smooth-and-clear.
 """
 
