@@ -182,3 +182,47 @@ def test_bad_settings_are_one_line_errors_naming_the_value_and_the_fix(arguments
     with pytest.raises(FitError) as raised:
         refine.refine(**call)
     assert message in str(raised.value) and "\n" not in str(raised.value)
+
+
+def test_a_medium_whose_extinction_differs_by_channel_steps_one_channel_a_render_without_heavy_tails(
+    tmp_path, llvm, monkeypatch
+):
+    from dataclasses import replace
+
+    from matfit.fitting import scene_fit
+    from matfit.rendering import scene_file, scene_library
+
+    box = scene_file.read(scene_library.write(str(tmp_path), "box", "sky", width=32, height=24), "object")
+    renderer = scene_file.Renderer(box, box.size(32))
+    jade = presets.preset("jade")
+    target = np.clip(images.srgb_encode(renderer.render(jade, seed=3, spp=64)), 0.0, 1.0).astype(np.float32)
+    region = scene_fit.region(renderer)[0]
+    weights = region.astype(np.float32)
+    problem = scene_fit.problem_of(renderer, target, weights, "prbvolpath", linear=True, by_channel=True)
+    assert len(problem.channels) == 3 and problem.channels[0][0] is problem.scene
+    assert scene_fit.problem_of(renderer, target, weights, "prbvolpath", linear=True).channels == ()  # an opaque fit's
+    unit = params.to_unit(jade)
+    assert refine.coloured(unit)
+    assert not refine.coloured(params.to_unit(presets.preset("glass")))  # clear: one extinction in every channel
+    opaque = unit.copy()
+    opaque[params.INDEX["spec_trans"]] = 0.0  # no light reaches the medium
+    assert not refine.coloured(opaque)
+
+    def images_of(p):
+        return np.array([np.array(refine.step_image(p, llvm.Float(unit), unit, seed, 8)) for seed in range(6)])
+
+    monkeypatch.setattr(refine, "CHANNEL_SHARE", 1)  # as many samples a channel as in one render: the estimators alone
+    by_channel, in_one = images_of(problem), images_of(replace(problem, channels=()))
+    reference = renderer.render(jade, seed=5, spp=1024)[region]
+    for found in (by_channel, in_one):  # both estimate the same image
+        np.testing.assert_allclose(found.mean(axis=0)[region].mean(axis=0), reference.mean(axis=0), rtol=0.08)
+    spread = [found.std(axis=0)[region].mean(axis=0) for found in (by_channel, in_one)]
+    assert np.all(spread[0] < spread[1])
+    assert by_channel[:, region].max() < 1.5 < in_one[:, region].max()  # no firefly of a transmittance ratio
+    # one step moves the medium's colour in every channel: the gradient flows through each channel's render
+    monkeypatch.undo()
+    start = unit.copy()
+    colour = [params.INDEX[f"medium_color_{c}"] for c in "rgb"]
+    start[colour] = np.clip(start[colour] + 0.1, 0.0, 1.0)
+    points, _ = refine.path(problem, start, 1, seed=9)
+    assert np.all(points[1][colour] != start[colour])

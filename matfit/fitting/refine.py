@@ -80,6 +80,10 @@ ACCEPT_SEED = 2_000_029  # the common seed of the two acceptance renders
 ACCEPT_SPP = 128  # enough to rank two materials with common random numbers (verification's 64 and more)
 BETAS = (0.9, 0.999)
 EPSILON = 1e-8
+# a step that renders by channel gives each channel's render its samples over this (`step_image`): at the bench's jade
+# box a step took 0.64 s so against 0.45-0.51 s in one render (0.73-0.86 s over 2)
+CHANNEL_SHARE = 4
+CHANNEL_TOLERANCE = 1e-3  # a medium's extinction differs by channel where its largest is over its smallest by more
 MEAN_DECAY = 0.5  # the running mean of the steps' images that sets each step's residual slope (`secant`)
 
 
@@ -133,8 +137,11 @@ def medium_textures(values: list[mi.Float]) -> tuple[mi.Color3f, mi.Color3f]:
     return mi.Color3f(*sigma_t), mi.Color3f(scattering, scattering, scattering)
 
 
-def set_material(scene_parameters: mi.SceneParameters, values: list[mi.Float], keys: engine.Keys) -> None:
-    """Writes physical Dr.Jit values into a loaded scene at `keys`, as `engine.set_material` writes NumPy ones."""
+def set_material(
+    scene_parameters: mi.SceneParameters, values: list[mi.Float], keys: engine.Keys, channel: int | None = None
+) -> None:
+    """Writes physical Dr.Jit values into a loaded scene at `keys`, as `engine.set_material` writes NumPy ones;
+    `channel`: the medium's extinction that colour channel's in all three (`step_image`)."""
     import mitsuba as mi
 
     index = params.INDEX
@@ -142,6 +149,8 @@ def set_material(scene_parameters: mi.SceneParameters, values: list[mi.Float], k
     for name in engine.SCALAR_BSDF_PARAMETERS:
         scene_parameters[keys.scalar(name)] = values[index[name]]
     sigma_t, albedo = medium_textures(values)
+    if channel is not None:
+        sigma_t = mi.Color3f(sigma_t[channel], sigma_t[channel], sigma_t[channel])
     scene_parameters[keys.sigma_t] = sigma_t
     scene_parameters[keys.albedo] = albedo
     scene_parameters[keys.phase_g] = values[index["phase_g"]]
@@ -337,6 +346,46 @@ class Problem:
     weights: mi.TensorXf  # (H, W, 3), summing to 1 (`normalised_weights`)
     linear: bool = False  # each step's residual linear in its image (`secant`), not its image encoded (`srgb_rmse`)
     robust: float | None = None  # Huber's corner in robust spreads of the residuals (`huber_corner`); None: squares
+    # the scene loaded once for each colour channel (the first `scene` itself), where a step renders a medium whose
+    # extinction differs by channel one channel at a time (`step_image`); empty: in one render
+    channels: tuple[tuple[mi.Scene, mi.SceneParameters], ...] = ()
+
+
+def coloured(unit: np.ndarray) -> bool:
+    """Returns whether the material at `unit` (unit cube) has a medium that shows whose extinction differs by colour
+    channel: one that `prbvolpath` renders with heavy-tailed noise in one render (`step_image`)."""
+    values = params.from_unit(np.asarray(unit, np.float64))
+    sigma_t = np.asarray(params.medium_coefficients(values)[0], np.float64)
+    return bool(params.shows_medium(values) and sigma_t.max() > (1.0 + CHANNEL_TOLERANCE) * sigma_t.min())
+
+
+def step_image(problem: Problem, unit: mi.Float, x: np.ndarray, seed: int, spp: int) -> mi.TensorXf:
+    """Returns a step's linear image (H, W, 3) of the material at `unit` (its Dr.Jit coordinates, `x` their
+    values): `PRIMAL` x `spp` samples for the image, `spp` for the gradient.
+
+    `prbvolpath` samples a path's distances in a medium by one colour channel's extinction, chosen at random, and
+    weighs the others by the ratio of their transmittance to its (no spectral MIS, unlike `volpathmis`: Mitsuba's
+    issue 1846). Where the extinction differs by channel the ratio grows without bound along a path: at the bench's
+    jade box under the sky the truth's renders at 64 samples read pixels up to 13.3 (`volpathmis`'s 0.78), and a
+    step's gradients at the truth spread 5-10 times as wide as by channel
+    (docs/scenes.md#a-mediums-colours-a-render-each).
+    So where the `problem` has `channels` and the material is `coloured`, each channel renders in its own scene with
+    that channel's extinction in all three, which `prbvolpath` renders without ratios, with `spp` / `CHANNEL_SHARE`
+    samples, and the image takes channel c of render c (one seed: each scene's noise its own)."""
+    mi = problem.mitsuba
+    values = physical(unit)
+    if not problem.channels or not coloured(x):
+        set_material(problem.parameters, values, problem.keys)
+        return mi.render(problem.scene, problem.parameters, seed=seed & 0xFFFFFFFF, spp=PRIMAL * spp, spp_grad=spp)
+    share = max(1, spp // CHANNEL_SHARE)
+    parts = []
+    for channel, (loaded, scene_parameters) in enumerate(problem.channels):
+        set_material(scene_parameters, values, problem.keys, channel)
+        rendered = mi.render(loaded, scene_parameters, seed=seed & 0xFFFFFFFF, spp=PRIMAL * share, spp_grad=share)
+        picked = np.zeros(tuple(rendered.shape), np.float32)
+        picked[..., channel] = 1.0
+        parts.append(rendered * mi.TensorXf(picked))
+    return parts[0] + parts[1] + parts[2]
 
 
 def _descend(
@@ -416,10 +465,7 @@ def path(
         points.append(x)
         unit = mi.Float(x)
         dr.enable_grad(unit)
-        set_material(problem.parameters, physical(unit), problem.keys)
-        image = mi.render(
-            problem.scene, problem.parameters, seed=(seed + step) & 0xFFFFFFFF, spp=PRIMAL * spp, spp_grad=spp
-        )
+        image = step_image(problem, unit, x, seed + step, spp)
         corner = None
         spreads = problem.robust if step < held else None  # Huber's while the search holds, then the squares
         if problem.linear or spreads is not None:

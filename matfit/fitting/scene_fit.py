@@ -250,29 +250,41 @@ def region(
 
 
 def problem_of(
-    renderer: scene_file.Renderer, target: np.ndarray, weights: np.ndarray, integrator: str, linear: bool = False
+    renderer: scene_file.Renderer,
+    target: np.ndarray,
+    weights: np.ndarray,
+    integrator: str,
+    linear: bool = False,
+    by_channel: bool = False,
 ) -> refine.Problem:
     """Returns the scene of `renderer` loaded for `refine.descend` with `integrator` ("prb" or "prbvolpath") at the
     path length `renderer` judges with, its renders compared with the sRGB `target` over `weights` (h, w), each
     step's residual linear in its image where `linear` (`refine.Problem.linear`, a transmissive fit's), else its loss
-    Huber's (`ROBUST`)."""
+    Huber's (`ROBUST`); under `prbvolpath` where `by_channel` (a transmissive fit's), the scene loaded for each colour
+    channel too, so that a step renders a medium whose extinction differs by channel one channel at a time
+    (`refine.step_image`)."""
     mi, scene, size = renderer.mi, renderer.scene_file, renderer.size
     start_values = scene.own if scene.own is not None else scene_model.all_lobes_values()
     # the judge's path length, so that a step's image is in expectation the judged one (at 12 against the judge's
     # 64 the bench's jade read 2.5 darker over the region, glass 0.9: `refine.MAX_DEPTH`)
     depth = cast(int, renderer.integrator.get("max_depth", scene_model.MAX_DEPTH))
-    loaded = scene_file.load(
-        mi, scene, scene_file.xml(scene, start_values, size, integrator={"type": integrator, "max_depth": depth})
-    )
+    description = scene_file.xml(scene, start_values, size, integrator={"type": integrator, "max_depth": depth})
+    loaded = scene_file.load(mi, scene, description)
+    parameters = mi.traverse(loaded)
+    channels: tuple[tuple[Any, Any], ...] = ()
+    if integrator == "prbvolpath" and by_channel:
+        copies = [scene_file.load(mi, scene, description) for _ in range(2)]
+        channels = ((loaded, parameters), *((copy, mi.traverse(copy)) for copy in copies))
     return refine.Problem(
         mi,
         loaded,
-        mi.traverse(loaded),
+        parameters,
         engine.Keys(scene.object),
         mi.TensorXf(target),
         mi.TensorXf(refine.normalised_weights(weights)),
         linear,
         None if linear else ROBUST,
+        channels,
     )
 
 
@@ -393,7 +405,7 @@ def fit(
     # the curve compresses (linear throughout, the edits ended further: desaturated 4.01 and 3.92 against 1.41),
     # unless its descent begins where a step's image reads darker than `DARKENING` (below)
     every = transmissive(first)  # every start descends, spec_trans held at first; else the closest start alone
-    problem = problem_of(renderer, target, weights, integrator, linear=every)
+    problem = problem_of(renderer, target, weights, integrator, linear=every, by_channel=every)
     candidates = starts(first)
     short = min(SHORT_STEPS, max(1, steps // 4))
     total = (
