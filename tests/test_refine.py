@@ -221,6 +221,8 @@ def test_a_medium_whose_extinction_differs_by_channel_steps_one_channel_a_render
     assert by_channel[:, region].max() < 1.5 < in_one[:, region].max()  # no firefly of a transmittance ratio
     # one step moves the medium's colour in every channel: the gradient flows through each channel's render
     monkeypatch.undo()
+    one, by_channel = refine.channel_noise(problem, unit, 8, (1, 2))  # a quarter of the samples a channel, and quieter
+    assert 0 < by_channel < 0.9 * one
     start = unit.copy()
     colour = [params.INDEX[f"medium_color_{c}"] for c in "rgb"]
     start[colour] = np.clip(start[colour] + 0.1, 0.0, 1.0)

@@ -388,6 +388,25 @@ def step_image(problem: Problem, unit: mi.Float, x: np.ndarray, seed: int, spp: 
     return parts[0] + parts[1] + parts[2]
 
 
+def channel_noise(problem: Problem, unit: np.ndarray, spp: int, seeds: tuple[int, int]) -> tuple[float, float]:
+    """Returns (a step image's noise variance in one render, rendering by channel; `step_image`'s, `PRIMAL` x `spp`
+    samples) at `unit`, each from two renders at `seeds`: half the weighted mean square of their difference, the image
+    clipped to [0, 1] as a step's loss clips it. Which is lower depends on the light: at the jade box under the sky a
+    render by channel is far less noisy, at the jade knot under the studio light its quarter of the samples make it
+    noisier (docs/scenes.md#a-mediums-colours-a-render-each)."""
+    from dataclasses import replace
+
+    mi = problem.mitsuba
+    weights = np.asarray(problem.weights, np.float64)
+    found = []
+    for p in (replace(problem, channels=()), problem):
+        a, b = (
+            np.clip(np.array(step_image(p, mi.Float(unit), unit, seed, spp), np.float64), 0.0, 1.0) for seed in seeds
+        )
+        found.append(float(0.5 * (weights * np.square(a - b)).sum() / max(weights.sum(), 1e-12)))
+    return found[0], found[1]
+
+
 def _descend(
     start: np.ndarray,
     target: np.ndarray,

@@ -25,6 +25,8 @@ TRAPS = ("roughness", "sheen", "clearcoat")
 # seeds (`SEEDS_APART` apart), and the judge picks among the descents' answers and their mean (`again`): one start's
 # descents of the jade knot ended 1.0-4.5 apart by the bench (docs/scenes.md#the-chosen-start-descending-again)
 AGAIN = 2
+# ... and where its steps render a channel a render (`refine.step_image`), whose descents scatter less
+AGAIN_BY_CHANNEL = 1
 SEEDS_APART = 1000
 
 
@@ -51,9 +53,10 @@ def again(
     hold: tuple[int, ...],
     held: int,
     progress: Callable[[int, float], None] | None = None,
+    times: int = AGAIN,
 ) -> tuple[np.ndarray, list[float], dict[str, object]]:
     """Returns (the answer, its descent's step losses, what the stage did) after the `chosen` start (`fit`'s entry:
-    its short run's `point`, its descent's `answer`, `answer_squared` and `more` losses) descends `AGAIN` more times
+    its short run's `point`, its descent's `answer`, `answer_squared` and `more` losses) descends `times` more times
     from the same point, `steps` steps with seeds from `seed` + k `SEEDS_APART` and its hold, each answer by `closest`:
     of the descents' answers and their mean (unit cube), the one of lowest noise-free error (`Judge.squared`).
 
@@ -61,7 +64,7 @@ def again(
     three descents from one point ended 1.0-4.5 apart by the bench, their mean often closer than each; where they end
     in other valleys the mean is far off, and the judge keeps the closest answer (docs/scenes.md)."""
     answers = [(np.asarray(chosen["answer"]), float(chosen["answer_squared"]), list(chosen["more"]))]
-    for k in range(1, AGAIN + 1):
+    for k in range(1, times + 1):
         points, losses = refine.path(
             problem,
             np.asarray(chosen["point"]),
@@ -77,7 +80,7 @@ def again(
     mean = np.clip(np.mean([a[0] for a in answers], axis=0), 0.0, 1.0)
     answers.append((mean, judge.squared(params.from_unit(mean)), answers[0][2]))
     kept = int(np.argmin([a[1] for a in answers]))
-    names = [*(f"descent {k + 1}" for k in range(AGAIN + 1)), "mean"]
+    names = [*(f"descent {k + 1}" for k in range(times + 1)), "mean"]
     done: dict[str, object] = {
         "start": chosen["name"],
         "errors": {name: round(root(a[1]), 3) for name, a in zip(names, answers, strict=True)},

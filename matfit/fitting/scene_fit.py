@@ -35,7 +35,8 @@ shapes. In order:
    is its answer (`scene_descent.closest`): a step's loss is one seed's, and where the loss lies flat at its noise
    its lowest point is partly luck; of the starts' answers, the one of lowest noise-free error goes on. A
    transmissive fit's chosen start then descends `scene_descent.AGAIN` more times from its short run's point with
-   other step seeds, and of the three answers and their mean the one of lowest noise-free error goes on
+   other step seeds (`AGAIN_BY_CHANNEL` where its steps render a channel a render, `refine.step_image`, and scatter
+   less), and of the answers and their mean the one of lowest noise-free error goes on
    (`scene_descent.again`): where the loss lies flat at its noise, one start's descents end where their seeds take
    them (the bench's jade knot: 1.0-4.5 apart). From there on an opaque fit's judge looks past the target's
    outlying pixels where the renders of where its descent ends have heavy-tailed noise (`Judge.robust`: a glossy
@@ -136,7 +137,9 @@ class SceneOutcome:
     # looked past the target's outlying pixels (`Judge.robust`), the share of the weight it kept
     judge: dict[str, object] = field(default_factory=dict)
     # the descent's step residual: the darkening of a step's image where the descent began (`Judge.darkening`, an
-    # opaque fit's), whether the residual was linear in the image (`DARKENING`; a transmissive fit's always)
+    # opaque fit's), whether the residual was linear in the image (`DARKENING`; a transmissive fit's always); where a
+    # transmissive start's medium is coloured, whether its steps rendered by channel (`refine.step_image`) and the two
+    # ways' noise variances at the start (x 1e6, `refine.channel_noise`)
     residual: dict[str, object] = field(default_factory=dict)
     # a transmissive fit's chosen start descending again (`scene_descent.again`): the start, each answer's judged
     # RMSE, which was kept
@@ -406,11 +409,20 @@ def fit(
     # unless its descent begins where a step's image reads darker than `DARKENING` (below)
     every = transmissive(first)  # every start descends, spec_trans held at first; else the closest start alone
     problem = problem_of(renderer, target, weights, integrator, linear=every, by_channel=every)
+    residual: dict[str, object] = {"linear": every}
+    if problem.channels and refine.coloured(params.to_unit(first)):  # one render a step or one a channel: the quieter
+        one, by_channel = refine.channel_noise(problem, params.to_unit(first), STEP_SPP, (JUDGE_SEED, SECOND_SEED))
+        residual.update({"by_channel": by_channel < one, "noise": [round(1e6 * one, 2), round(1e6 * by_channel, 2)]})
+        if by_channel >= one:
+            problem = replace(problem, channels=())
+    elif problem.channels:  # a medium of one extinction, or none that shows, at the start: one render a step throughout
+        problem = replace(problem, channels=())
+    again = scene_descent.AGAIN_BY_CHANNEL if problem.channels else scene_descent.AGAIN
     candidates = starts(first)
     short = min(SHORT_STEPS, max(1, steps // 4))
     total = (
         short * len(candidates)
-        + steps * (len(candidates) + scene_descent.AGAIN if every else 1)
+        + steps * (len(candidates) + again if every else 1)
         + short
         + short * (1 + len(scene_plain.OPTIONAL))
     )
@@ -441,7 +453,6 @@ def fit(
         judged = judge.squared(params.from_unit(point))
         tried.append({"name": name, "squared": judged, "point": point, "losses": losses})
     descended = tried if every else [min(tried, key=lambda t: t["squared"])]
-    residual: dict[str, object] = {"linear": every}
     if not every:  # an opaque fit's steps encode their image, unless that reads it much darker than its mean: a glossy
         # metal's fireflies under a small light (the gold knot under the sun, whose answers' green read 0.73-0.76
         # against the truth's 0.71 with the encoded residual)
@@ -479,7 +490,15 @@ def fit(
     descents: dict[str, object] = {}
     if every:
         point, more, descents = scene_descent.again(
-            judge, problem, best, steps, seed=refine.SEED + short, hold=hold, held=held, progress=heard("again")
+            judge,
+            problem,
+            best,
+            steps,
+            seed=refine.SEED + short,
+            hold=hold,
+            held=held,
+            progress=heard("again"),
+            times=again,
         )
     point, bounds, inward = scene_descent.off_bounds(
         judge, problem, point, short, seed=short + steps, progress=heard("bounds")

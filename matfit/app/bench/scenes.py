@@ -153,6 +153,7 @@ def run_case(case: Case, folder: str, steps: int, *, size: int = TARGET_SIZE, ju
         "noise_kurtosis": outcome.judge.get("kurtosis"),
         "darkening": outcome.residual.get("darkening"),  # None: a transmissive fit, whose residual is linear
         "linear_residual": outcome.residual.get("linear"),
+        "by_channel": outcome.residual.get("by_channel"),  # None: no coloured medium at a transmissive start
         "again": outcome.again.get("kept"),  # None: an opaque fit, whose chosen start descends once
         "descents": outcome.again.get("errors"),  # the fit's judge's readings of each descent's answer and their mean
         "at_zero": cast(dict, outcome.bounds.get("at_zero", {})).get("zero"),
