@@ -123,6 +123,31 @@ def test_a_transmissive_fit_descends_from_every_start_and_keeps_the_one_that_end
     assert len(outcome.losses) == 1 + 4 + (1 if moved else 0) + (1 if plainer else 0)
 
 
+def test_a_coloured_mediums_fit_steps_the_quieter_way_and_by_channel_descends_again_once(tmp_path, monkeypatch):
+    from matfit.rendering import scene_library
+
+    box = scene_file.read(scene_library.write(str(tmp_path), "box", "sky", width=32, height=24), "object")
+    jade = presets.preset("jade")
+    picture = scene_file.Renderer(box, box.size(64)).render(jade, seed=11, spp=64)
+    noise = []
+    measured = refine.channel_noise
+
+    def heard(problem, unit, spp, seeds):  # the real measurement, its figures noted
+        noise.append(measured(problem, unit, spp, seeds))
+        return noise[-1]
+
+    monkeypatch.setattr(refine, "channel_noise", heard)
+    outcome = scene_fit.fit(box, picture, start=scene_fit._probe(jade, roughness=0.3), steps=4)
+    ((one, by_channel),) = noise
+    assert outcome.residual["by_channel"] is (by_channel < one) and outcome.integrator == "prbvolpath"
+    assert outcome.residual["noise"] == [round(1e6 * one, 2), round(1e6 * by_channel, 2)]
+    descents = ["descent 1", "descent 2"] if by_channel < one else ["descent 1", "descent 2", "descent 3"]
+    assert list(outcome.again["errors"]) == [*descents, "mean"]
+    assert outcome.rmse <= outcome.start_rmse
+    glass = scene_fit.fit(box, picture, start=scene_fit._probe(presets.preset("glass"), spec_trans=0.8), steps=1)
+    assert "by_channel" not in glass.residual and len(noise) == 1  # a grey medium: one render, nothing measured
+
+
 @pytest.mark.parametrize("darkening", [0.0, 1e9])
 def test_an_opaque_fits_descent_takes_the_linear_residual_where_its_images_darken(
     knot, red_picture, darkening, monkeypatch

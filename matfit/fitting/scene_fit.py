@@ -408,15 +408,14 @@ def fit(
     # the curve compresses (linear throughout, the edits ended further: desaturated 4.01 and 3.92 against 1.41),
     # unless its descent begins where a step's image reads darker than `DARKENING` (below)
     every = transmissive(first)  # every start descends, spec_trans held at first; else the closest start alone
-    problem = problem_of(renderer, target, weights, integrator, linear=every, by_channel=every)
+    coloured = every and refine.coloured(params.to_unit(first))  # a medium of more than one extinction shows
+    problem = problem_of(renderer, target, weights, integrator, linear=every, by_channel=coloured)
     residual: dict[str, object] = {"linear": every}
-    if problem.channels and refine.coloured(params.to_unit(first)):  # one render a step or one a channel: the quieter
+    if problem.channels:  # one render a step or one a channel: the quieter at the start (a grey medium: one render)
         one, by_channel = refine.channel_noise(problem, params.to_unit(first), STEP_SPP, (JUDGE_SEED, SECOND_SEED))
         residual.update({"by_channel": by_channel < one, "noise": [round(1e6 * one, 2), round(1e6 * by_channel, 2)]})
         if by_channel >= one:
             problem = replace(problem, channels=())
-    elif problem.channels:  # a medium of one extinction, or none that shows, at the start: one render a step throughout
-        problem = replace(problem, channels=())
     again = scene_descent.AGAIN_BY_CHANNEL if problem.channels else scene_descent.AGAIN
     candidates = starts(first)
     short = min(SHORT_STEPS, max(1, steps // 4))
