@@ -371,7 +371,8 @@ def step_image(problem: Problem, unit: mi.Float, x: np.ndarray, seed: int, spp: 
     (docs/scenes.md#a-mediums-colours-a-render-each).
     So where the `problem` has `channels` and the material is `coloured`, each channel renders in its own scene with
     that channel's extinction in all three, which `prbvolpath` renders without ratios, with `spp` / `CHANNEL_SHARE`
-    samples, and the image takes channel c of render c (one seed: each scene's noise its own)."""
+    samples, and the image takes channel c of render c (the three at the step's seed: their noise correlated, as
+    one render's channels are)."""
     mi = problem.mitsuba
     values = physical(unit)
     if not problem.channels or not coloured(x):

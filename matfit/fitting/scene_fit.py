@@ -263,9 +263,9 @@ def problem_of(
     """Returns the scene of `renderer` loaded for `refine.descend` with `integrator` ("prb" or "prbvolpath") at the
     path length `renderer` judges with, its renders compared with the sRGB `target` over `weights` (h, w), each
     step's residual linear in its image where `linear` (`refine.Problem.linear`, a transmissive fit's), else its loss
-    Huber's (`ROBUST`); under `prbvolpath` where `by_channel` (a transmissive fit's), the scene loaded for each colour
-    channel too, so that a step renders a medium whose extinction differs by channel one channel at a time
-    (`refine.step_image`)."""
+    Huber's (`ROBUST`); under `prbvolpath` where `by_channel` (a transmissive fit whose start's medium is coloured,
+    `refine.coloured`), the scene loaded for each colour channel too, so that a step can render a medium whose
+    extinction differs by channel one channel at a time (`refine.step_image`)."""
     mi, scene, size = renderer.mi, renderer.scene_file, renderer.size
     start_values = scene.own if scene.own is not None else scene_model.all_lobes_values()
     # the judge's path length, so that a step's image is in expectation the judged one (at 12 against the judge's
