@@ -293,11 +293,19 @@ def load(mi: Any, scene_file: SceneFile, text: str) -> Any:
     resolver.append(scene_file.folder)
     for path in others:
         resolver.append(path)
+    import drjit
+
+    threads = drjit.thread_count()
+    if threads < 2:  # Mitsuba reads an EXR image on Dr.Jit's pool, and on one thread its read waits forever (measured)
+        drjit.set_thread_count(2)
     try:
         return mi.load_string(text)
     except Exception as error:  # Mitsuba raises RuntimeError (and others) with a long trace of the XML
         message = str(error).strip().splitlines()[-1] if str(error).strip() else type(error).__name__
         raise SceneError(f"scene {scene_file.path} does not load in Mitsuba: {message[:300]}", "scene") from None
+    finally:
+        if threads < 2:
+            drjit.set_thread_count(threads)
 
 
 # Forward renders of a scene file (the picture to edit, the answer's render) use matfit's own integrator
