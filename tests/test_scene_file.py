@@ -166,12 +166,11 @@ def test_a_scene_with_an_exr_environment_loads_on_one_drjit_thread(tmp_path):
 
     box = scene_file.read(scene_library.write(str(tmp_path), "box", "sky", width=16, height=12), "object")
     threads = drjit.thread_count()
-    drjit.set_thread_count(
-        1
-    )  # as a renderer of one thread leaves it (engine.Renderer): Mitsuba's EXR read waited forever
+    # one thread, as a renderer of one thread leaves it (engine.Renderer): Mitsuba's EXR read waited forever
+    drjit.set_thread_count(1)
     try:
         renderer = scene_file.Renderer(box, box.size(16))
-        assert drjit.thread_count() == 1  # put back
+        assert drjit.thread_count() == 1  # the load put it back
     finally:
         drjit.set_thread_count(threads)
     assert renderer.render(presets.preset("jade"), seed=1, spp=4).mean() > 0

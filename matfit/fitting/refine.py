@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from typing import TYPE_CHECKING
 
@@ -81,7 +81,7 @@ ACCEPT_SPP = 128  # enough to rank two materials with common random numbers (ver
 BETAS = (0.9, 0.999)
 EPSILON = 1e-8
 # a step that renders by channel gives each channel's render its samples over this (`step_image`): at the bench's jade
-# box a step took 0.64 s so against 0.45-0.51 s in one render (0.73-0.86 s over 2)
+# box a step took 0.64 s against 0.45-0.51 s in one render (0.73-0.86 s with a share of 2)
 CHANNEL_SHARE = 4
 CHANNEL_TOLERANCE = 1e-3  # a medium's extinction differs by channel where its largest is over its smallest by more
 MEAN_DECAY = 0.5  # the running mean of the steps' images that sets each step's residual slope (`secant`)
@@ -395,8 +395,6 @@ def channel_noise(problem: Problem, unit: np.ndarray, spp: int, seeds: tuple[int
     clipped to [0, 1] as a step's loss clips it. Which is lower depends on the light: at the jade box under the sky a
     render by channel is far less noisy, at the jade knot under the studio light its quarter of the samples make it
     noisier (docs/scenes.md#a-mediums-colours-a-render-each)."""
-    from dataclasses import replace
-
     mi = problem.mitsuba
     weights = np.asarray(problem.weights, np.float64)
     found = []
