@@ -111,6 +111,12 @@ def test_a_journal_that_is_no_file_is_refused_before_any_work(tmp_path, kind):
     assert os.listdir(out) == [batch.JOURNAL] and not called
 
 
+def scene_params(target: str, **fields: object) -> str:
+    """Returns a params.json as matfit writes one for `target` fitted in a scene: no model, box or polish steps."""
+    document = json.loads(matfit_params(target, **fields))
+    return json.dumps({name: value for name, value in document.items() if name not in ("model", "box", "polish_steps")})
+
+
 def test_the_journal_keeps_a_picture_only_when_its_params_json_is_matfits_of_that_picture(tmp_path):
     shutil.copy(PICTURE, tmp_path / "p0.png")
     out = tmp_path / "out"
@@ -138,3 +144,32 @@ def test_the_journal_keeps_a_picture_only_when_its_params_json_is_matfits_of_tha
     params_json.write_text(model_shown)
     (out / "p0.report.png").unlink()
     assert not journal.fitted(fitted)  # an output missing
+
+
+def test_in_a_scene_the_journal_keeps_a_picture_fitted_in_that_scenes_shape_and_its_key_holds_the_meshes(tmp_path):
+    shutil.copy(PICTURE, tmp_path / "p0.png")
+    out = tmp_path / "out"
+    out.mkdir()
+    (fitted,) = batch.plan([str(tmp_path / "p0.png")], str(out), request())
+    scene = {"path": "/s/scene.xml", "object": "knot", "sha256": "a" * 64, "files": {"/s/knot.ply": "b" * 64}}
+    model = str(shipped.MODEL)
+    key = batch.journal_key([fitted], model, scene)
+    assert key != batch.journal_key([fitted], model)  # a scene fit is not the test scene's
+    mesh_changed = {**scene, "files": {"/s/knot.ply": "c" * 64}}
+    assert key != batch.journal_key([fitted], model, mesh_changed)
+    journal = batch.Journal(str(out), key, model, scene)
+    journal.record(fitted, files.sha256(str(tmp_path / "p0.png")))
+    journal = batch.Journal(str(out), key, model, scene)
+    target, params_json = str(tmp_path / "p0.png"), out / "p0.params.json"
+    shape = {**{name: scene[name] for name in ("path", "object", "sha256")}, "camera": [32, 24]}
+    scene_fit = {"method": "scene", "scene": shape}
+    params_json.write_text(scene_params(target, **scene_fit))
+    assert journal.fitted(fitted)
+    for planted in (
+        matfit_params(target),  # the test scene's fit of that picture
+        scene_params(target, **{**scene_fit, "scene": {**shape, "object": "floor"}}),  # another shape's
+        scene_params(target, **{**scene_fit, "scene": {**shape, "sha256": "d" * 64}}),  # another scene file's
+        scene_params(target, **{**scene_fit, "mask": "mask.png"}),
+    ):
+        params_json.write_text(planted)
+        assert not journal.fitted(fitted), planted

@@ -3,6 +3,7 @@
 import json
 import os
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -182,3 +183,39 @@ def test_a_shape_whose_material_matfit_cannot_read_starts_from_the_test_scenes_g
     colour = [start["params"][f"base_color_{c}"] for c in "rgb"]
     assert colour[0] > 2 * colour[2]  # the edit is orange-red: so is the guess
     assert fitted.document["scene"]["own_material"] is not None  # why the shape's own was not read
+
+
+def test_several_pictures_fit_in_a_scene_into_a_folder_and_a_failed_one_alone_fits_again(scene, edited, tmp_path):
+    pictures = tmp_path / "edits"
+    pictures.mkdir()
+    shutil.copy(edited, pictures / "orange.png")
+    shutil.copy(edited, pictures / "other.png")
+    images.write(str(pictures / "square.png"), np.full((32, 32, 3), 0.5, np.float32))  # not this camera's aspect
+    start = tmp_path / "start.json"
+    start.write_text(matfit.Material.preset("red-plastic").to_json())
+    names = [pictures / name for name in ("orange.png", "other.png", "square.png")]
+    out = tmp_path / "fits"
+    command = ("fit", *names, "--scene", scene, "--object", "object", "--init", start, "--refine", 2, "-o", out)
+    result = run(*command, "--report", "report.png")
+    assert result.exit_code == 2, result.output
+    assert "error: " in result.output and "aspect 1.000" in result.output
+    assert "fitted 2 of 3 pictures into" in result.output
+    written = sorted(os.listdir(out))
+    assert written == [
+        ".matfit-fit-journal.json",
+        *(f"{s}.{k}" for s in ("orange", "other") for k in ("params.json", "report.png")),
+    ]
+    documents = {stem: json.loads((out / f"{stem}.params.json").read_text()) for stem in ("orange", "other")}
+    for stem, document in documents.items():
+        assert document["method"] == "scene" and document["target"] == str(pictures / f"{stem}.png")
+        assert document["scene"]["object"] == "object" and document["start"]["material"] == str(start)
+        assert document["mitsuba_rmse"] <= document["start"]["rmse"]
+    # the square picture made right: the same command fits it alone, the two fitted are kept as they are
+    before = {name: (out / name).read_bytes() for name in written if not name.startswith(".")}
+    shutil.copy(edited, pictures / "square.png")
+    again = run(*command, "--report", "report.png")
+    assert again.exit_code == 0, again.output
+    assert again.output.count("kept, fitted by an earlier run") == 2 and "fitted 3 of 3" in again.output
+    assert {name: (out / name).read_bytes() for name in before} == before
+    assert json.loads((out / "square.params.json").read_text())["method"] == "scene"
+    assert not (out / ".matfit-fit-journal.json").exists()  # all fitted: the journal is gone

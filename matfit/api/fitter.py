@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from matfit import params, shipped
-from matfit.api import requests, scene_fits
+from matfit import files, params, shipped
+from matfit.api import requests, scene_fits, scenes
 from matfit.api.arguments import (
     Image,
     Picture,
@@ -30,7 +30,16 @@ from matfit.api.choices import check_choices, check_options
 from matfit.api.material import Material
 from matfit.api.results import Fit, Outputs, fit_of, landed
 from matfit.api.scenes import Scene
-from matfit.errors import FitError, ImageError, MatfitError, OutputError, ParameterError, RenderError, WeightsError
+from matfit.errors import (
+    FitError,
+    ImageError,
+    MatfitError,
+    OutputError,
+    ParameterError,
+    RenderError,
+    SceneError,
+    WeightsError,
+)
 from matfit.fitting.methods import Settings
 
 if TYPE_CHECKING:
@@ -226,6 +235,8 @@ class Fitter:
         refine: int = 0,
         seed: int = 0,
         outputs: Outputs | None = None,
+        scene: Scene | None = None,
+        progress: Callable[[str, int, int, float], None] | None = None,
         done: Callable[[str, str, Fit | MatfitError | None], None] | None = None,
     ) -> int:
         """Fits picture files into `folder`, resumably: `matfit fit a.png b.png -o folder/`. Returns how many failed.
@@ -236,10 +247,14 @@ class Fitter:
         way (Ctrl-C, kill -9), the same call again keeps the pictures fitted already (unchanged, their files there,
         the same settings and model) and fits the rest; once all are fitted, the folder's journal of them is
         removed. `done(picture, its params.json, the Fit, its MatfitError, or None for one kept)` hears of each.
+        `scene`: each picture is a render of that scene of your own, its shape's material fitted there (`fit`'s),
+        `progress` hearing of each fit's steps; a changed scene file, mesh or image fits every picture again.
         """
         from matfit.fitting import batch
 
         callback("done", done, FitError)
+        callback("progress", progress, FitError)
+        read = None if scene is None else scenes.check_scene(scene).read()  # a scene that fails, before any fit
         targets = [path_text(picture) for picture in picture_paths(pictures)]
         into = path_of("output", folder, OutputError, "give the folder to write into", name="folder")
         if not targets:
@@ -264,17 +279,43 @@ class Fitter:
             seed,
             template,
         )
-        # the model loaded after the checks (a folder that is no model is said before any fit, and leaves no folder)
-        planned = batch.plan(targets, into, request, then=lambda: self.model)
+
+        def then() -> None:  # after the checks (a folder that is no model is said before any fit, and leaves no folder)
+            if read is None:
+                self.model  # noqa: B018  # loaded: a fit in the test scene needs it
+            else:  # a scene fit loads the model only for a shape whose material it cannot read (`fit_checked`)
+                whole("steps", request.refine_steps, 0, scenes.MAX_STEPS, SceneError)
+                assert request.outputs is not None, "the template names the outputs"
+                for target in targets:
+                    named = scenes.output_paths(batch.outputs_of(target, into, request.outputs))
+                    files.check_outputs(named, scenes.scene_inputs(read))
+
+        planned = batch.plan(targets, into, request, then=then)
 
         def fit_one(request: Request, written: Callable[[str], None]) -> Fit:
-            return self._fit_request(request, [], time.perf_counter(), written)
+            if scene is None:
+                return self._fit_request(request, [], time.perf_counter(), written)
+            fitted = scene_fits.fit_checked(
+                request.target,
+                scene,
+                mask,
+                init,
+                False,
+                request.refine_steps,
+                request.outputs,
+                self.variant,
+                progress,
+                self,
+            )
+            written(fitted.document["target_sha256"])
+            return fitted
 
         def heard(request: Request, result: Fit | MatfitError | None) -> None:
             if done is not None:
                 done(request.target, request.outputs.params if request.outputs else into, result)
 
-        return batch.fit_all(planned, self.model_path, fit_one, done=heard)
+        identity = None if read is None else scenes.identity(read)
+        return batch.fit_all(planned, self.model_path, fit_one, done=heard, scene=identity)
 
     def _fit_request(
         self,
@@ -346,8 +387,8 @@ def fit(
     edited, and the shape's material is fitted there by Mitsuba's differentiable renderer (docs/scenes.md); `init`
     is the material to start from (None: the shape's own where matfit reads it, else the test scene's guess of the
     shape's pixels), `mask` where to look (None: the pixels the shape changes), `progress(stage, step, steps, loss)`
-    hears of each step; `settings`, `verify`, `corrections`, `answer`, `refine` and `seed` are the test scene's and
-    are not used. `Fit.neural_rmse` is NaN.
+    hears of each step, `refine` sets its steps (0: its default); `settings`, `verify`, `corrections`, `answer` and
+    `seed` are the test scene's and are not used. `Fit.neural_rmse` is NaN.
     """
     _, verify, _, refine, _ = check_options(linear, verify, corrections, answer, refine, seed)  # before any start
     with Fitter(model, verify=verify and not refine and scene is None, variant=variant) as fitter:

@@ -16,6 +16,7 @@ from matfit.api.scenes import Scene
 from matfit.errors import OutputError
 
 if TYPE_CHECKING:
+    from matfit.fitting.request import Outputs as RequestOutputs
     from matfit.model.models import Loader
 
 
@@ -33,13 +34,31 @@ def fit_scene(
 ) -> Fit:
     """Returns the fit of the material of a shape in a scene of the user's own (`scenes.fit_in_scene`); `model`
     guesses the start where neither `init` nor the scene gives one (loaded then only)."""
-    from matfit.fitting import scene_fit
-
     check_choices(None, init)
     if outputs is not None and not isinstance(outputs, Outputs):
         raise OutputError(
             f"outputs {shown(outputs)} is no matfit.Outputs: give Outputs(params, ...) or None", field="output"
         )
+    request = None if outputs is None else outputs._request()
+    return fit_checked(picture, scene, mask, init, linear, steps, request, variant, progress, model)
+
+
+def fit_checked(
+    picture: Picture,
+    scene: Scene,
+    mask: Picture | None,
+    init: str | os.PathLike[str] | Material | None,
+    linear: bool,
+    steps: int,
+    outputs: RequestOutputs | None,
+    variant: str | None,
+    progress: Callable[[str, int, int, float], None] | None,
+    model: Loader | None = None,
+) -> Fit:
+    """Returns `fit_scene` of arguments already checked, its `outputs` those of a request (`Fitter.fit_all`'s plan
+    names them, one picture of several)."""
+    from matfit.fitting import scene_fit
+
     named = None if init is None or isinstance(init, Material) else path_text(init)
     start = None if init is None else (init if isinstance(init, Material) else Material.read(init)).array()
     outcome, document = scenes.fit_in_scene(
@@ -51,7 +70,7 @@ def fit_scene(
         linear=linear,
         steps=steps or scene_fit.STEPS,
         variant=variant,
-        outputs=None if outputs is None else outputs._request(),
+        outputs=outputs,
         progress=progress,
         model=model,
     )

@@ -79,6 +79,24 @@ def scene_inputs(read: SceneFile) -> list[tuple[str, str]]:
     return [("scene", read.path), *(("scene's file", path) for path in read.files)]
 
 
+def identity(read: SceneFile) -> dict[str, object]:
+    """Returns what identifies a scene fit's scene for the journal of several pictures (`batch.Journal`): its file's
+    path and SHA-256, the shape's id, and the SHA-256 of every file it names (a mesh or image changed fits again)."""
+    named = {path: files.sha256(path) for path in read.files}
+    return {"path": read.path, "object": read.object, "sha256": read.sha256, "files": named}
+
+
+def output_paths(outputs: RequestOutputs) -> dict[str, str | None]:
+    """Returns the files a scene fit writes, by the option that names each (`files.check_outputs`)."""
+    return {
+        "output": outputs.params,
+        "report": outputs.report,
+        "render": outputs.render,
+        "mitsuba_xml": outputs.mitsuba_xml,
+        "blender": outputs.blender,
+    }
+
+
 def render_file(
     values: np.ndarray, scene: Scene, output: str, *, size: int, spp: int, seed: int, variant: str | None
 ) -> tuple[int, int]:
@@ -156,10 +174,7 @@ def fit_in_scene(
             "scene": read.path,
         }
         outputs.check(inputs)
-        named = {"output": outputs.params, "report": outputs.report, "render": outputs.render}
-        files.check_outputs(
-            {**named, "mitsuba_xml": outputs.mitsuba_xml, "blender": outputs.blender}, scene_inputs(read)
-        )
+        files.check_outputs(output_paths(outputs), scene_inputs(read))
     pixels, target_name, digest, notices = _picture(picture, linear)
     scene_fit.check_aspect(read, pixels.shape[0], pixels.shape[1], f"the picture {target_name}")
     weights, mask_name = _mask(mask, (pixels.shape[0], pixels.shape[1]))

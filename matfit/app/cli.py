@@ -13,7 +13,7 @@ import os
 import sys
 from importlib import metadata
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -244,19 +244,16 @@ def fit_command(
     outputs = matfit.Outputs(written, text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
     if scene is not None or object is not None:
         chosen_scene = options.scene(scene, object)
-        if several:
-            raise matfit.MatfitError("--scene fits one picture at a time: give one picture", field="target")
-        with progress_module.Progress(f"fitting {object!r} in {scene}") as shown:
-            fitted = matfit.fit(
-                str(targets[0]),
-                mask=text(mask),
-                init=text(init),
-                variant=variant,
-                outputs=outputs,
-                refine=refine,
-                scene=chosen_scene,
-                progress=shown.steps(),
-            )
+        # the model guesses the start of a shape whose material matfit cannot read; no Mitsuba pool: the fit renders
+        chosen_options: dict[str, Any] = {"mask": text(mask), "init": text(init), "refine": refine, "outputs": outputs}
+        with (
+            progress_module.Progress(f"fitting {object!r} in {scene}") as shown,
+            matfit.Fitter(str(model_path), verify=False, variant=variant) as fitter,
+        ):
+            if several:
+                fit_several(fitter, targets, written, scene=chosen_scene, progress=shown.steps(), **chosen_options)
+                return
+            fitted = fitter.fit(str(targets[0]), scene=chosen_scene, progress=shown.steps(), **chosen_options)
         echo_lines(fitted.notices)
         log(fitted.summary)
         return
@@ -284,18 +281,24 @@ def fit_command(
     # (in `matfit worker`, the fitter is its warm one: the model loaded, the render pool running).
     with worker.fitter(str(model_path), variant, verify=verify and not refine) as fitter:
         if several:
-            interrupt.set_message(
-                "each picture fitted so far is written, the one in hand is not: run the same command to go on"
-            )
-            failed = fitter.fit_all([str(target) for target in targets], written, **chosen, done=report_fit)
-            log(f"fitted {len(targets) - failed} of {len(targets)} pictures into {written}")
-            if failed:
-                log("run the same command again to fit the pictures that failed; those fitted are kept")
-                raise typer.Exit(2)
+            fit_several(fitter, targets, written, **chosen)
             return
         fitted = fitter.fit(str(targets[0]), **chosen, answers=worker.answers(report_answer))
     echo_lines(fitted.notices)
     log(fitted.summary)
+
+
+def fit_several(fitter: matfit.Fitter, targets: list[Path], folder: str, **chosen: Any) -> None:
+    """Fits several pictures into `folder` (`matfit.Fitter.fit_all` with `chosen` options), each reported as it ends;
+    exit 2 where one failed."""
+    interrupt.set_message(
+        "each picture fitted so far is written, the one in hand is not: run the same command to go on"
+    )
+    failed = fitter.fit_all([str(target) for target in targets], folder, **chosen, done=report_fit)
+    log(f"fitted {len(targets) - failed} of {len(targets)} pictures into {folder}")
+    if failed:
+        log("run the same command again to fit the pictures that failed; those fitted are kept")
+        raise typer.Exit(2)
 
 
 @command(name="worker", interrupted="the worker stopped; the fit in hand wrote nothing")

@@ -89,14 +89,18 @@ class Progress:
         return report
 
     def steps(self) -> Callable[[str, int, int, float], None]:
-        """Returns a callback `(stage, step, steps, loss)` for an optimisation that reports each step's loss."""
+        """Returns a callback `(stage, step, steps, loss)` for an optimisation that reports each step's loss; a step
+        under the last one heard begins the count again (the next of several fits)."""
 
-        began = time.perf_counter()
+        began, last = [time.perf_counter()], [0]
 
         def report(stage: str, step: int, steps: int, loss: float) -> None:
-            if steps != self.total:
+            if step < last[0]:
+                began[0] = time.perf_counter()
+            if steps != self.total or step < last[0]:
                 self.start(self.label, steps, step)
-            elapsed = time.perf_counter() - began
+            last[0] = step
+            elapsed = time.perf_counter() - began[0]
             left = f", {elapsed / step * (steps - step):.0f} s left" if self.bar is None and 0 < step < steps else ""
             self.update(step, f"{stage}, RMSE {loss:.2f}{left}")
 

@@ -40,9 +40,10 @@ Fitted = TypeVar("Fitted")  # what fitting one picture returns (`matfit.Fit`)
 
 PARAMS_SUFFIX = ".params.json"  # a picture's params.json in the output folder: <stem>.params.json
 JOURNAL = ".matfit-fit-journal.json"  # in the output folder while a command of several pictures has some left
-# What every params.json matfit writes holds (`document.build`): a file in the output folder under a picture's
-# params.json name is replaced only if it holds these (`written_params`, `check_replaceable`).
-PARAMS_KEYS = ("params", "units", "method", "model", "target", "target_sha256")
+# What every params.json matfit writes holds (`document.build`, and a scene fit's `api.scenes.fit_in_scene`, which
+# names no model): a file in the output folder under a picture's params.json name is replaced only if it holds these
+# (`written_params`, `check_replaceable`).
+PARAMS_KEYS = ("params", "units", "method", "target", "target_sha256")
 
 
 def outputs_of(target: str, folder: str, outputs: Outputs) -> Outputs:
@@ -223,6 +224,7 @@ def fit_all(
     fit_one: Callable[[Request, Callable[[str], None]], Fitted],
     *,
     done: Callable[[Request, Fitted | MatfitError | None], None] | None = None,
+    scene: dict[str, object] | None = None,
 ) -> int:
     """Fits every request in turn with `fit_one(request, written)`, which fits one, writes its outputs and calls
     `written(the SHA-256 of the picture as it was fitted)` at once (`matfit.Fitter`'s: one model and render pool for
@@ -230,9 +232,10 @@ def fit_all(
     it ends: None for one an earlier run of the same requests fitted already (`Journal`), kept as it is; a MatfitError
     of one picture (a picture that cannot be read, a mask of another size) is handed to it and the others go on; a
     failure of the system (OSError, a render process that ended) stops them all. `model_path`: the model folder, whose
-    files key the journal."""
+    files key the journal. `scene`: where the pictures are fitted in a scene of the user's own, what identifies it
+    (`api.scenes.identity`), which keys the journal too."""
     folder = os.path.dirname(requests[0].outputs.params) if requests and requests[0].outputs else "."
-    journal = Journal(folder, journal_key(requests, model_path), model_path)
+    journal = Journal(folder, journal_key(requests, model_path, scene), model_path, scene)
     failed = 0
     for request in requests:
         if journal.fitted(request):
@@ -251,9 +254,10 @@ def fit_all(
     return failed
 
 
-def journal_key(requests: list[Request], model_path: str) -> str:
+def journal_key(requests: list[Request], model_path: str, scene: dict[str, object] | None = None) -> str:
     """Returns the SHA-256 of everything but the pictures that decides the fits of `requests`: their settings and
-    options, the contents of their mask and init files, the model folder's files, matfit's version."""
+    options, the contents of their mask and init files, the model folder's files, the scene they are fitted in
+    (`api.scenes.identity`: its file's and its meshes' and images' contents, the shape), matfit's version."""
     from importlib import metadata
 
     first = requests[0]
@@ -275,6 +279,7 @@ def journal_key(requests: list[Request], model_path: str) -> str:
             if os.path.isfile(os.path.join(model_path, name))
         },
         "pictures": [os.path.abspath(request.target) for request in requests],
+        "scene": scene,
         "matfit": metadata.version("matfit"),
     }
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
@@ -292,8 +297,8 @@ class Journal:
     """The pictures of one command fitted so far (module docstring): `fitted` says whether a picture can be kept,
     `record` adds one once its outputs are written, `finish` removes the journal when the command is done."""
 
-    def __init__(self, folder: str, key: str, model_path: str) -> None:
-        self.path, self.key, self.model_path = os.path.join(folder, JOURNAL), key, model_path
+    def __init__(self, folder: str, key: str, model_path: str, scene: dict[str, object] | None = None) -> None:
+        self.path, self.key, self.model_path, self.scene = os.path.join(folder, JOURNAL), key, model_path, scene
         self.pictures: dict[str, str] = {}  # absolute path of a picture fitted -> its SHA-256 then
         with contextlib.suppress(OSError, ValueError, MatfitError):  # none, unreadable or another command's: start
             document = documents.read(self.path, "it is rewritten")
@@ -303,7 +308,8 @@ class Journal:
     def fitted(self, request: Request) -> bool:
         """Returns whether an earlier run fitted the request's picture as it is now, its outputs all still there and
         its params.json matfit's of that picture: of its SHA-256 (the one recorded), its path, method, box, polish
-        steps, mask, init and model (what else decides the fit is the journal's key)."""
+        steps, mask, init and model, or in a scene its path, mask, scene file and shape (what else decides the fit is
+        the journal's key)."""
         from matfit.fitting.document import display_path
 
         recorded = self.pictures.get(os.path.abspath(request.target))
@@ -312,18 +318,27 @@ class Journal:
         if not all(os.path.isfile(path) for _, path in _outputs(request)):
             return False
         document = written_params(request.outputs.params)
-        settings = request.settings
-        expected = {
-            "target_sha256": recorded,
-            "target": request.target,
-            "method": settings.method.value,
-            "box": settings.box.value,
-            "polish_steps": settings.polish_steps,
-            "mask": request.mask,
-            "init": request.init,
-            "model": display_path(self.model_path),
-        }
-        if document is None or any(document.get(name) != value for name, value in expected.items()):
+        expected: dict[str, object] = {"target_sha256": recorded, "target": request.target, "mask": request.mask}
+        if self.scene is None:
+            settings = request.settings
+            expected.update(
+                method=settings.method.value,
+                box=settings.box.value,
+                polish_steps=settings.polish_steps,
+                init=request.init,
+                model=display_path(self.model_path),
+            )
+        else:
+            shape = {name: self.scene[name] for name in ("path", "object", "sha256")}
+            expected.update(method="scene", scene=shape)
+        if document is None:
+            return False
+        if self.scene is not None and isinstance(document.get("scene"), dict):
+            document = {
+                **document,
+                "scene": {name: document["scene"].get(name) for name in ("path", "object", "sha256")},
+            }
+        if any(document.get(name) != value for name, value in expected.items()):
             return False
         with contextlib.suppress(OSError):
             return files.sha256(request.target) == recorded
