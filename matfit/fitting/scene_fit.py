@@ -408,11 +408,12 @@ def fit(
     # the curve compresses (linear throughout, the edits ended further: desaturated 4.01 and 3.92 against 1.41),
     # unless its descent begins where a step's image reads darker than `DARKENING` (below)
     every = transmissive(first)  # every start descends, spec_trans held at first; else the closest start alone
-    coloured = every and refine.coloured(params.to_unit(first))  # a medium of more than one extinction shows
+    unit = params.to_unit(first)
+    coloured = every and refine.coloured(unit)  # a medium of more than one extinction shows
     problem = problem_of(renderer, target, weights, integrator, linear=every, by_channel=coloured)
     residual: dict[str, object] = {"linear": every}
     if problem.channels:  # one render a step or one a channel: the quieter at the start (a grey medium: one render)
-        one, by_channel = refine.channel_noise(problem, params.to_unit(first), STEP_SPP, (JUDGE_SEED, SECOND_SEED))
+        one, by_channel = refine.channel_noise(problem, unit, STEP_SPP, (JUDGE_SEED, SECOND_SEED))
         residual.update({"by_channel": by_channel < one, "noise": [round(1e6 * one, 2), round(1e6 * by_channel, 2)]})
         if by_channel >= one:
             problem = replace(problem, channels=())
