@@ -244,11 +244,12 @@ def fit_command(
     outputs = matfit.Outputs(written, text(report), text(render), size, spp, text(mitsuba_xml), text(blender))
     if scene is not None or object is not None:
         chosen_scene = options.scene(scene, object)
-        # the model guesses the start of a shape whose material matfit cannot read; no Mitsuba pool: the fit renders
+        # the model guesses the start of a shape whose material matfit cannot read (in `matfit worker`, its warm one);
+        # no render pool is started for it: the fit renders the scene itself
         chosen_options: dict[str, Any] = {"mask": text(mask), "init": text(init), "refine": refine, "outputs": outputs}
         with (
             progress_module.Progress(f"fitting {object!r} in {scene}") as shown,
-            matfit.Fitter(str(model_path), verify=False, variant=variant) as fitter,
+            worker.fitter(str(model_path), variant, verify=False) as fitter,
         ):
             if several:
                 fit_several(fitter, targets, written, scene=chosen_scene, progress=shown.steps(), **chosen_options)
