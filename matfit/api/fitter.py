@@ -283,7 +283,7 @@ class Fitter:
         def then() -> None:  # after the checks (a folder that is no model is said before any fit, and leaves no folder)
             if read is None:
                 self.model  # noqa: B018  # loaded: a fit in the test scene needs it
-            else:  # a scene fit loads the model only for a shape whose material it cannot read (`fit_checked`)
+            else:  # a scene fit loads the model only for a shape whose material it cannot read (`scene_fits.fit_scene`)
                 whole("steps", request.refine_steps, 0, scenes.MAX_STEPS, SceneError)
                 assert request.outputs is not None, "the template names the outputs"
                 for target in targets:
@@ -295,7 +295,7 @@ class Fitter:
         def fit_one(request: Request, written: Callable[[str], None]) -> Fit:
             if scene is None:
                 return self._fit_request(request, [], time.perf_counter(), written)
-            fitted = scene_fits.fit_checked(
+            fitted = scene_fits.fit_scene(
                 request.target,
                 scene,
                 mask,

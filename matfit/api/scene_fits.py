@@ -1,5 +1,6 @@
-"""A picture of a scene of the user's own fitted through the public API: `matfit.fit(..., scene=)` and
-`Fitter.fit(..., scene=)` (`fit_scene`), its `Fit` made of what `scenes.fit_in_scene` found."""
+"""A picture of a scene of the user's own fitted through the public API: `matfit.fit(..., scene=)`,
+`Fitter.fit(..., scene=)` and each of `Fitter.fit_all(..., scene=)` (`fit_scene`), its `Fit` made of what
+`scenes.fit_in_scene` found."""
 
 from __future__ import annotations
 
@@ -27,38 +28,21 @@ def fit_scene(
     init: str | os.PathLike[str] | Material | None,
     linear: bool,
     steps: int,
-    outputs: Outputs | None,
+    outputs: Outputs | RequestOutputs | None,
     variant: str | None,
     progress: Callable[[str, int, int, float], None] | None,
     model: Loader | None = None,
 ) -> Fit:
     """Returns the fit of the material of a shape in a scene of the user's own (`scenes.fit_in_scene`); `model`
-    guesses the start where neither `init` nor the scene gives one (loaded then only)."""
+    guesses the start where neither `init` nor the scene gives one (loaded then only). `outputs`: the caller's
+    `Outputs`, or those a plan of several pictures named already (`Fitter.fit_all`: a request's)."""
+    from matfit.fitting import request, scene_fit
+
     check_choices(None, init)
-    if outputs is not None and not isinstance(outputs, Outputs):
+    if outputs is not None and not isinstance(outputs, Outputs | request.Outputs):
         raise OutputError(
             f"outputs {shown(outputs)} is no matfit.Outputs: give Outputs(params, ...) or None", field="output"
         )
-    request = None if outputs is None else outputs._request()
-    return fit_checked(picture, scene, mask, init, linear, steps, request, variant, progress, model)
-
-
-def fit_checked(
-    picture: Picture,
-    scene: Scene,
-    mask: Picture | None,
-    init: str | os.PathLike[str] | Material | None,
-    linear: bool,
-    steps: int,
-    outputs: RequestOutputs | None,
-    variant: str | None,
-    progress: Callable[[str, int, int, float], None] | None,
-    model: Loader | None = None,
-) -> Fit:
-    """Returns `fit_scene` of arguments already checked, its `outputs` those of a request (`Fitter.fit_all`'s plan
-    names them, one picture of several)."""
-    from matfit.fitting import scene_fit
-
     named = None if init is None or isinstance(init, Material) else path_text(init)
     start = None if init is None else (init if isinstance(init, Material) else Material.read(init)).array()
     outcome, document = scenes.fit_in_scene(
@@ -70,7 +54,7 @@ def fit_checked(
         linear=linear,
         steps=steps or scene_fit.STEPS,
         variant=variant,
-        outputs=outputs,
+        outputs=outputs._request() if isinstance(outputs, Outputs) else outputs,
         progress=progress,
         model=model,
     )
