@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from matfit import files, params, shipped
+from matfit import params, shipped
 from matfit.api import requests, scene_fits, scenes
 from matfit.api.arguments import (
     Image,
@@ -30,16 +30,7 @@ from matfit.api.choices import check_choices, check_options
 from matfit.api.material import Material
 from matfit.api.results import Fit, Outputs, fit_of, landed
 from matfit.api.scenes import Scene
-from matfit.errors import (
-    FitError,
-    ImageError,
-    MatfitError,
-    OutputError,
-    ParameterError,
-    RenderError,
-    SceneError,
-    WeightsError,
-)
+from matfit.errors import FitError, ImageError, MatfitError, OutputError, ParameterError, RenderError, WeightsError
 from matfit.fitting.methods import Settings
 
 if TYPE_CHECKING:
@@ -284,11 +275,7 @@ class Fitter:
             if read is None:
                 self.model  # noqa: B018  # loaded: a fit in the test scene needs it
             else:  # a scene fit loads the model only for a shape whose material it cannot read (`scene_fits.fit_scene`)
-                whole("steps", request.refine_steps, 0, scenes.MAX_STEPS, SceneError)
-                assert request.outputs is not None, "the template names the outputs"
-                for target in targets:
-                    named = scenes.output_paths(batch.outputs_of(target, into, request.outputs))
-                    files.check_outputs(named, scenes.scene_inputs(read))
+                scenes.check_several(read, targets, into, request)
 
         planned = batch.plan(targets, into, request, then=then)
 

@@ -19,6 +19,7 @@ from matfit.errors import ImageError, RenderError, SceneError
 
 if TYPE_CHECKING:
     from matfit.fitting.request import Outputs as RequestOutputs
+    from matfit.fitting.request import Request
     from matfit.fitting.scene_fit import Guess, SceneOutcome
     from matfit.model.models import Loader
     from matfit.rendering.scene_file import SceneFile
@@ -84,6 +85,18 @@ def identity(read: SceneFile) -> dict[str, object]:
     path and SHA-256, the shape's id, and the SHA-256 of every file it names (a mesh or image changed fits again)."""
     named = {path: files.sha256(path) for path in read.files}
     return {"path": read.path, "object": read.object, "sha256": read.sha256, "files": named}
+
+
+def check_several(read: SceneFile, targets: list[str], folder: str, request: Request) -> None:
+    """Raises the one-line error, before the first fit of several pictures in the scene `read` into `folder`
+    (`Fitter.fit_all`), of steps out of range or of an output of a picture that is the scene's file or one it names;
+    `request` is the template of the plan's (`batch.plan`)."""
+    from matfit.fitting import batch
+
+    whole("steps", request.refine_steps, 0, MAX_STEPS, SceneError)
+    assert request.outputs is not None, "the template names the outputs"
+    for target in targets:
+        files.check_outputs(output_paths(batch.outputs_of(target, folder, request.outputs)), scene_inputs(read))
 
 
 def output_paths(outputs: RequestOutputs) -> dict[str, str | None]:
