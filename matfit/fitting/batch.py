@@ -261,7 +261,7 @@ def journal_key(requests: list[Request], model_path: str, scene: dict[str, objec
     from importlib import metadata
 
     first = requests[0]
-    parts = {
+    parts: dict[str, object] = {
         "settings": repr(first.settings),
         "options": [first.seed, first.verified, first.corrections, first.refine_steps, first.variant, first.answer],
         "outputs": None
@@ -279,9 +279,10 @@ def journal_key(requests: list[Request], model_path: str, scene: dict[str, objec
             if os.path.isfile(os.path.join(model_path, name))
         },
         "pictures": [os.path.abspath(request.target) for request in requests],
-        "scene": scene,
         "matfit": metadata.version("matfit"),
     }
+    if scene is not None:  # a test-scene journal's key as it was
+        parts["scene"] = scene
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()
 
 
