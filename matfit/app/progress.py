@@ -92,15 +92,16 @@ class Progress:
         """Returns a callback `(stage, step, steps, loss)` for an optimisation that reports each step's loss; a step
         under the last one heard begins the count again (the next of several fits)."""
 
-        began, last = [time.perf_counter()], [0]
+        began, last = time.perf_counter(), 0
 
         def report(stage: str, step: int, steps: int, loss: float) -> None:
-            if step < last[0]:
-                began[0] = time.perf_counter()
-            if steps != self.total or step < last[0]:
+            nonlocal began, last
+            if step < last:
+                began = time.perf_counter()
+            if steps != self.total or step < last:
                 self.start(self.label, steps, step)
-            last[0] = step
-            elapsed = time.perf_counter() - began[0]
+            last = step
+            elapsed = time.perf_counter() - began
             left = f", {elapsed / step * (steps - step):.0f} s left" if self.bar is None and 0 < step < steps else ""
             self.update(step, f"{stage}, RMSE {loss:.2f}{left}")
 

@@ -44,6 +44,7 @@ JOURNAL = ".matfit-fit-journal.json"  # in the output folder while a command of 
 # names no model): a file in the output folder under a picture's params.json name is replaced only if it holds these
 # (`written_params`, `check_replaceable`).
 PARAMS_KEYS = ("params", "units", "method", "target", "target_sha256")
+SCENE_KEYS = ("path", "object", "sha256")  # of a scene fit's params.json `scene`: the scene file and its shape
 
 
 def outputs_of(target: str, folder: str, outputs: Outputs) -> Outputs:
@@ -330,17 +331,13 @@ class Journal:
                 model=display_path(self.model_path),
             )
         else:
-            shape = {name: self.scene[name] for name in ("path", "object", "sha256")}
-            expected.update(method="scene", scene=shape)
-        if document is None:
+            expected["method"] = "scene"
+        if document is None or any(document.get(name) != value for name, value in expected.items()):
             return False
-        if self.scene is not None and isinstance(document.get("scene"), dict):
-            document = {
-                **document,
-                "scene": {name: document["scene"].get(name) for name in ("path", "object", "sha256")},
-            }
-        if any(document.get(name) != value for name, value in expected.items()):
-            return False
+        if self.scene is not None:  # fitted in this scene file's shape
+            shape = document.get("scene")
+            if not isinstance(shape, dict) or any(shape.get(name) != self.scene[name] for name in SCENE_KEYS):
+                return False
         with contextlib.suppress(OSError):
             return files.sha256(request.target) == recorded
         return False
