@@ -19,7 +19,7 @@ import typer
 
 import matfit
 from matfit import documents, interrupt, params
-from matfit.app import console, options
+from matfit.app import console, fit_lines, options
 from matfit.app import progress as progress_module
 from matfit.fitting.methods import Box, Method, Settings
 from matfit.model import dataset, dataset_workers, dataset_writing
@@ -252,7 +252,9 @@ def fit_command(
             worker.fitter(str(model_path), variant, verify=False) as fitter,
         ):
             if several:
-                fit_several(fitter, targets, written, scene=chosen_scene, progress=shown.steps(), **chosen_options)
+                fit_lines.fit_several(
+                    fitter, targets, written, scene=chosen_scene, progress=shown.steps(), **chosen_options
+                )
                 return
             fitted = fitter.fit(str(targets[0]), scene=chosen_scene, progress=shown.steps(), **chosen_options)
         echo_lines(fitted.notices)
@@ -282,24 +284,11 @@ def fit_command(
     # (in `matfit worker`, the fitter is its warm one: the model loaded, the render pool running).
     with worker.fitter(str(model_path), variant, verify=verify and not refine) as fitter:
         if several:
-            fit_several(fitter, targets, written, **chosen)
+            fit_lines.fit_several(fitter, targets, written, **chosen)
             return
-        fitted = fitter.fit(str(targets[0]), **chosen, answers=worker.answers(report_answer))
+        fitted = fitter.fit(str(targets[0]), **chosen, answers=worker.answers(fit_lines.report_answer))
     echo_lines(fitted.notices)
     log(fitted.summary)
-
-
-def fit_several(fitter: matfit.Fitter, targets: list[Path], folder: str, **chosen: Any) -> None:
-    """Fits several pictures into `folder` (`matfit.Fitter.fit_all` with `chosen` options), each reported as it ends;
-    exit 2 where one failed."""
-    interrupt.set_message(
-        "each picture fitted so far is written, the one in hand is not: run the same command to go on"
-    )
-    failed = fitter.fit_all([str(target) for target in targets], folder, **chosen, done=report_fit)
-    log(f"fitted {len(targets) - failed} of {len(targets)} pictures into {folder}")
-    if failed:
-        log("run the same command again to fit the pictures that failed; those fitted are kept")
-        raise typer.Exit(2)
 
 
 @command(name="worker", interrupted="the worker stopped; the fit in hand wrote nothing")
@@ -319,29 +308,6 @@ def worker_command() -> None:
     replies = os.fdopen(os.dup(sys.stdout.fileno()), "w", encoding="utf-8")
     os.dup2(sys.stderr.fileno(), sys.stdout.fileno())
     worker.serve(app, sys.stdin.buffer, replies, on_close=interrupt.exit_now)
-
-
-def report_answer(fitted: matfit.Fit) -> None:
-    """Prints one stage's answer as it lands (`matfit fit` of one picture): the stage, its figure (Mitsuba's, where
-    the stage rendered it, else the neural one) and the seconds since the fit began."""
-    if fitted.mitsuba_rmse is not None:
-        figure = f"Mitsuba RMSE {fitted.mitsuba_rmse:.2f}"
-    else:
-        figure = f"neural RMSE {fitted.neural_rmse:.2f}"
-    log(f"{fitted.stage} answer: {figure} ({fitted.document['wall_time_s']:.1f} s)")
-
-
-def report_fit(picture: str, params: str, fitted: matfit.Fit | matfit.MatfitError | None) -> None:
-    """Prints what one picture of several came to: its notices and summary line, its error, or (None) that an earlier
-    run of the same command fitted it."""
-    if fitted is None:
-        log(f"{params}: kept, fitted by an earlier run of this command (same picture and settings)")
-        return
-    if isinstance(fitted, matfit.MatfitError):
-        log(f"error: {picture}: {fitted}")
-        return
-    echo_lines(fitted.notices)
-    log(fitted.summary)
 
 
 @command(interrupted="finished frames are saved; run the same command to resume")
