@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from matfit.api import scenes
 from matfit.api.arguments import Picture, path_text, shown
@@ -18,6 +18,7 @@ from matfit.errors import OutputError
 
 if TYPE_CHECKING:
     from matfit.fitting.request import Outputs as RequestOutputs
+    from matfit.fitting.scene_fit import SceneOutcome
     from matfit.model.models import Loader
 
 
@@ -58,9 +59,15 @@ def fit_scene(
         progress=progress,
         model=model,
     )
+    return fit_of(outcome, document, str(outputs.params) if outputs else document["target"])
+
+
+def fit_of(outcome: SceneOutcome, document: dict[str, Any], name: str) -> Fit:
+    """Returns the `Fit` of a finished scene fit (`scenes.fit_in_scene`'s outcome and params.json document), its
+    summary line naming it `name` (its params.json, or its picture)."""
     summary = (
-        f"{outputs.params if outputs else document['target']}: scene {document['scene']['object']!r}, Mitsuba RMSE "
-        f"{outcome.rmse:.2f} (start {outcome.start_rmse:.2f}), {outcome.seconds:.1f} s"
+        f"{name}: scene {document['scene']['object']!r}, Mitsuba RMSE {outcome.rmse:.2f} "
+        f"(start {outcome.start_rmse:.2f}), {outcome.seconds:.1f} s"
     )
     return Fit(
         Material.from_array(outcome.values),

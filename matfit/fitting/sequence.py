@@ -26,11 +26,13 @@ itself (its preview.png and renders would be frames of the next run, which resum
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -39,6 +41,9 @@ from matfit.errors import OutputError, SequenceError
 from matfit.fitting import fitfile, search
 from matfit.fitting.request import Request
 from matfit.model import models
+
+if TYPE_CHECKING:
+    from matfit.rendering.engine import Renderer
 
 FRAME_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".exr", ".hdr")
 PREVIOUS = "previous frame"
@@ -109,20 +114,32 @@ def check_frame_names(frames: list[str]) -> None:
 
 
 def check_outputs(
-    frames: list[str], out: str, *, rendered: bool, init: str | None = None, model: str | None = None
+    frames: list[str],
+    out: str,
+    *,
+    rendered: bool,
+    init: str | None = None,
+    model: str | None = None,
+    inputs: Sequence[tuple[str, str]] = (),
 ) -> None:
     """Raises SequenceError or OutputError, before any fit, unless every file of a run into `out` can be written.
 
     No two frames may share a result name, the folder must take files, and no output (a result, a
-    render, summary.md, preview.png) may be a frame, the `init` file or a file of the model folder `model`
-    (or of the shipped model); nor may `out` be the frames' folder: preview.png and the renders are pictures that
-    the next run, resuming, would list as frames.
+    render, summary.md, preview.png) may be a frame, the `init` file, one of `inputs` (what else is read: a
+    scene's files) or a file of the model folder `model` (or of the shipped model); nor may `out` lie in a folder
+    that does not exist, or be the frames' folder: preview.png and the renders are pictures that the next run,
+    resuming, would list as frames.
     """
+    parent = os.path.dirname(os.path.abspath(out))
+    if not os.path.isdir(parent) and not os.path.exists(parent):
+        raise SequenceError(
+            f"output folder {out} cannot be created: {parent} does not exist (create it first)", field="out"
+        )
     check_frame_names(frames)
     outputs = [("result", frame_json_path(out, frame)) for frame in frames]
     outputs += [("render", render_path(out, frame)) for frame in frames] if rendered else []
     outputs += [("summary", os.path.join(out, SUMMARY_FILE)), ("preview", os.path.join(out, PREVIEW_FILE))]
-    files.check_folder(out, outputs, [("frame", frame) for frame in frames] + [("init", init)], model=model)
+    files.check_folder(out, outputs, [("frame", frame) for frame in frames] + [("init", init), *inputs], model=model)
     folder = os.path.dirname(frames[0]) or "."
     if os.path.isdir(out) and os.path.samefile(out, folder):
         raise OutputError(
@@ -303,9 +320,10 @@ def _fit_frames(
     return results
 
 
-def summary_table(results: list[Frame]) -> str:
-    """Returns the per-frame table (frame, start chosen, RMSE, evaluations, time) in Markdown."""
-    lines = ["| frame | start | start RMSE | RMSE | evaluations | time (s) |", "|---|---|---|---|---|---|"]
+def summary_table(results: list[Frame], count: str = "evaluations", figure: str = "RMSE") -> str:
+    """Returns the per-frame table (frame, start chosen, RMSE, evaluations, time) in Markdown; `count` and `figure`
+    name what `Frame.evaluations` and `Frame.rmse` hold (a scene's frames: "steps", "Mitsuba RMSE")."""
+    lines = [f"| frame | start | start {figure} | {figure} | {count} | time (s) |", "|---|---|---|---|---|---|"]
     for frame in results:
         lines.append(
             f"| {os.path.basename(frame.path)} | {frame.start} | {frame.start_rmse:.2f} | {frame.rmse:.2f} | "
@@ -360,11 +378,6 @@ def run(
     frames = list_frames(frames_path)
     values = init_values if init_values is not None else params.read_file(init) if init is not None else None
     start = params.to_unit(values) if values is not None else None
-    parent = os.path.dirname(os.path.abspath(out))
-    if not os.path.isdir(parent) and not os.path.exists(parent):
-        raise SequenceError(
-            f"output folder {out} cannot be created: {parent} does not exist (create it first)", field="out"
-        )
     check_outputs(frames, out, rendered=render is not None, init=init, model=fitfile.model_path(model))
     model = fitfile.loaded(model)
     started = time.perf_counter()
@@ -381,14 +394,16 @@ def run(
     return results
 
 
-def render_frames(results: list[Frame], out: str, size: int, spp: int) -> None:
+def render_frames(
+    results: list[Frame], out: str, size: int, spp: int, draw: Callable[[np.ndarray], np.ndarray] | None = None
+) -> None:
     """Renders each frame's result with Mitsuba to `<frame>-render.png`, unless its result records that very render.
 
     After writing a render, the frame's result records it (the image's SHA-256, size, samples), so
     a result fitted again since (whose new file has no record), other render settings, or a
-    replaced image all make it again, whether or not this run fitted the frame.
+    replaced image all make it again, whether or not this run fitted the frame. `draw(unit)`: the linear render
+    of a frame's answer (None: the test scene's, `size` pixels a side at `spp`).
     """
-    renderer = None
     for frame in results:
         path, json_path = render_path(out, frame.path), frame_json_path(out, frame.path)
         document = documents.read(json_path, "delete it to fit that frame again", SequenceError)
@@ -396,10 +411,14 @@ def render_frames(results: list[Frame], out: str, size: int, spp: int) -> None:
         recorded = document["sequence"].get("render")
         if os.path.exists(path) and recorded == {**settings, "sha256": files.sha256(path)}:
             continue
-        if renderer is None:
+        if draw is None:
             from matfit.rendering.engine import Renderer
 
-            renderer = Renderer(size, spp)
-        images.write(path, renderer.render(params.from_unit(frame.unit)))
+            draw = functools.partial(_test_scene, Renderer(size, spp))
+        images.write(path, draw(frame.unit))
         document["sequence"]["render"] = {**settings, "sha256": files.sha256(path)}
         files.write_text(json_path, documents.dumps(document))
+
+
+def _test_scene(renderer: Renderer, unit: np.ndarray) -> np.ndarray:
+    return renderer.render(params.from_unit(unit))
