@@ -219,3 +219,78 @@ def test_several_pictures_fit_in_a_scene_into_a_folder_and_a_failed_one_alone_fi
     assert {name: (out / name).read_bytes() for name in before} == before
     assert json.loads((out / "square.params.json").read_text())["method"] == "scene"
     assert not (out / ".matfit-fit-journal.json").exists()  # all fitted: the journal is gone
+
+
+def test_a_sequence_of_frames_fits_in_a_scene_each_from_the_last_and_goes_on_where_it_stopped(scene, edited, tmp_path):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for name in ("frame_1.png", "frame_2.png"):
+        shutil.copy(edited, frames / name)
+    start = tmp_path / "start.json"
+    start.write_text(matfit.Material.preset("red-plastic").to_json())
+    out = tmp_path / "out"
+    shutil.copytree(scene.parent, tmp_path / "scene")
+    scene = tmp_path / "scene" / scene.name  # a copy, changed below
+    command = ("sequence", frames, "--scene", scene, "--object", "object", "--init", start, "--refine", 2, "-o", out)
+    result = run(*command, "--render", "--size", 32, "--spp", 4)
+    assert result.exit_code == 0, result.output
+    assert sorted(os.listdir(out)) == sorted(
+        ["frame_1.json", "frame_2.json", "frame_1-render.png", "frame_2-render.png", "summary.md", "preview.png"]
+    )
+    first, second = (json.loads((out / f"frame_{k}.json").read_text()) for k in (1, 2))
+    for index, document in enumerate((first, second)):
+        assert document["method"] == "scene" and document["scene"]["object"] == "object"
+        assert document["mitsuba_rmse"] <= document["start"]["rmse"]
+        assert document["sequence"]["index"] == index and document["sequence"]["settings"]["steps"] == 2
+        assert document["sequence"]["frame"] == str(frames / f"frame_{index + 1}.png")
+    assert first["start"]["material"] == str(start) and first["sequence"]["start"] == "--init"
+    # the second frame starts from the first's answer
+    assert second["start"]["material"] == "previous frame" and second["sequence"]["start"] == "previous frame"
+    assert second["sequence"]["previous"] == first["sequence"]["unit"]
+    assert second["start"]["params"] == pytest.approx(first["params"], abs=1e-3)
+    assert images.header(str(out / "frame_2-render.png"))[:2] == (32, 24)
+    summary = (out / "summary.md").read_text()
+    assert "| frame | start | start Mitsuba RMSE | Mitsuba RMSE | steps | time (s) |" in summary
+    assert "| frame_2.png | previous frame |" in summary and summary in result.output
+    width, height = images.header(str(out / "preview.png"))[:2]
+    assert (width, height) == (2 * 128, 2 * (96 + 12))  # two frames: each picture above its answer's render
+    # stopped after the first frame: the same command keeps it and fits the second from its answer
+    kept = (out / "frame_1.json").read_bytes()
+    (out / "frame_2.json").unlink()
+    again = run(*command, "--render", "--size", 32, "--spp", 4)
+    assert again.exit_code == 0, again.output
+    assert (out / "frame_1.json").read_bytes() == kept
+    assert json.loads((out / "frame_2.json").read_text())["sequence"]["previous"] == first["sequence"]["unit"]
+    # the scene file changed: every frame is fitted again, each saying why
+    scene.write_text(scene.read_text() + "<!-- the light moved -->\n")
+    changed = run(*command)
+    assert changed.exit_code == 0, changed.output
+    said = [line for line in changed.output.splitlines() if line.endswith(": fitted again")]
+    assert len(said) == 2 and said[0].startswith("frame_1.png: the scene file, or a file it names,")
+    assert (out / "frame_1.json").read_bytes() != kept
+    # the test scene's sequence takes no steps of a scene fit
+    assert_one_line_error(run("sequence", frames, "--refine", 2, "-o", tmp_path / "neural"), "--refine 2 is for the")
+    assert not (tmp_path / "neural").exists()
+
+
+def test_a_scene_sequence_refuses_a_frame_of_another_aspect_before_any_fit(scene, edited, tmp_path):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    shutil.copy(edited, frames / "a.png")
+    images.write(str(frames / "b.png"), np.full((32, 32, 3), 0.5, np.float32))
+    out = tmp_path / "out"
+    result = run("sequence", frames, "--scene", scene, "--object", "object", "-o", out)
+    assert_one_line_error(result, "b.png is 32x32", "give a picture of the camera's aspect")
+    assert not out.exists()
+
+
+def test_the_api_fits_a_list_of_frames_in_a_scene_each_from_the_last(scene, edited):
+    chosen = matfit.Scene(scene, "object")
+    start = matfit.Material.preset("red-plastic")
+    fits = matfit.fit_sequence([edited, edited], scene=chosen, init=start, refine=2)
+    assert [fit.start for fit in fits] == ["--init", "previous frame"]
+    assert fits[0].document["start"]["material"] == "Material"
+    assert fits[1].document["start"]["params"] == pytest.approx(fits[0].document["params"], abs=1e-3)
+    assert all(fit.mitsuba_rmse is not None and fit.mitsuba_rmse <= fit.document["start"]["rmse"] for fit in fits)
+    with pytest.raises(matfit.MatfitError, match="settings= are the test scene's search"):
+        matfit.fit_sequence([edited], scene=chosen, settings=matfit.Settings())

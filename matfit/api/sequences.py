@@ -11,12 +11,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from matfit import documents, params
-from matfit.api import requests
+from matfit.api import requests, scenes
 from matfit.api.arguments import MAX_SIZE, Picture, callback, flag, path_of, path_text, shown, whole
 from matfit.api.choices import check_choices
 from matfit.api.fitter import Fitter
 from matfit.api.material import Material
 from matfit.api.results import Fit, fit_of
+from matfit.api.scenes import Scene
 from matfit.errors import FitError, ImageError, OutputError, RenderError
 from matfit.fitting.methods import Method, Settings
 
@@ -36,6 +37,10 @@ def fit_sequence(
     out: str | os.PathLike[str] | None = None,
     render: tuple[int, int] | None = None,
     progress: Callable[[int, int, float], None] | None = None,
+    scene: Scene | None = None,
+    refine: int = 0,
+    variant: str | None = None,
+    step_progress: Callable[[str, int, int, float], None] | None = None,
 ) -> list[Fit]:
     """Returns the fits of a sequence of frames in order: `matfit sequence`'s.
 
@@ -48,10 +53,31 @@ def fit_sequence(
     before the first fit, and the same call again resumes: frames whose results are there, for the same frames,
     settings and model, are read back, not fitted again. `progress(frames done, frames in all, frames a second)`
     hears of each frame (with `out`).
+
+    `scene`: the frames are renders of that scene of your own, edited, and each frame's shape is fitted there
+    (`fit(..., scene=)`'s fit, `refine` steps, 0: its default), from the previous frame's answer with `reinit`;
+    `step_progress(stage, step, steps, RMSE)` hears of each fit's steps; with `out`, each frame's params.json is
+    the scene fit's, and `render` renders the scene (docs/scenes.md#a-sequence-of-frames). `settings` are the
+    test scene's search, and `refine`, `variant` and `step_progress` a scene's fit: each only where it applies.
     """
     reinit, linear = flag("reinit", reinit, FitError), flag("linear", linear, ImageError)
     progress = callback("progress", progress, FitError)
+    step_progress = callback("step_progress", step_progress, FitError)
     check_choices(settings, init)
+    if scene is not None:
+        return scene_sequence(
+            frames, scene, settings, model, reinit, init, linear, out, render, progress, refine, variant, step_progress
+        )
+    for name, value, empty in (
+        ("refine", refine, 0),
+        ("variant", variant, None),
+        ("step_progress", step_progress, None),
+    ):
+        if value != empty:
+            raise FitError(
+                f"{name} {shown(value)} is for the frames of a scene of your own: give the scene too, or leave it out",
+                field=name,
+            )
     settings = settings or Settings(Method.hybrid, 100)
     if out is not None:
         return written_sequence(frames, model, settings, reinit, init, out, render, progress, linear)
@@ -89,6 +115,73 @@ def fit_sequence(
     return fits
 
 
+def scene_sequence(
+    frames: object,
+    scene: Scene,
+    settings: Settings | None,
+    model: str | os.PathLike[str] | Model | None,
+    reinit: bool,
+    init: str | os.PathLike[str] | Material | None,
+    linear: bool,
+    out: str | os.PathLike[str] | None,
+    render: tuple[int, int] | None,
+    progress: Callable[[int, int, float], None] | None,
+    refine: int,
+    variant: str | None,
+    step_progress: Callable[[str, int, int, float], None] | None,
+) -> list[Fit]:
+    """Returns `fit_sequence`'s fits of a scene's frames (`scene_sequences.fit_scene_sequence`), its arguments
+    checked as for the test scene's."""
+    from matfit.api import scene_sequences
+
+    scene = scenes.check_scene(scene)
+    if settings is not None:
+        raise FitError(
+            "settings= are the test scene's search; a scene's frames are fitted by Mitsuba's descent: leave settings "
+            "out (refine= sets its steps)",
+            field="settings",
+        )
+    if out is None and (isinstance(frames, str | os.PathLike) or render is not None or progress is not None):
+        raise FitError(
+            "a folder of frames, render= and progress= are for a sequence written to a folder: give out= too, or "
+            "give the frames as a list",
+            field="out",
+        )
+    written = None if out is None else path_of("out", out, OutputError, "give the folder to write into")
+    if written is not None and linear:
+        raise ImageError(
+            "linear=True describes arrays; frame files say how they are encoded: leave it out", field="linear"
+        )
+    fitter = Fitter(model, verify=False, variant=variant)
+    return scene_sequences.fit_scene_sequence(
+        frames,
+        scene,
+        init=init,
+        reinit=reinit,
+        linear=linear,
+        out=written,
+        render=None if render is None else render_settings(render),
+        refine=refine,
+        variant=fitter.variant,
+        model=fitter,
+        model_path=fitter.model_path,
+        progress=progress,
+        step_progress=step_progress,
+    )
+
+
+def render_settings(render: object) -> tuple[int, int]:
+    """Returns `render=` (size, spp) checked: a pair of whole numbers in range."""
+    from matfit.model import dataset
+
+    if not isinstance(render, tuple) or len(render) != 2:
+        raise RenderError(f"render {shown(render)} is not (size, spp): give render=(256, 64)", field="render")
+    return (
+        whole("size", render[0], dataset.MIN_RESOLUTION, MAX_SIZE, RenderError),
+        whole("spp", render[1], 1, dataset.MAX_SPP, RenderError),
+    )
+
+
 def written_sequence(
     frames: object,
     model: str | os.PathLike[str] | Model | None,
@@ -102,7 +195,6 @@ def written_sequence(
 ) -> list[Fit]:
     """Returns `fit_sequence`'s fits of a folder of frames written into `out` (`fitting/sequence.run`)."""
     from matfit.fitting import sequence
-    from matfit.model import dataset
 
     if not isinstance(frames, str | os.PathLike):
         raise FitError(
@@ -113,14 +205,7 @@ def written_sequence(
         raise ImageError(
             "linear=True describes arrays; frame files say how they are encoded: leave it out", field="linear"
         )
-    rendered = None
-    if render is not None:
-        if not isinstance(render, tuple) or len(render) != 2:
-            raise RenderError(f"render {shown(render)} is not (size, spp): give render=(256, 64)", field="render")
-        rendered = (
-            whole("size", render[0], dataset.MIN_RESOLUTION, MAX_SIZE, RenderError),
-            whole("spp", render[1], 1, dataset.MAX_SPP, RenderError),
-        )
+    rendered = None if render is None else render_settings(render)
     fitter = Fitter(model, verify=False)
     frames_found = sequence.run(
         fitter,

@@ -327,25 +327,53 @@ def sequence(
     size: options.Size = 256,
     spp: options.Spp = 64,
     init: options.Init = None,
+    scene: options.SceneFile = None,
+    object: options.SceneObject = None,
+    refine: options.Refine = 0,
+    variant: options.Variant = None,
 ) -> None:
-    """Fit every frame of an edited sequence, reusing each optimum for the next frame; resumable."""
+    """Fit every frame of an edited sequence, reusing each optimum for the next frame; resumable (--scene: frames of
+    a scene of your own, the material of its shape --object fitted there, --refine its steps)."""
     from matfit.app.progress import Progress
 
-    settings = Settings(method=method, evaluations=evaluations)
-    with Progress("fitting frames") as progress:
-        fits = matfit.fit_sequence(
-            frames,
-            model=model_path,
-            settings=settings,
-            reinit=reinit,
-            init=init,
-            out=out,
-            render=(size, spp) if render else None,
-            progress=progress.counter("frames/s"),
-        )
+    if scene is not None or object is not None:
+        with Progress(f"fitting {object!r} in {scene}") as shown:
+
+            def frame_done(done: int, total: int, rate: float) -> None:
+                shown.note(f"frame {done} of {total} fitted")
+
+            fits = matfit.fit_sequence(
+                frames,
+                model=model_path,
+                reinit=reinit,
+                init=init,
+                out=out,
+                render=(size, spp) if render else None,
+                progress=frame_done,
+                scene=options.scene(scene, object),
+                refine=refine,
+                variant=variant,
+                step_progress=shown.steps(),
+            )
+        figure = f"in {scene}, Mitsuba RMSE sum {sum(fit.mitsuba_rmse or 0.0 for fit in fits):.2f}"
+    else:
+        with Progress("fitting frames") as progress:
+            fits = matfit.fit_sequence(
+                frames,
+                model=model_path,
+                settings=Settings(method=method, evaluations=evaluations),
+                reinit=reinit,
+                init=init,
+                out=out,
+                render=(size, spp) if render else None,
+                progress=progress.counter("frames/s"),
+                refine=refine,
+                variant=variant,
+            )
+        figure = f"RMSE sum {sum(fit.neural_rmse for fit in fits):.2f}"
     echo_lines(f"{os.path.basename(fit.document['sequence']['frame'])}: {note}" for fit in fits for note in fit.notices)
     typer.echo((out / "summary.md").read_text())  # the table the command wrote there
-    log(f"{out}: {len(fits)} frames, RMSE sum {sum(fit.neural_rmse for fit in fits):.2f}")
+    log(f"{out}: {len(fits)} frames, {figure}")
 
 
 @command(interrupted="finished epochs are saved in the model's checkpoints/; run the same command to resume")
