@@ -320,7 +320,9 @@ def sequence(
     model_path: options.Model = options.DEFAULT_MODEL,
     evaluations: options.Evaluations = 100,
     method: options.Fitting = Method.hybrid,
-    reinit: Annotated[bool, typer.Option(help="Add the previous frame's optimum to the best-of-n pool.")] = True,
+    reinit: Annotated[
+        bool, typer.Option(help="Add the previous frame's optimum to the best-of-n pool (--scene: start from it).")
+    ] = True,
     render: Annotated[
         bool, typer.Option("--render", help="Also render each fit with Mitsuba (<frame>-render.png).")
     ] = False,
@@ -329,7 +331,9 @@ def sequence(
     init: options.Init = None,
     scene: options.SceneFile = None,
     object: options.SceneObject = None,
-    refine: options.Refine = 0,
+    refine: Annotated[
+        int, typer.Option(min=0, max=options.MAX_REFINE, help="With --scene: each frame's fit's steps (0: 48).")
+    ] = 0,
     variant: options.Variant = None,
 ) -> None:
     """Fit every frame of an edited sequence, reusing each optimum for the next frame; resumable (--scene: frames of
