@@ -8,25 +8,69 @@ import dataclasses
 import os
 import time
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from matfit import documents, files, images, params
 from matfit.api import scene_fits, scenes
-from matfit.api.arguments import path_text, shown, whole
+from matfit.api.arguments import Picture, path_text, shown, whole
 from matfit.api.material import Material
 from matfit.api.results import Fit
 from matfit.api.scenes import Scene
 from matfit.errors import FitError, SceneError
 
 if TYPE_CHECKING:
+    from matfit.fitting.scene_fit import SceneOutcome
     from matfit.fitting.sequence import Frame
     from matfit.model.models import Loader
     from matfit.rendering.scene_file import SceneFile
 
 PREVIEW_SIZE = 128  # pixels on the longer side of each frame's picture in preview.png
 PREVIEW_FRAMES = 12  # the frames preview.png shows, spread over the sequence
+
+
+@dataclass(frozen=True)
+class _Chain:
+    """What every frame of one scene sequence shares: the scene (`read`: its file read), the first frame's start
+    (`start`, `named` as params.json names it; None: the shape's own material, else `model`'s guess), whether each
+    next frame starts from the previous answer (`reinit`), the fits' steps, variant and step progress."""
+
+    scene: Scene
+    read: SceneFile
+    start: Material | None
+    named: str | None
+    reinit: bool
+    steps: int
+    variant: str | None
+    model: Loader
+    step_progress: Callable[[str, int, int, float], None] | None
+
+    def fit(
+        self, picture: Picture, previous: np.ndarray | None, chained: bool, linear: bool
+    ) -> tuple[SceneOutcome, dict[str, Any], str]:
+        """Returns (the scene fit of a frame, its params.json document, the start's label for the summary): from
+        `previous` (physical; None: the shape's own material or the guess), which is the previous frame's answer
+        where `chained`."""
+        from matfit.fitting import sequence
+
+        outcome, document = scenes.fit_in_scene(
+            picture,
+            self.scene,
+            init=previous,
+            init_name=sequence.PREVIOUS if chained else self.named,
+            mask=None,
+            linear=linear,
+            steps=self.steps,
+            variant=self.variant,
+            outputs=None,
+            progress=self.step_progress,
+            model=self.model,
+        )
+        if chained:
+            return outcome, document, sequence.PREVIOUS
+        return outcome, document, sequence.INIT if self.start is not None else document["start"]["material"]
 
 
 def fit_scene_sequence(
@@ -50,29 +94,15 @@ def fit_scene_sequence(
     material, else `model`'s guess), each next one from the previous frame's answer with `reinit` (without it, from
     the first's start). `frames`: pictures, or with `out` the folder of the frames, each frame's params.json written
     at once to `out/<frame>.json` and the same call again resuming (`_written`); `render` = (size, spp) checked."""
-    from matfit.fitting import scene_fit, sequence
+    from matfit.fitting import scene_fit
 
     read = scenes.check_scene(scene).read()  # a scene that fails, before anything
     steps = whole("refine", refine or scene_fit.STEPS, 1, scenes.MAX_STEPS, SceneError)
     start = None if init is None else init if isinstance(init, Material) else Material.read(init)
     named = "Material" if isinstance(init, Material) else None if init is None else path_text(init)
+    chain = _Chain(scene, read, start, named, reinit, steps, variant, model, step_progress)
     if out is not None:
-        return _written(
-            frames,
-            read,
-            scene,
-            start,
-            named,
-            reinit,
-            out,
-            render,
-            steps,
-            variant,
-            model,
-            model_path,
-            progress,
-            step_progress,
-        )
+        return _written(frames, chain, out, render, model_path, progress)
     if not isinstance(frames, Iterable) or isinstance(frames, str | os.PathLike):
         raise FitError(
             f"frames {shown(frames)} is no list of pictures: give the frames' paths or arrays, or their folder with "
@@ -83,39 +113,18 @@ def fit_scene_sequence(
     for frame in frames:
         chained = reinit and bool(fits)
         values = fits[-1].material.array() if chained else None if start is None else start.array()
-        outcome, document = scenes.fit_in_scene(
-            frame,
-            scene,
-            init=values,
-            init_name=sequence.PREVIOUS if chained else named,
-            mask=None,
-            linear=linear,
-            steps=steps,
-            variant=variant,
-            outputs=None,
-            progress=step_progress,
-            model=model,
-        )
-        label = sequence.PREVIOUS if chained else sequence.INIT if start is not None else document["start"]["material"]
+        outcome, document, label = chain.fit(frame, values, chained, linear)
         fits.append(dataclasses.replace(scene_fits.fit_of(outcome, document, document["target"]), start=label))
     return fits
 
 
 def _written(
     frames: object,
-    read: SceneFile,
-    scene: Scene,
-    start: Material | None,
-    named: str | None,
-    reinit: bool,
+    chain: _Chain,
     out: str,
     render: tuple[int, int] | None,
-    steps: int,
-    variant: str | None,
-    model: Loader,
     model_path: str,
     progress: Callable[[int, int, float], None] | None,
-    step_progress: Callable[[str, int, int, float], None] | None,
 ) -> list[Fit]:
     """Returns the fits of the frames of a folder, written into `out` as `matfit sequence --scene` writes them: every
     frame's aspect and every output checked before the first fit (none may be a frame, the init, the scene's file or
@@ -133,20 +142,17 @@ def _written(
         paths,
         out,
         rendered=render is not None,
-        init=named if named != "Material" else None,
+        init=chain.named if chain.named != "Material" else None,
         model=model_path,
-        inputs=scenes.scene_inputs(read),
+        inputs=scenes.scene_inputs(chain.read),
     )
     for path in paths:
         width, height = images.header(path)[:2]
-        scene_fit.check_aspect(read, height, width, f"the frame {path}")
+        scene_fit.check_aspect(chain.read, height, width, f"the frame {path}")
     created = not os.path.isdir(out)
     os.makedirs(out, exist_ok=True)
-    settings = {"method": "scene", "steps": steps, "reinit": reinit}
     try:
-        results, fits = _frames(
-            paths, read, scene, start, named, reinit, out, steps, settings, variant, model, progress, step_progress
-        )
+        results, fits = _frames(paths, chain, out, progress)
     except BaseException:
         if created and not os.listdir(out):  # nothing finished: leave no empty folder behind
             os.rmdir(out)
@@ -155,7 +161,8 @@ def _written(
         size, spp = render
 
         def draw(unit: np.ndarray) -> np.ndarray:
-            return scenes.render_values(params.from_unit(unit), scene, size=size, spp=spp, seed=0, variant=variant)
+            values = params.from_unit(unit)
+            return scenes.render_values(values, chain.scene, size=size, spp=spp, seed=0, variant=chain.variant)
 
         sequence.render_frames(results, out, size, spp, draw)
     files.write_text(os.path.join(out, sequence.SUMMARY_FILE), sequence.summary_table(results, "steps", "Mitsuba RMSE"))
@@ -164,34 +171,23 @@ def _written(
 
 
 def _frames(
-    paths: list[str],
-    read: SceneFile,
-    scene: Scene,
-    start: Material | None,
-    named: str | None,
-    reinit: bool,
-    out: str,
-    steps: int,
-    settings: dict[str, Any],
-    variant: str | None,
-    model: Loader,
-    progress: Callable[[int, int, float], None] | None,
-    step_progress: Callable[[str, int, int, float], None] | None,
+    paths: list[str], chain: _Chain, out: str, progress: Callable[[int, int, float], None] | None
 ) -> tuple[list[Frame], list[Fit]]:
     """Returns each frame's record and fit, fitting (and writing at once) those not fitted already from the same
-    start in the same scene (`sequence.stale`: the frame changed, or the answer it starts from; or the scene file or
-    a file it names changed, `scenes.identity`)."""
+    start with the same steps in the same scene (`sequence.stale`: the frame changed, or the answer it starts from;
+    or the scene file or a file it names changed, `scenes.identity`)."""
     from matfit.fitting import sequence
 
     began = time.perf_counter()
-    identity = scenes.identity(read)
-    first = None if start is None else [float(u) for u in params.to_unit(start.array())]
+    settings = {"method": "scene", "steps": chain.steps, "reinit": chain.reinit}
+    identity = scenes.identity(chain.read)
+    first = None if chain.start is None else [float(u) for u in params.to_unit(chain.start.array())]
     results: list[Frame] = []
     fits: list[Fit] = []
     for index, path in enumerate(paths):
         json_path = sequence.frame_json_path(out, path)
         finished = sequence.read_finished(json_path, settings)
-        chained = reinit and index > 0
+        chained = chain.reinit and index > 0
         previous = [float(u) for u in results[-1].unit] if chained else first
         computed_from = {"frame_sha256": files.sha256(path), "previous": previous}
         note = sequence.stale(finished, computed_from, first=not chained)
@@ -199,7 +195,7 @@ def _frames(
         if finished is not None and note is None:
             document = documents.read(json_path, "delete it to fit that frame again", FitError)
             if document["sequence"].get("scene") == identity:
-                kept = finished[0], _kept(path, finished[0], document, scene, variant)
+                kept = finished[0], _kept(path, finished[0], document, chain.scene, chain.variant)
             else:
                 note = (
                     "the scene file, or a file it names, is not the one its result on disk was fitted in: fitted again"
@@ -207,22 +203,8 @@ def _frames(
         if kept is not None:
             frame, fit = kept
         else:
-            outcome, document = scenes.fit_in_scene(
-                path,
-                scene,
-                init=None if previous is None else params.from_unit(np.asarray(previous, np.float64)),
-                init_name=sequence.PREVIOUS if chained else named,
-                mask=None,
-                linear=False,
-                steps=steps,
-                variant=variant,
-                outputs=None,
-                progress=step_progress,
-                model=model,
-            )
-            label = (
-                sequence.PREVIOUS if chained else sequence.INIT if start is not None else document["start"]["material"]
-            )
+            values = None if previous is None else params.from_unit(np.asarray(previous, np.float64))
+            outcome, document, label = chain.fit(path, values, chained, False)
             unit = params.to_unit(outcome.values)
             frame = sequence.Frame(
                 path, unit, outcome.rmse, label, outcome.start_rmse, len(outcome.losses), outcome.seconds, note=note
