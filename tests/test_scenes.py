@@ -294,3 +294,39 @@ def test_the_api_fits_a_list_of_frames_in_a_scene_each_from_the_last(scene, edit
     assert all(fit.mitsuba_rmse is not None and fit.mitsuba_rmse <= fit.document["start"]["rmse"] for fit in fits)
     with pytest.raises(matfit.MatfitError, match="settings= are the test scene's search"):
         matfit.fit_sequence([edited], scene=chosen, settings=matfit.Settings())
+
+
+def test_a_scene_sequence_stopped_keeps_the_frames_written_and_one_stopped_at_once_leaves_no_folder(
+    scene, edited, tmp_path, monkeypatch
+):
+    from matfit.api import scenes
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for name in ("frame_1.png", "frame_2.png"):
+        shutil.copy(edited, frames / name)
+    real, calls = scenes.fit_in_scene, []
+
+    def stopped_after(kept: int):
+        def fit_in_scene(*arguments, **options):
+            calls.append(arguments[0])
+            if len(calls) > kept:
+                raise KeyboardInterrupt  # Ctrl-C in the middle of a frame's fit
+            return real(*arguments, **options)
+
+        return fit_in_scene
+
+    chosen = matfit.Scene(scene, "object")
+    monkeypatch.setattr(scenes, "fit_in_scene", stopped_after(1))
+    with pytest.raises(KeyboardInterrupt):
+        matfit.fit_sequence(frames, scene=chosen, refine=2, out=tmp_path / "out")
+    assert sorted(os.listdir(tmp_path / "out")) == ["frame_1.json"]  # not the frame in hand, summary.md, preview.png
+    calls.clear()
+    monkeypatch.setattr(scenes, "fit_in_scene", stopped_after(0))
+    with pytest.raises(KeyboardInterrupt):
+        matfit.fit_sequence(frames, scene=chosen, refine=2, out=tmp_path / "new")
+    assert not (tmp_path / "new").exists()
+    monkeypatch.setattr(scenes, "fit_in_scene", real)
+    fits = matfit.fit_sequence(frames, scene=chosen, refine=2, out=tmp_path / "out")  # goes on: frame 1 kept
+    assert "kept, fitted by an earlier run" in fits[0].summary and "kept" not in fits[1].summary
+    assert sorted(os.listdir(tmp_path / "out")) == ["frame_1.json", "frame_2.json", "preview.png", "summary.md"]
