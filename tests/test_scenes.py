@@ -330,3 +330,30 @@ def test_a_scene_sequence_stopped_keeps_the_frames_written_and_one_stopped_at_on
     fits = matfit.fit_sequence(frames, scene=chosen, refine=2, out=tmp_path / "out")  # goes on: frame 1 kept
     assert "kept, fitted by an earlier run" in fits[0].summary and "kept" not in fits[1].summary
     assert sorted(os.listdir(tmp_path / "out")) == ["frame_1.json", "frame_2.json", "preview.png", "summary.md"]
+
+
+def test_a_scene_sequence_fits_every_frame_through_one_mask_and_again_when_it_changes(scene, edited, tmp_path):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for name in ("frame_1.png", "frame_2.png"):
+        shutil.copy(edited, frames / name)
+    width, height = images.header(str(edited))[:2]
+    mask = tmp_path / "mask.png"
+    images.write(str(mask), np.ones((height, width, 3), np.float32))
+    small = tmp_path / "small.png"
+    images.write(str(small), np.ones((height // 2, width // 2, 3), np.float32))
+    out = tmp_path / "out"
+    command = ("sequence", frames, "--scene", scene, "--object", "object", "--refine", 2, "-o", out)
+    refused = run(*command, "--mask", small)
+    assert_one_line_error(refused, f"the mask is {width // 2}x{height // 2}", "give a mask of the frames' size")
+    assert not out.exists()
+    assert_one_line_error(run("sequence", frames, "--mask", mask, "-o", out), "--mask")  # the test scene's: none
+    result = run(*command, "--mask", mask)
+    assert result.exit_code == 0, result.output
+    documents = [json.loads((out / f"frame_{k}.json").read_text()) for k in (1, 2)]
+    assert all(d["mask"] == str(mask) and d["sequence"]["mask_sha256"] for d in documents)
+    images.write(str(mask), np.concatenate([np.ones((height, width // 2, 3)), np.zeros((height, width // 2, 3))], 1))
+    again = run(*command, "--mask", mask)
+    assert again.exit_code == 0, again.output
+    assert "frame_1.png: the mask is not the one its result on disk was fitted through: fitted again" in again.output
+    assert json.loads((out / "frame_1.json").read_text())["region_fraction"] < documents[0]["region_fraction"]

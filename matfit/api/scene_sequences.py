@@ -5,6 +5,7 @@ docs/scenes.md#a-sequence-of-frames."""
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
 import time
 from collections.abc import Callable, Iterable
@@ -19,7 +20,7 @@ from matfit.api.arguments import Picture, path_text, shown, whole
 from matfit.api.material import Material
 from matfit.api.results import Fit
 from matfit.api.scenes import Scene
-from matfit.errors import FitError, SceneError
+from matfit.errors import FitError, ImageError, SceneError
 
 if TYPE_CHECKING:
     from matfit.fitting.scene_fit import SceneOutcome
@@ -35,7 +36,8 @@ PREVIEW_FRAMES = 12  # the frames preview.png shows, spread over the sequence
 class _Chain:
     """What every frame of one scene sequence shares: the scene (`read`: its file read), the first frame's start
     (`start`, `named` as params.json names it; None: the shape's own material, else `model`'s guess), whether each
-    next frame starts from the previous answer (`reinit`), the fits' steps, variant and step progress."""
+    next frame starts from the previous answer (`reinit`), the fits' steps, variant and step progress, and the mask
+    every frame is fitted through (None: the region each fit finds)."""
 
     scene: Scene
     read: SceneFile
@@ -46,6 +48,7 @@ class _Chain:
     variant: str | None
     model: Loader
     step_progress: Callable[[str, int, int, float], None] | None
+    mask: Picture | None = None
 
     def fit(
         self, picture: Picture, previous: np.ndarray | None, chained: bool, linear: bool
@@ -60,7 +63,7 @@ class _Chain:
             self.scene,
             init=previous,
             init_name=sequence.PREVIOUS if chained else self.named,
-            mask=None,
+            mask=self.mask,
             linear=linear,
             steps=self.steps,
             variant=self.variant,
@@ -88,19 +91,21 @@ def fit_scene_sequence(
     model_path: str,
     progress: Callable[[int, int, float], None] | None,
     step_progress: Callable[[str, int, int, float], None] | None,
+    mask: Picture | None = None,
 ) -> list[Fit]:
     """Returns the fits of a scene's frames in order (`fit_sequence(..., scene=)`'s): each frame's shape fitted in
     the scene (`scenes.fit_in_scene`, `refine` steps, 0: the default), the first from `init` (None: the shape's own
     material, else `model`'s guess), each next one from the previous frame's answer with `reinit` (without it, from
-    the first's start). `frames`: pictures, or with `out` the folder of the frames, each frame's params.json written
-    at once to `out/<frame>.json` and the same call again resuming (`_written`); `render` = (size, spp) checked."""
+    the first's start), through `mask` (of the frames' size) where given. `frames`: pictures, or with `out` the folder
+    of the frames, each frame's params.json written at once to `out/<frame>.json` and the same call again resuming
+    (`_written`); `render` = (size, spp) checked."""
     from matfit.fitting import scene_fit
 
     read = scenes.check_scene(scene).read()  # a scene that fails, before anything
     steps = whole("refine", refine or scene_fit.STEPS, 1, scenes.MAX_STEPS, SceneError)
     start = None if init is None else init if isinstance(init, Material) else Material.read(init)
     named = "Material" if isinstance(init, Material) else None if init is None else path_text(init)
-    chain = _Chain(scene, read, start, named, reinit, steps, variant, model, step_progress)
+    chain = _Chain(scene, read, start, named, reinit, steps, variant, model, step_progress, mask)
     if out is not None:
         return _written(frames, chain, out, render, model_path, progress)
     if not isinstance(frames, Iterable) or isinstance(frames, str | os.PathLike):
@@ -144,11 +149,18 @@ def _written(
         rendered=render is not None,
         init=chain.named if chain.named != "Material" else None,
         model=model_path,
-        inputs=scenes.scene_inputs(chain.read),
+        inputs=[*scenes.scene_inputs(chain.read), ("mask", _mask_path(chain.mask))],
     )
+    masked = None if chain.mask is None else _mask_size(chain.mask)
     for path in paths:
         width, height = images.header(path)[:2]
         scene_fit.check_aspect(chain.read, height, width, f"the frame {path}")
+        if masked is not None and masked != (width, height):
+            raise ImageError(
+                f"the mask is {masked[0]}x{masked[1]}, the frame {path} {width}x{height}: give a mask of the frames' "
+                "size",
+                field="mask",
+            )
     created = not os.path.isdir(out)
     os.makedirs(out, exist_ok=True)
     try:
@@ -181,6 +193,7 @@ def _frames(
     began = time.perf_counter()
     settings = {"method": "scene", "steps": chain.steps, "reinit": chain.reinit}
     identity = scenes.identity(chain.read)
+    masked = None if chain.mask is None else _mask_sha256(chain.mask)
     first = None if chain.start is None else [float(u) for u in params.to_unit(chain.start.array())]
     results: list[Frame] = []
     fits: list[Fit] = []
@@ -194,12 +207,14 @@ def _frames(
         kept = None
         if finished is not None and note is None:
             document = documents.read(json_path, "delete it to fit that frame again", FitError)
-            if document["sequence"].get("scene") == identity:
-                kept = finished[0], _kept(path, finished[0], document, chain.scene, chain.variant)
-            else:
+            if document["sequence"].get("scene") != identity:
                 note = (
                     "the scene file, or a file it names, is not the one its result on disk was fitted in: fitted again"
                 )
+            elif document["sequence"].get("mask_sha256") != masked:
+                note = "the mask is not the one its result on disk was fitted through: fitted again"
+            else:
+                kept = finished[0], _kept(path, finished[0], document, chain.scene, chain.variant)
         if kept is not None:
             frame, fit = kept
         else:
@@ -219,6 +234,7 @@ def _frames(
                 "seconds": outcome.seconds,
                 "settings": settings,
                 "scene": identity,
+                "mask_sha256": masked,
                 **computed_from,
                 "unit": [float(u) for u in unit],
             }
@@ -283,3 +299,28 @@ def preview(fits: list[Fit]) -> np.ndarray:
     top = [tile(fits[k].target, os.path.basename(str(fits[k].document.get("target", k)))) for k in chosen]
     bottom = [tile(fits[k].rendered, f"RMSE {fits[k].mitsuba_rmse:.2f}") for k in chosen]
     return np.concatenate([np.concatenate(top, axis=1), np.concatenate(bottom, axis=1)], axis=0)
+
+
+def _mask_path(mask: Picture | None) -> str | None:
+    """Returns the mask's file (an input no output may replace), None for an array or no mask."""
+    return path_text(mask) if isinstance(mask, str | os.PathLike) else None
+
+
+def _mask_size(mask: Picture) -> tuple[int, int]:
+    """Returns the mask's (width, height), a file's from its header; the one-line ImageError of one that is none."""
+    if isinstance(mask, str | os.PathLike):
+        path = path_text(mask)
+        if not os.path.isfile(path):
+            raise ImageError(f"mask {path} is not a file: give the mask's path", field="mask")
+        return images.header(path)[:2]
+    shape = np.shape(mask)
+    if len(shape) not in (2, 3):
+        raise ImageError(f"mask of shape {shape} is no picture: give an (H, W) or (H, W, C) array", field="mask")
+    return int(shape[1]), int(shape[0])
+
+
+def _mask_sha256(mask: Picture) -> str:
+    """Returns the SHA-256 of the mask's file or array bytes: a frame fitted through another is fitted again."""
+    if isinstance(mask, str | os.PathLike):
+        return files.sha256(path_text(mask))
+    return hashlib.sha256(np.ascontiguousarray(np.asarray(mask)).tobytes()).hexdigest()

@@ -41,6 +41,7 @@ def fit_sequence(
     refine: int = 0,
     variant: str | None = None,
     step_progress: Callable[[str, int, int, float], None] | None = None,
+    mask: Picture | None = None,
 ) -> list[Fit]:
     """Returns the fits of a sequence of frames in order: `matfit sequence`'s.
 
@@ -56,9 +57,10 @@ def fit_sequence(
 
     `scene`: the frames are renders of that scene of your own, edited, and each frame's shape is fitted there
     (`fit(..., scene=)`'s fit, `refine` steps, 0: its default), from the previous frame's answer with `reinit`;
-    `step_progress(stage, step, steps, RMSE)` hears of each fit's steps; with `out`, each frame's params.json is
-    the scene fit's, and `render` renders the scene (docs/scenes.md#a-sequence-of-frames). `settings` are the
-    test scene's search, and `refine`, `variant` and `step_progress` a scene's fit: each only where it applies.
+    `step_progress(stage, step, steps, RMSE)` hears of each fit's steps; `mask` (of the frames' size) weights every
+    frame's fit; with `out`, each frame's params.json is the scene fit's, and `render` renders the scene
+    (docs/scenes.md#a-sequence-of-frames). `settings` are the test scene's search, and `refine`, `variant`,
+    `step_progress` and `mask` a scene's fit: each only where it applies.
     """
     reinit, linear = flag("reinit", reinit, FitError), flag("linear", linear, ImageError)
     progress = callback("progress", progress, FitError)
@@ -66,14 +68,28 @@ def fit_sequence(
     check_choices(settings, init)
     if scene is not None:
         return scene_sequence(
-            frames, scene, settings, model, reinit, init, linear, out, render, progress, refine, variant, step_progress
+            frames,
+            scene,
+            settings,
+            model,
+            reinit,
+            init,
+            linear,
+            out,
+            render,
+            progress,
+            refine,
+            variant,
+            step_progress,
+            mask,
         )
-    for name, value, empty in (
-        ("refine", refine, 0),
-        ("variant", variant, None),
-        ("step_progress", step_progress, None),
+    for name, value, given in (
+        ("refine", refine, refine != 0),
+        ("variant", variant, variant is not None),
+        ("step_progress", step_progress, step_progress is not None),
+        ("mask", mask, mask is not None),
     ):
-        if value != empty:
+        if given:
             raise FitError(
                 f"{name} {shown(value)} is for the frames of a scene of your own: give the scene too, or leave it out",
                 field=name,
@@ -129,6 +145,7 @@ def scene_sequence(
     refine: int,
     variant: str | None,
     step_progress: Callable[[str, int, int, float], None] | None,
+    mask: Picture | None,
 ) -> list[Fit]:
     """Returns `fit_sequence`'s fits of a scene's frames (`scene_sequences.fit_scene_sequence`), its arguments
     checked as for the test scene's."""
@@ -167,6 +184,7 @@ def scene_sequence(
         model_path=fitter.model_path,
         progress=progress,
         step_progress=step_progress,
+        mask=mask,
     )
 
 

@@ -335,6 +335,7 @@ def sequence(
         int, typer.Option(min=0, max=options.MAX_REFINE, help="With --scene: each frame's fit's steps (0: 48).")
     ] = 0,
     variant: options.Variant = None,
+    mask: options.Mask = None,
 ) -> None:
     """Fit every frame of an edited sequence, reusing each optimum for the next frame; resumable (--scene: frames of
     a scene of your own, the material of its shape --object fitted there, --refine its steps)."""
@@ -358,6 +359,7 @@ def sequence(
                 refine=refine,
                 variant=variant,
                 step_progress=shown.steps(),
+                mask=options.text(mask),
             )
         figure = f"in {scene}, Mitsuba RMSE sum {sum(fit.mitsuba_rmse or 0.0 for fit in fits):.2f}"
     else:
@@ -373,6 +375,7 @@ def sequence(
                 progress=progress.counter("frames/s"),
                 refine=refine,
                 variant=variant,
+                mask=options.text(mask),
             )
         figure = f"RMSE sum {sum(fit.neural_rmse for fit in fits):.2f}"
     echo_lines(f"{os.path.basename(fit.document['sequence']['frame'])}: {note}" for fit in fits for note in fit.notices)

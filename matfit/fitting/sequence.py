@@ -120,7 +120,7 @@ def check_outputs(
     rendered: bool,
     init: str | None = None,
     model: str | None = None,
-    inputs: Sequence[tuple[str, str]] = (),
+    inputs: Sequence[tuple[str, str | None]] = (),
 ) -> None:
     """Raises SequenceError or OutputError, before any fit, unless every file of a run into `out` can be written.
 
