@@ -10,13 +10,13 @@ import os
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
 from matfit import documents, files, images, params
 from matfit.api import scene_fits, scenes
-from matfit.api.arguments import Picture, path_text, shown, whole
+from matfit.api.arguments import Picture, path_text, whole
 from matfit.api.material import Material
 from matfit.api.results import Fit
 from matfit.api.scenes import Scene
@@ -108,14 +108,8 @@ def fit_scene_sequence(
     chain = _Chain(scene, read, start, named, reinit, steps, variant, model, step_progress, mask)
     if out is not None:
         return _written(frames, chain, out, render, model_path, progress)
-    if not isinstance(frames, Iterable) or isinstance(frames, str | os.PathLike):
-        raise FitError(
-            f"frames {shown(frames)} is no list of pictures: give the frames' paths or arrays, or their folder with "
-            "out=",
-            field="frames",
-        )
     fits: list[Fit] = []
-    for frame in frames:
+    for frame in cast(Iterable[Picture], frames):  # a list: `sequences.check_written`
         chained = reinit and bool(fits)
         values = fits[-1].material.array() if chained else None if start is None else start.array()
         outcome, document, label = chain.fit(frame, values, chained, linear)
@@ -138,11 +132,7 @@ def _written(
     renders, summary.md and preview.png."""
     from matfit.fitting import scene_fit, sequence
 
-    if not isinstance(frames, str | os.PathLike):
-        raise FitError(
-            f"frames {shown(frames)} is no folder: with out=, give the folder that holds the frames", field="frames"
-        )
-    paths = sequence.list_frames(path_text(frames))
+    paths = sequence.list_frames(path_text(cast(str, frames)))  # a folder: `sequences.check_written`
     sequence.check_outputs(
         paths,
         out,
@@ -214,7 +204,7 @@ def _frames(
             elif document["sequence"].get("mask_sha256") != masked:
                 note = "the mask is not the one its result on disk was fitted through: fitted again"
             else:
-                kept = finished[0], _kept(path, finished[0], document, chain.scene, chain.variant)
+                kept = finished[0], _kept(path, finished[0], document, chain)
         if kept is not None:
             frame, fit = kept
         else:
@@ -248,17 +238,21 @@ def _frames(
     return results, fits
 
 
-def _kept(path: str, frame: Frame, document: dict[str, Any], scene: Scene, variant: str | None) -> Fit:
+def _kept(path: str, frame: Frame, document: dict[str, Any], chain: _Chain) -> Fit:
     """Returns the `Fit` of the frame `path` an earlier run fitted: its picture at the fit's size and its answer
     rendered there as the fit's judge renders it (the file holds no picture)."""
     from matfit.fitting import scene_fit, scene_judge
 
-    read = scene.read()
-    values = params.from_unit(np.asarray(frame.unit, np.float64))
+    read, values = chain.read, params.from_unit(np.asarray(frame.unit, np.float64))
     size = read.size(scene_fit.FIT_SIZE)
     target = np.clip(images.srgb_encode(images.resample(images.load(path).pixels, *size)), 0.0, 1.0)
     linear = scenes.render_values(
-        values, scene, size=scene_fit.FIT_SIZE, spp=scene_judge.JUDGE_SPP, seed=scene_judge.JUDGE_SEED, variant=variant
+        values,
+        chain.scene,
+        size=scene_fit.FIT_SIZE,
+        spp=scene_judge.JUDGE_SPP,
+        seed=scene_judge.JUDGE_SEED,
+        variant=chain.variant,
     )
     image = np.clip(images.srgb_encode(linear), 0.0, 1.0).astype(np.float32)
     summary = (

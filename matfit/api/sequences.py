@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Callable, Iterable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
@@ -95,27 +95,16 @@ def fit_sequence(
                 field=name,
             )
     settings = settings or Settings(Method.hybrid, 100)
+    check_written(frames, out, render, progress, linear)
     if out is not None:
-        return written_sequence(frames, model, settings, reinit, init, out, render, progress, linear)
-    if isinstance(frames, str | os.PathLike) or render is not None or progress is not None:
-        raise FitError(
-            "a folder of frames, render= and progress= are for a sequence written to a folder: give out= too, or "
-            "give the frames as a list",
-            field="out",
-        )
-    if not isinstance(frames, Iterable):
-        raise FitError(
-            f"frames {shown(frames)} is no list of pictures: give the frames' paths or arrays, or their folder with "
-            "out=",
-            field="frames",
-        )
+        return written_sequence(frames, model, settings, reinit, init, out, render, progress)
     from matfit.fitting import fitfile, stages
 
     fitter = Fitter(model, verify=False)
     start = None if init is None else (init if isinstance(init, Material) else Material.read(init)).unit()
     previous = None if start is None else np.asarray(start, np.float32)
     fits: list[Fit] = []
-    for frame in frames:
+    for frame in cast(Iterable[Picture], frames):  # a list: `check_written`
         request, notices = requests.request_of(
             fitter, fitter.variant, frame, None, None, settings, linear, False, None, "best", 0, 0
         )
@@ -158,17 +147,8 @@ def scene_sequence(
             "out (refine= sets its steps)",
             field="settings",
         )
-    if out is None and (isinstance(frames, str | os.PathLike) or render is not None or progress is not None):
-        raise FitError(
-            "a folder of frames, render= and progress= are for a sequence written to a folder: give out= too, or "
-            "give the frames as a list",
-            field="out",
-        )
+    check_written(frames, out, render, progress, linear)
     written = None if out is None else path_of("out", out, OutputError, "give the folder to write into")
-    if written is not None and linear:
-        raise ImageError(
-            "linear=True describes arrays; frame files say how they are encoded: leave it out", field="linear"
-        )
     fitter = Fitter(model, verify=False, variant=variant)
     return scene_sequences.fit_scene_sequence(
         frames,
@@ -186,6 +166,38 @@ def scene_sequence(
         step_progress=step_progress,
         mask=mask,
     )
+
+
+def check_written(
+    frames: object,
+    out: str | os.PathLike[str] | None,
+    render: tuple[int, int] | None,
+    progress: Callable[[int, int, float], None] | None,
+    linear: bool,
+) -> None:
+    """Raises the one-line error of `fit_sequence`'s arguments that a sequence written to a folder (`out`) needs or a
+    list of frames does not take (the frames: a list without `out`, a folder with it), the test scene's and a
+    scene's alike."""
+    if out is None and (isinstance(frames, str | os.PathLike) or render is not None or progress is not None):
+        raise FitError(
+            "a folder of frames, render= and progress= are for a sequence written to a folder: give out= too, or "
+            "give the frames as a list",
+            field="out",
+        )
+    if out is None and not isinstance(frames, Iterable):
+        raise FitError(
+            f"frames {shown(frames)} is no list of pictures: give the frames' paths or arrays, or their folder with "
+            "out=",
+            field="frames",
+        )
+    if out is not None and not isinstance(frames, str | os.PathLike):
+        raise FitError(
+            f"frames {shown(frames)} is no folder: with out=, give the folder that holds the frames", field="frames"
+        )
+    if out is not None and linear:
+        raise ImageError(
+            "linear=True describes arrays; frame files say how they are encoded: leave it out", field="linear"
+        )
 
 
 def render_settings(render: object) -> tuple[int, int]:
@@ -209,25 +221,16 @@ def written_sequence(
     out: str | os.PathLike[str],
     render: tuple[int, int] | None,
     progress: Callable[[int, int, float], None] | None,
-    linear: bool,
 ) -> list[Fit]:
     """Returns `fit_sequence`'s fits of a folder of frames written into `out` (`fitting/sequence.run`)."""
     from matfit.fitting import sequence
 
-    if not isinstance(frames, str | os.PathLike):
-        raise FitError(
-            f"frames {shown(frames)} is no folder: with out=, give the folder that holds the frames", field="frames"
-        )
     written = path_of("out", out, OutputError, "give the folder to write into")
-    if linear:
-        raise ImageError(
-            "linear=True describes arrays; frame files say how they are encoded: leave it out", field="linear"
-        )
     rendered = None if render is None else render_settings(render)
     fitter = Fitter(model, verify=False)
     frames_found = sequence.run(
         fitter,
-        os.fspath(frames),
+        os.fspath(cast(str, frames)),  # a folder: `check_written`
         out=written,
         settings=settings,
         reinit=reinit,
