@@ -347,6 +347,9 @@ def test_a_scene_sequence_fits_every_frame_through_one_mask_and_again_when_it_ch
     refused = run(*command, "--mask", small)
     assert_one_line_error(refused, f"the mask is {width // 2}x{height // 2}", "give a mask of the frames' size")
     assert not out.exists()
+    missing = run(*command, "--mask", tmp_path / "none.png")
+    assert_one_line_error(missing, f"mask {tmp_path / 'none.png'} is not a file", "give the mask's path")
+    assert not out.exists()
     assert_one_line_error(run("sequence", frames, "--mask", mask, "-o", out), "--mask")  # the test scene's: none
     result = run(*command, "--mask", mask)
     assert result.exit_code == 0, result.output

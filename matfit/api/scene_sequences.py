@@ -20,7 +20,7 @@ from matfit.api.arguments import Picture, path_text, whole
 from matfit.api.material import Material
 from matfit.api.results import Fit
 from matfit.api.scenes import Scene
-from matfit.errors import FitError, ImageError, SceneError
+from matfit.errors import ImageError, SceneError
 
 if TYPE_CHECKING:
     from matfit.fitting.scene_fit import SceneOutcome
@@ -196,7 +196,7 @@ def _frames(
         note = sequence.stale(finished, computed_from, first=not chained)
         kept = None
         if finished is not None and note is None:
-            document = documents.read(json_path, "delete it to fit that frame again", FitError)
+            document = finished[2]
             if document["sequence"].get("scene") != identity:
                 note = (
                     "the scene file, or a file it names, is not the one its result on disk was fitted in: fitted again"
@@ -303,10 +303,7 @@ def _mask_path(mask: Picture | None) -> str | None:
 def _mask_size(mask: Picture) -> tuple[int, int]:
     """Returns the mask's (width, height), a file's from its header; the one-line ImageError of one that is none."""
     if isinstance(mask, str | os.PathLike):
-        path = path_text(mask)
-        if not os.path.isfile(path):
-            raise ImageError(f"mask {path} is not a file: give the mask's path", field="mask")
-        return images.header(path)[:2]
+        return images.header(scenes.mask_file(mask))[:2]
     shape = np.shape(mask)
     if len(shape) not in (2, 3):
         raise ImageError(f"mask of shape {shape} is no picture: give an (H, W) or (H, W, C) array", field="mask")

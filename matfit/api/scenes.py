@@ -137,13 +137,19 @@ def _picture(picture: Picture, linear: bool) -> tuple[np.ndarray, str, str, list
     return pixels, "array", digest, notices
 
 
+def mask_file(mask: str | os.PathLike[str]) -> str:
+    """Returns the path of a mask given as a file; the one-line ImageError of one that is no file."""
+    path = path_text(mask)
+    if not os.path.isfile(path):
+        raise ImageError(f"mask {path} is not a file: give the mask's path", field="mask")
+    return path
+
+
 def _mask(mask: Picture | None, shape: tuple[int, int]) -> tuple[np.ndarray | None, str | None]:
     if mask is None:
         return None, None
     if isinstance(mask, str | os.PathLike):
-        path = path_text(mask)
-        if not os.path.isfile(path):
-            raise ImageError(f"mask {path} is not a file: give the mask's path", field="mask")
+        path = mask_file(mask)
         pixels, name = np.asarray(images.load(path).pixels, np.float32), path
     else:
         pixels, name = linear_pixels(mask, "mask", linear=False)[0], "array"

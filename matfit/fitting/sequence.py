@@ -163,8 +163,9 @@ def run_settings(settings: search.Settings, reinit: bool, model: models.Model) -
     }
 
 
-def read_finished(path: str, expected: dict) -> tuple[Frame, dict] | None:
-    """Returns a finished frame's result and what it was computed from, if its file exists with the same settings."""
+def read_finished(path: str, expected: dict) -> tuple[Frame, dict, dict] | None:
+    """Returns a finished frame's result, what it was computed from and its whole document (params.json with its
+    `sequence` record), if its file exists with the same settings."""
     if not os.path.exists(path):
         return None
     try:
@@ -191,10 +192,10 @@ def read_finished(path: str, expected: dict) -> tuple[Frame, dict] | None:
             f"{path} was made with other settings or another model ({stored.get('settings')}): "
             "use another --out folder or delete it"
         )
-    return frame, {"frame_sha256": stored.get("frame_sha256"), "previous": stored.get("previous")}
+    return frame, {"frame_sha256": stored.get("frame_sha256"), "previous": stored.get("previous")}, document
 
 
-def stale(finished: tuple[Frame, dict] | None, computed_from: dict, *, first: bool = False) -> str | None:
+def stale(finished: tuple[Frame, dict, dict] | None, computed_from: dict, *, first: bool = False) -> str | None:
     """Returns why a finished frame's result must be fitted again (None: it can be reused)."""
     if finished is None:
         return None
