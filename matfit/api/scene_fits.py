@@ -8,6 +8,8 @@ import os
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from matfit.api import scenes
 from matfit.api.arguments import Picture, path_text, shown
 from matfit.api.choices import check_choices
@@ -69,21 +71,55 @@ def fit_of(outcome: SceneOutcome, document: dict[str, Any], name: str) -> Fit:
         f"{name}: scene {document['scene']['object']!r}, Mitsuba RMSE {outcome.rmse:.2f} "
         f"(start {outcome.start_rmse:.2f}), {outcome.seconds:.1f} s"
     )
+    return scene_fit_result(
+        outcome.values,
+        rmse=outcome.rmse,
+        ranges=dict(outcome.ranges),
+        notices=tuple(document["notices"]),
+        summary=summary,
+        target=outcome.target,
+        rendered=outcome.rendered,
+        document=document,
+        start="given",
+        start_rmse=outcome.start_rmse,
+        evaluations=len(outcome.losses),
+        start_image=outcome.start_rendered,
+    )
+
+
+def scene_fit_result(
+    values: np.ndarray,
+    *,
+    rmse: float,
+    ranges: dict[str, Any],
+    notices: tuple[str, ...],
+    summary: str,
+    target: np.ndarray,
+    rendered: np.ndarray,
+    document: dict[str, Any],
+    start: str,
+    start_rmse: float,
+    evaluations: int,
+    start_image: np.ndarray | None = None,
+) -> Fit:
+    """Returns the `Fit` of a scene fit's answer (physical `values`): no neural RMSE, verification or clean answer;
+    its picture of the material is the judge's render, `rendered` (sRGB at the fit's size), as is Mitsuba's. Made
+    of a fit just run (`fit_of`) or of one a scene sequence kept from an earlier run (`scene_sequences`)."""
     return Fit(
-        Material.from_array(outcome.values),
+        Material.from_array(values),
         float("nan"),
-        outcome.rmse,
+        float(rmse),
         {},
-        dict(outcome.ranges),
+        ranges,
         {},
-        tuple(document["notices"]),
+        notices,
         summary,
-        outcome.target,
-        outcome.rendered,
-        outcome.rendered,
+        target,
+        rendered,
+        rendered,
         document,
-        "given",
-        outcome.start_rmse,
-        len(outcome.losses),
-        outcome.start_rendered,
+        start,
+        float(start_rmse),
+        int(evaluations),
+        start_image,
     )

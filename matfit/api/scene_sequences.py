@@ -141,14 +141,14 @@ def _written(
         model=model_path,
         inputs=[*scenes.scene_inputs(chain.read), ("mask", _mask_path(chain.mask))],
     )
-    masked = None if chain.mask is None else _mask_size(chain.mask)
+    mask_size = None if chain.mask is None else _mask_size(chain.mask)
     for path in paths:
         width, height = images.header(path)[:2]
         scene_fit.check_aspect(chain.read, height, width, f"the frame {path}")
-        if masked is not None and masked != (width, height):
+        if mask_size is not None and mask_size != (width, height):
             raise ImageError(
-                f"the mask is {masked[0]}x{masked[1]}, the frame {path} {width}x{height}: give a mask of the frames' "
-                "size",
+                f"the mask is {mask_size[0]}x{mask_size[1]}, the frame {path} {width}x{height}: give a mask of the "
+                "frames' size",
                 field="mask",
             )
     created = not os.path.isdir(out)
@@ -183,7 +183,7 @@ def _frames(
     began = time.perf_counter()
     settings = {"method": "scene", "steps": chain.steps, "reinit": chain.reinit}
     identity = scenes.identity(chain.read)
-    masked = None if chain.mask is None else _mask_sha256(chain.mask)
+    mask_sha256 = None if chain.mask is None else _mask_sha256(chain.mask)
     first = None if chain.start is None else [float(u) for u in params.to_unit(chain.start.array())]
     results: list[Frame] = []
     fits: list[Fit] = []
@@ -201,13 +201,15 @@ def _frames(
                 note = (
                     "the scene file, or a file it names, is not the one its result on disk was fitted in: fitted again"
                 )
-            elif document["sequence"].get("mask_sha256") != masked:
+            elif document["sequence"].get("mask_sha256") != mask_sha256:
                 note = "the mask is not the one its result on disk was fitted through: fitted again"
             else:
                 kept = finished[0], _kept(path, finished[0], document, chain)
         if kept is not None:
             frame, fit = kept
         else:
+            # from the unit-cube start the frame's record holds, so that a resumed run starts each frame as a run
+            # that was not stopped does (a kept frame's answer is read back from that record)
             values = None if previous is None else params.from_unit(np.asarray(previous, np.float64))
             outcome, document, label = chain.fit(path, values, chained, False)
             unit = params.to_unit(outcome.values)
@@ -224,7 +226,7 @@ def _frames(
                 "seconds": outcome.seconds,
                 "settings": settings,
                 "scene": identity,
-                "mask_sha256": masked,
+                "mask_sha256": mask_sha256,
                 **computed_from,
                 "unit": [float(u) for u in unit],
             }
@@ -259,22 +261,18 @@ def _kept(path: str, frame: Frame, document: dict[str, Any], chain: _Chain) -> F
         f"{path}: kept, fitted by an earlier run of this command (scene {read.object!r}, Mitsuba RMSE "
         f"{frame.rmse:.2f}, start {frame.start_rmse:.2f})"
     )
-    return Fit(
-        Material.from_array(values),
-        float("nan"),
-        float(frame.rmse),
-        {},
-        dict(document.get("ranges") or {}),
-        {},
-        (),
-        summary,
-        target.astype(np.float32),
-        image,
-        image,
-        document,
-        frame.start,
-        float(frame.start_rmse),
-        int(frame.evaluations),
+    return scene_fits.scene_fit_result(
+        values,
+        rmse=frame.rmse,
+        ranges=dict(document.get("ranges") or {}),
+        notices=(),
+        summary=summary,
+        target=target.astype(np.float32),
+        rendered=image,
+        document=document,
+        start=frame.start,
+        start_rmse=frame.start_rmse,
+        evaluations=frame.evaluations,
     )
 
 
