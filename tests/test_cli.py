@@ -643,7 +643,8 @@ def test_bench_speed_times_each_stage_and_counts_the_renders_of_a_warm_fit(train
     first, fit, search, verification, rest, clean = (float(cell.split()[0]) for cell in cells[1:7])
     assert 0 < search < fit and 0 < verification < fit and 0 < rest < fit and clean >= 0
     assert search - 0.01 <= first < fit  # the neural answer lands once the search ends, before Mitsuba checks it
-    assert fit == pytest.approx(search + verification + rest + clean, abs=0.02)
+    # five figures each rounded to 0.01 in the table: their sum may read up to 5 x 0.005 off
+    assert fit == pytest.approx(search + verification + rest + clean, abs=0.026)
     renders, samples, cores = int(cells[7]), float(cells[8]), float(cells[9])
     # at least the batches of the start, the best end and the last round, and the rounds' residuals
     assert renders >= 3 * verify.BATCHES + methods.CORRECTIONS
